@@ -1,0 +1,183 @@
+//! `pipeline.toml`: the schema, its defaults, and errors that name the key and its line.
+//!
+//! Each stage's table deserialises straight into that stage's `Params`; unknown keys and wrong
+//! types are errors. Relative paths are taken relative to the configuration file's folder.
+
+use crate::stage::{hu, ingest_tmp as ingest};
+use anyhow::{anyhow, bail, Context as _};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    pub pipeline: PipelineSection,
+    pub dataset: DatasetSection,
+    #[serde(default)]
+    pub ingest: ingest::Params,
+    #[serde(default)]
+    pub hu: hu::Params,
+    #[serde(default)]
+    pub drr: NotYet,
+    #[serde(default)]
+    pub train: NotYet,
+    #[serde(default)]
+    pub grid: NotYet,
+    #[serde(default)]
+    pub sweep: NotYet,
+    #[serde(default)]
+    pub select: NotYet,
+    #[serde(default)]
+    pub metrics: NotYet,
+    /// The folder relative paths are resolved against (the config file's folder).
+    #[serde(skip)]
+    pub base_dir: PathBuf,
+}
+
+/// A stage table that takes no keys yet (the stage arrives in a later release).
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NotYet {}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PipelineSection {
+    /// A name for this configuration, shown in reports.
+    pub name: String,
+    #[serde(default = "default_cache_dir")]
+    pub cache_dir: PathBuf,
+    #[serde(default = "default_out_dir")]
+    pub out_dir: PathBuf,
+    /// Worker threads per stage (patients a stage works on at once).
+    #[serde(default = "default_workers")]
+    pub workers: usize,
+    /// Per-stage overrides of `workers`, e.g. `{ train = 1 }`.
+    #[serde(default)]
+    pub stage_workers: BTreeMap<String, usize>,
+}
+
+fn default_cache_dir() -> PathBuf {
+    "cache".into()
+}
+fn default_out_dir() -> PathBuf {
+    "out".into()
+}
+fn default_workers() -> usize {
+    2
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DatasetKind {
+    /// `root/<patient>/…`: one folder per patient holding a CT series (any nesting) and
+    /// optionally its LIDC XML.
+    Dicom,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetSection {
+    pub kind: DatasetKind,
+    pub root: PathBuf,
+}
+
+impl Config {
+    /// Reads and checks `path`. Errors name the file, the key and its line.
+    pub fn load(path: &Path) -> anyhow::Result<Config> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read configuration {}", path.display()))?;
+        let mut config = Config::parse(&text).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        config.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        if config.base_dir.as_os_str().is_empty() {
+            config.base_dir = ".".into();
+        }
+        Ok(config)
+    }
+
+    /// Parses configuration text (paths stay relative).
+    pub fn parse(text: &str) -> anyhow::Result<Config> {
+        let config: Config = toml::from_str(text).map_err(|e| anyhow!("{}", e.to_string().trim_end()))?;
+        config.check()?;
+        Ok(config)
+    }
+
+    fn check(&self) -> anyhow::Result<()> {
+        if self.pipeline.workers == 0 {
+            bail!("[pipeline] workers must be at least 1");
+        }
+        let stages = crate::stage::STAGE_NAMES;
+        for (name, &n) in &self.pipeline.stage_workers {
+            if !stages.contains(&name.as_str()) {
+                bail!("[pipeline.stage_workers] has `{name}`, which is not a stage (stages: {})", stages.join(", "));
+            }
+            if n == 0 {
+                bail!("[pipeline.stage_workers] {name} must be at least 1");
+            }
+        }
+        self.hu.check()?;
+        self.ingest.check()?;
+        Ok(())
+    }
+
+    pub fn resolve(&self, p: &Path) -> PathBuf {
+        if p.is_absolute() {
+            p.to_path_buf()
+        } else {
+            self.base_dir.join(p)
+        }
+    }
+
+    pub fn cache_dir(&self) -> PathBuf {
+        self.resolve(&self.pipeline.cache_dir)
+    }
+
+    pub fn out_dir(&self) -> PathBuf {
+        self.resolve(&self.pipeline.out_dir)
+    }
+
+    pub fn dataset_root(&self) -> PathBuf {
+        self.resolve(&self.dataset.root)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str = "[pipeline]\nname = \"t\"\n[dataset]\nkind = \"dicom\"\nroot = \"data\"\n";
+
+    #[test]
+    fn minimal_config_gets_defaults() {
+        let c = Config::parse(MINIMAL).unwrap();
+        assert_eq!(c.pipeline.workers, 2);
+        assert_eq!(c.hu.hu_max, 400.0);
+    }
+
+    #[test]
+    fn unknown_key_names_key_and_line() {
+        let text = format!("{MINIMAL}[hu]\nhu_maxx = 3\n");
+        let e = Config::parse(&text).unwrap_err().to_string();
+        assert!(e.contains("line 7") && e.contains("hu_maxx"), "{e}");
+    }
+
+    #[test]
+    fn wrong_type_names_key_and_line() {
+        let text = format!("{MINIMAL}[hu]\nhu_max = \"high\"\n");
+        let e = Config::parse(&text).unwrap_err().to_string();
+        assert!(e.contains("line 7") && e.contains("hu_max"), "{e}");
+    }
+
+    #[test]
+    fn keys_in_future_stage_tables_are_rejected() {
+        let e = Config::parse(&format!("{MINIMAL}[train]\niters = 3\n")).unwrap_err().to_string();
+        assert!(e.contains("iters"), "{e}");
+    }
+
+    #[test]
+    fn stage_workers_must_name_stages() {
+        let text = MINIMAL.replace("name = \"t\"\n", "name = \"t\"\nstage_workers = { trian = 1 }\n");
+        let e = Config::parse(&text).unwrap_err().to_string();
+        assert!(e.contains("trian"), "{e}");
+    }
+}

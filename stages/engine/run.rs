@@ -1,0 +1,291 @@
+//! The streaming executor.
+//!
+//! Patients flow through the per-patient stages concurrently: each stage has its own pool of
+//! worker threads and a bounded channel in front of it, so a slow stage holds back only as many
+//! patients as it has workers. A patient that fails at one stage is reported and skipped by the
+//! stages after it; the others go on. Cohort stages run once every patient is through.
+
+use super::export::publish;
+use super::lock::FileLock;
+use super::plan::{self, Decision};
+use super::progress::Progress;
+use super::source::{self, SourceFile};
+use super::stage::{Context, Finished, OutputRef, Stage, StageGraph, SOURCE};
+use super::store::{InputRef, Manifest, Store};
+use crossbeam_channel::bounded;
+use serde::Serialize;
+use std::collections::{BTreeMap, HashMap};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// The unit a cohort stage runs for, and its folder name under `out_dir` (none: `out_dir` itself).
+pub const COHORT: &str = "cohort";
+
+/// One patient: an ID and the folder of its own files.
+#[derive(Debug, Clone)]
+pub struct Unit {
+    pub id: String,
+    pub source_dir: PathBuf,
+}
+
+pub struct RunOptions {
+    /// Re-hash every cached blob and source file instead of trusting sizes and fingerprints.
+    pub verify: bool,
+    /// Stages recomputed even when cached.
+    pub force: Vec<String>,
+    /// Worker threads per stage name; stages not listed get `default_workers`.
+    pub workers: HashMap<String, usize>,
+    pub default_workers: usize,
+    /// Where results are published (`out_dir/<patient>/<output>`).
+    pub out_dir: PathBuf,
+}
+
+impl RunOptions {
+    fn workers_for(&self, stage: &str) -> usize {
+        self.workers.get(stage).copied().unwrap_or(self.default_workers).max(1)
+    }
+}
+
+/// What happened to one (unit, stage).
+#[derive(Debug, Clone, Serialize)]
+#[serde(tag = "outcome", rename_all = "snake_case")]
+pub enum Outcome {
+    /// Served from the cache (the seconds it originally took to compute).
+    Cached { seconds: f64 },
+    Computed { seconds: f64 },
+    Failed { cause: String },
+    /// Not attempted because an upstream stage failed.
+    Skipped { upstream: String },
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Record {
+    pub unit: String,
+    pub stage: String,
+    #[serde(flatten)]
+    pub outcome: Outcome,
+}
+
+/// Everything a run did, in unit order then stage order.
+#[derive(Debug, Default, Serialize)]
+pub struct RunSummary {
+    pub records: Vec<Record>,
+    pub wall_seconds: f64,
+}
+
+impl RunSummary {
+    pub fn failures(&self) -> impl Iterator<Item = &Record> {
+        self.records.iter().filter(|r| matches!(r.outcome, Outcome::Failed { .. }))
+    }
+
+    pub fn count(&self, stage: &str, pred: impl Fn(&Outcome) -> bool) -> usize {
+        self.records.iter().filter(|r| r.stage == stage && pred(&r.outcome)).count()
+    }
+}
+
+/// A patient travelling through the stages.
+struct Job {
+    unit: Unit,
+    sources: Option<Vec<SourceFile>>,
+    finished: Finished,
+    failed_at: Option<String>,
+    records: Vec<Record>,
+}
+
+/// Shared, read-only state of a run.
+struct Shared<'a> {
+    store: &'a Store,
+    options: &'a RunOptions,
+    progress: &'a Progress,
+}
+
+/// Runs `graph` for every unit, then its cohort stages. Never stops early for a failure.
+pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptions, progress: &Progress) -> RunSummary {
+    let started = Instant::now();
+    let shared = Shared { store, options, progress };
+    let patient_stages: Vec<&dyn Stage> =
+        graph.stages().iter().filter(|s| !s.is_cohort()).map(|s| s.as_ref()).collect();
+    let mut jobs = stream_patients(&shared, &patient_stages, units);
+    jobs.sort_by(|a, b| a.unit.id.cmp(&b.unit.id));
+
+    let mut records: Vec<Record> = jobs.iter_mut().flat_map(|j| std::mem::take(&mut j.records)).collect();
+    let failed: Vec<String> = jobs.iter().filter(|j| j.failed_at.is_some()).map(|j| j.unit.id.clone()).collect();
+    let patients: BTreeMap<String, Finished> = jobs
+        .into_iter()
+        .filter(|j| j.failed_at.is_none())
+        .map(|j| (j.unit.id, j.finished))
+        .collect();
+    // Cohort stages run in order; each may read the patients' outputs and earlier cohort stages.
+    let mut cohort_finished = Finished::new();
+    let mut cohort_failed: Option<String> = None;
+    for stage in graph.stages().iter().filter(|s| s.is_cohort()) {
+        let stage = stage.as_ref();
+        let outcome = if let Some(up) = &cohort_failed {
+            Outcome::Skipped { upstream: up.clone() }
+        } else {
+            progress.started(stage.name(), COHORT);
+            let inputs = plan::cohort_inputs(stage, &patients, &cohort_finished, &failed);
+            let ctx = Context { unit: COHORT, store, sources: &[], inputs: &cohort_finished, cohort: &patients };
+            let (outcome, outputs) = run_stage(&shared, stage, COHORT, inputs, &ctx, &options.out_dir);
+            match outputs {
+                Some(outputs) => drop(cohort_finished.insert(stage.name(), outputs)),
+                None => cohort_failed = Some(stage.name().to_string()),
+            }
+            outcome
+        };
+        progress.finished(stage.name(), COHORT, &outcome);
+        records.push(Record { unit: COHORT.into(), stage: stage.name().into(), outcome });
+    }
+    RunSummary { records, wall_seconds: started.elapsed().as_secs_f64() }
+}
+
+/// Pushes every unit through the per-patient stages, each stage with its own worker pool.
+fn stream_patients(shared: &Shared, stages: &[&dyn Stage], units: &[Unit]) -> Vec<Job> {
+    let mut done = Vec::with_capacity(units.len());
+    std::thread::scope(|scope| {
+        let (feed_tx, mut rx) = bounded::<Job>(1);
+        for &stage in stages {
+            let workers = shared.options.workers_for(stage.name());
+            let (tx, next_rx) = bounded::<Job>(workers);
+            for _ in 0..workers {
+                let (rx, tx) = (rx.clone(), tx.clone());
+                scope.spawn(move || {
+                    for mut job in rx {
+                        step(shared, stage, &mut job);
+                        if tx.send(job).is_err() {
+                            break;
+                        }
+                    }
+                });
+            }
+            rx = next_rx;
+        }
+        scope.spawn(move || {
+            for unit in units {
+                let job = Job { unit: unit.clone(), sources: None, finished: Finished::new(), failed_at: None, records: vec![] };
+                if feed_tx.send(job).is_err() {
+                    break;
+                }
+            }
+        });
+        done.extend(rx.iter());
+    });
+    done
+}
+
+/// One stage for one patient: serve from the cache or compute, then publish.
+fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
+    let outcome = if let Some(up) = &job.failed_at {
+        Outcome::Skipped { upstream: up.clone() }
+    } else {
+        shared.progress.started(stage.name(), &job.unit.id);
+        let outcome = match ensure_sources(shared, stage, job) {
+            Err(cause) => Outcome::Failed { cause },
+            Ok(()) => {
+                let sources = job.sources.as_deref().unwrap_or(&[]);
+                let inputs = plan::patient_inputs(stage, sources, &job.finished);
+                let no_cohort = BTreeMap::new();
+                let ctx = Context {
+                    unit: &job.unit.id,
+                    store: shared.store,
+                    sources,
+                    inputs: &job.finished,
+                    cohort: &no_cohort,
+                };
+                let dir = shared.options.out_dir.join(&job.unit.id);
+                let (outcome, outputs) = run_stage(shared, stage, &job.unit.id, inputs, &ctx, &dir);
+                if let Some(outputs) = outputs {
+                    job.finished.insert(stage.name(), outputs);
+                }
+                outcome
+            }
+        };
+        if matches!(outcome, Outcome::Failed { .. }) {
+            job.failed_at = Some(stage.name().to_string());
+        }
+        outcome
+    };
+    shared.progress.finished(stage.name(), &job.unit.id, &outcome);
+    job.records.push(Record { unit: job.unit.id.clone(), stage: stage.name().into(), outcome });
+}
+
+fn ensure_sources(shared: &Shared, stage: &dyn Stage, job: &mut Job) -> Result<(), String> {
+    if job.sources.is_none() && stage.inputs().contains(&SOURCE) {
+        let files = source::scan(shared.store, &job.unit.id, &job.unit.source_dir, shared.options.verify)
+            .map_err(|e| format!("{e:#}"))?;
+        job.sources = Some(files);
+    }
+    Ok(())
+}
+
+/// Looks the stage up in the cache, else computes it under its key's lock; publishes the outputs.
+fn run_stage(
+    shared: &Shared,
+    stage: &dyn Stage,
+    unit: &str,
+    inputs: Vec<(String, String, crate::engine::Hash)>,
+    ctx: &Context,
+    publish_dir: &std::path::Path,
+) -> (Outcome, Option<Vec<OutputRef>>) {
+    let store = shared.store;
+    let forced = shared.options.force.iter().any(|f| f == stage.name());
+    let keyed = plan::key(stage, unit, inputs);
+    let served = |manifest: Manifest| {
+        let outcome = Outcome::Cached { seconds: manifest.wall_seconds };
+        finish(store, &manifest, publish_dir).map(|()| (outcome, Some(manifest.outputs)))
+    };
+    let result = (|| -> anyhow::Result<(Outcome, Option<Vec<OutputRef>>)> {
+        if let Decision::Cached(m) = plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
+            return served(m);
+        }
+        let _lock = FileLock::exclusive(&store.lock_path(&format!("{}-{}", stage.name(), keyed.key.hex())))?;
+        // Another process may have computed it while we waited for the lock.
+        if let Decision::Cached(m) = plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
+            return served(m);
+        }
+        let started = Instant::now();
+        let outputs = match catch_unwind(AssertUnwindSafe(|| stage.run(ctx))) {
+            Ok(Ok(outputs)) => outputs,
+            Ok(Err(e)) => return Ok((Outcome::Failed { cause: format!("{e:#}") }, None)),
+            Err(panic) => return Ok((Outcome::Failed { cause: format!("internal error (panic): {}", panic_text(&panic)) }, None)),
+        };
+        let mut refs = Vec::with_capacity(outputs.len());
+        for output in &outputs {
+            if refs.iter().any(|r: &OutputRef| r.name == output.name) {
+                anyhow::bail!("stage `{}` returned output `{}` twice", stage.name(), output.name);
+            }
+            refs.push(store.put_blob(&output.name, &output.bytes)?);
+        }
+        let seconds = started.elapsed().as_secs_f64();
+        let manifest = Manifest {
+            stage: stage.name().into(),
+            version: stage.version(),
+            key: keyed.key,
+            unit: unit.into(),
+            params: keyed.params.clone(),
+            inputs: keyed.inputs.iter().map(|(s, n, h)| InputRef { stage: s.clone(), name: n.clone(), hash: *h }).collect(),
+            outputs: refs.clone(),
+            wall_seconds: seconds,
+            tool_version: concat!("aret-pipe ", env!("CARGO_PKG_VERSION")).into(),
+            created_unix: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0),
+        };
+        store.put_manifest(&manifest)?;
+        finish(store, &manifest, publish_dir)?;
+        Ok((Outcome::Computed { seconds }, Some(refs)))
+    })();
+    result.unwrap_or_else(|e| (Outcome::Failed { cause: format!("{e:#}") }, None))
+}
+
+fn finish(store: &Store, manifest: &Manifest, publish_dir: &std::path::Path) -> anyhow::Result<()> {
+    store.set_latest(manifest)?;
+    publish(store, publish_dir, &manifest.outputs)
+}
+
+fn panic_text(panic: &Box<dyn std::any::Any + Send>) -> String {
+    panic
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| panic.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "unknown panic".into())
+}

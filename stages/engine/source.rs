@@ -1,0 +1,85 @@
+//! A patient's own input files: listed, fingerprinted and content-hashed.
+//!
+//! Hashing every DICOM file on every run would cost seconds, so each file's hash is remembered
+//! beside its (size, modification time) fingerprint and recomputed only when that changes, or
+//! always with `--verify`. A file touched but unchanged re-hashes to the same bytes, and early
+//! cutoff keeps everything downstream cached.
+
+use super::key::Hash;
+use super::store::{hash_file, write_atomic, Store};
+use anyhow::{anyhow, Context as _};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// One input file of a patient.
+#[derive(Debug, Clone)]
+pub struct SourceFile {
+    /// Path relative to the patient's folder, `/`-separated.
+    pub rel: String,
+    pub path: PathBuf,
+    pub size: u64,
+    pub hash: Hash,
+}
+
+#[derive(Serialize, Deserialize)]
+struct Fingerprint {
+    rel: String,
+    size: u64,
+    mtime_ns: i128,
+    hash: Hash,
+}
+
+/// Lists every regular file under `dir` (any nesting, hidden names skipped, sorted) with its
+/// content hash, reusing remembered hashes whose fingerprint still matches.
+pub fn scan(store: &Store, unit: &str, dir: &Path, verify: bool) -> anyhow::Result<Vec<SourceFile>> {
+    if !dir.is_dir() {
+        return Err(anyhow!("patient folder {} does not exist or is not a folder", dir.display()));
+    }
+    let remembered: HashMap<String, Fingerprint> = std::fs::read(store.sources_path(unit))
+        .ok()
+        .and_then(|t| serde_json::from_slice::<Vec<Fingerprint>>(&t).ok())
+        .map(|v| v.into_iter().map(|f| (f.rel.clone(), f)).collect())
+        .unwrap_or_default();
+    let walker = walkdir::WalkDir::new(dir)
+        .follow_links(true)
+        .sort_by_file_name()
+        .into_iter()
+        .filter_entry(|e| e.depth() == 0 || !e.file_name().to_string_lossy().starts_with('.'));
+    let (mut files, mut prints, mut changed) = (Vec::new(), Vec::new(), false);
+    for entry in walker {
+        let entry = entry.with_context(|| format!("listing {}", dir.display()))?;
+        if !entry.file_type().is_file() {
+            continue;
+        }
+        let meta = entry.metadata().with_context(|| format!("reading {}", entry.path().display()))?;
+        let rel = entry
+            .path()
+            .strip_prefix(dir)
+            .expect("walkdir stays under its root")
+            .components()
+            .map(|c| c.as_os_str().to_string_lossy())
+            .collect::<Vec<_>>()
+            .join("/");
+        let mtime_ns = meta
+            .modified()
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map(|d| d.as_nanos() as i128)
+            .unwrap_or(-1);
+        let known = remembered.get(&rel).filter(|f| !verify && f.size == meta.len() && f.mtime_ns == mtime_ns);
+        let hash = match known {
+            Some(f) => f.hash,
+            None => {
+                changed = true;
+                hash_file(entry.path()).with_context(|| format!("reading {}", entry.path().display()))?
+            }
+        };
+        prints.push(Fingerprint { rel: rel.clone(), size: meta.len(), mtime_ns, hash });
+        files.push(SourceFile { rel, path: entry.path().to_path_buf(), size: meta.len(), hash });
+    }
+    if changed || prints.len() != remembered.len() {
+        write_atomic(&store.sources_path(unit), &serde_json::to_vec(&prints)?, false)?;
+    }
+    Ok(files)
+}

@@ -1,0 +1,168 @@
+//! The one trait through which the engine calls stages, and the graph they form.
+
+use super::key::Hash;
+use super::source::SourceFile;
+use super::store::Store;
+use anyhow::{anyhow, Context as _};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+/// The pseudo-stage naming a patient's own input files (its dataset folder).
+pub const SOURCE: &str = "source";
+
+/// A named output a stage returns; the engine hashes and stores the bytes.
+pub struct Output {
+    pub name: String,
+    pub bytes: Vec<u8>,
+}
+
+impl Output {
+    pub fn new(name: impl Into<String>, bytes: impl Into<Vec<u8>>) -> Output {
+        Output { name: name.into(), bytes: bytes.into() }
+    }
+}
+
+/// A stored output: its file name and the content hash of its bytes.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OutputRef {
+    pub name: String,
+    pub hash: Hash,
+    pub size: u64,
+}
+
+/// A pure function of its inputs and its own parameters.
+pub trait Stage: Send + Sync {
+    /// Unique name; also the name of its table in the configuration.
+    fn name(&self) -> &'static str;
+    /// Bumped whenever the stage's semantics change, so old cache entries stop matching.
+    fn version(&self) -> u32;
+    /// Upstream stages whose outputs this one reads ([`SOURCE`] for the patient's own files).
+    fn inputs(&self) -> &'static [&'static str];
+    /// This stage's own parameters, and nothing else.
+    fn params(&self) -> serde_json::Value;
+    /// A cohort stage runs once, after every patient has passed all per-patient stages.
+    fn is_cohort(&self) -> bool {
+        false
+    }
+    /// Compute the outputs. Must not read anything the context does not hand it.
+    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>>;
+}
+
+/// The stages in an order where each comes after all of its inputs.
+pub struct StageGraph {
+    stages: Vec<Box<dyn Stage>>,
+}
+
+impl StageGraph {
+    /// Checks that names are unique and every input is declared earlier.
+    pub fn new(stages: Vec<Box<dyn Stage>>) -> anyhow::Result<StageGraph> {
+        let mut seen: Vec<&str> = vec![SOURCE];
+        for s in &stages {
+            if seen.contains(&s.name()) {
+                return Err(anyhow!("stage `{}` is declared twice", s.name()));
+            }
+            for input in s.inputs() {
+                if !seen.contains(input) {
+                    return Err(anyhow!("stage `{}` reads `{input}`, which is not declared before it", s.name()));
+                }
+            }
+            let cohort_input = s.inputs().iter().any(|i| stages.iter().any(|t| t.name() == *i && t.is_cohort()));
+            if cohort_input && !s.is_cohort() {
+                return Err(anyhow!("per-patient stage `{}` cannot read a cohort stage", s.name()));
+            }
+            seen.push(s.name());
+        }
+        Ok(StageGraph { stages })
+    }
+
+    pub fn stages(&self) -> &[Box<dyn Stage>] {
+        &self.stages
+    }
+
+    pub fn names(&self) -> Vec<&'static str> {
+        self.stages.iter().map(|s| s.name()).collect()
+    }
+
+    pub fn get(&self, name: &str) -> Option<&dyn Stage> {
+        self.stages.iter().find(|s| s.name() == name).map(|s| s.as_ref())
+    }
+
+    /// The graph cut after `last`: `last` and every stage it depends on, in order.
+    pub fn until(self, last: &str) -> anyhow::Result<StageGraph> {
+        if self.get(last).is_none() {
+            return Err(anyhow!("--until {last}: no such stage (stages: {})", self.names().join(", ")));
+        }
+        let mut needed = vec![last];
+        for s in self.stages.iter().rev() {
+            if needed.contains(&s.name()) {
+                needed.extend(s.inputs().iter().copied());
+            }
+        }
+        let stages = self.stages.into_iter().filter(|s| needed.contains(&s.name())).collect();
+        Ok(StageGraph { stages })
+    }
+}
+
+/// The outputs a stage finished with, per upstream stage name.
+pub type Finished = BTreeMap<&'static str, Vec<OutputRef>>;
+
+/// What a stage's `run` may read: its inputs, nothing else.
+pub struct Context<'a> {
+    pub(crate) unit: &'a str,
+    pub(crate) store: &'a Store,
+    pub(crate) sources: &'a [SourceFile],
+    pub(crate) inputs: &'a Finished,
+    pub(crate) cohort: &'a BTreeMap<String, Finished>,
+}
+
+impl<'a> Context<'a> {
+    /// The patient this run is for (`"cohort"` for a cohort stage).
+    pub fn patient(&self) -> &str {
+        self.unit
+    }
+
+    /// The patient's own files (when the stage reads [`SOURCE`]), sorted by relative path.
+    pub fn source_files(&self) -> &[SourceFile] {
+        self.sources
+    }
+
+    /// Bytes of output `name` of upstream stage `stage` for this patient.
+    pub fn read(&self, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
+        self.read_from(self.inputs, stage, name)
+    }
+
+    /// The patients that reached a cohort stage, in order.
+    pub fn cohort_patients(&self) -> Vec<&str> {
+        self.cohort.keys().map(|k| k.as_str()).collect()
+    }
+
+    /// Bytes of output `name` of stage `stage` for `patient` (cohort stages only).
+    pub fn read_patient(&self, patient: &str, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
+        let finished = self
+            .cohort
+            .get(patient)
+            .ok_or_else(|| anyhow!("patient `{patient}` did not reach this cohort stage"))?;
+        self.read_from(finished, stage, name)
+    }
+
+    /// Path of a stored upstream output, for stages that stream a large file.
+    pub fn path(&self, stage: &str, name: &str) -> anyhow::Result<PathBuf> {
+        Ok(self.store.blob_path(&self.find(self.inputs, stage, name)?.hash))
+    }
+
+    fn find<'f>(&self, finished: &'f Finished, stage: &str, name: &str) -> anyhow::Result<&'f OutputRef> {
+        finished
+            .get(stage)
+            .ok_or_else(|| anyhow!("stage `{stage}` is not an input here"))?
+            .iter()
+            .find(|o| o.name == name)
+            .ok_or_else(|| anyhow!("stage `{stage}` has no output `{name}`"))
+    }
+
+    fn read_from(&self, finished: &Finished, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
+        let output = self.find(finished, stage, name)?;
+        let path = self.store.blob_path(&output.hash);
+        std::fs::read(&path).with_context(|| format!("reading {stage}/{name} from the cache ({})", path.display()))
+    }
+}

@@ -1,0 +1,2 @@
+//! File formats, one module each. No pipeline knowledge lives here.
+pub mod mhd;

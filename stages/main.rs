@@ -1,0 +1,74 @@
+//! The `aret-pipe` command line: parses arguments, then calls the library. Nothing else.
+
+use aret_pipe::commands::{self, RunArgs};
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(name = "aret-pipe", version, about = "Measure lung nodules in 3D from three X-rays")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the pipeline: compute what is not cached, publish results to out_dir.
+    Run {
+        /// The pipeline configuration (e.g. pipeline.toml).
+        config: PathBuf,
+        /// Only these patients (comma-separated IDs).
+        #[arg(long, value_delimiter = ',')]
+        patients: Option<Vec<String>>,
+        /// Stop after this stage (and what it needs).
+        #[arg(long)]
+        until: Option<String>,
+        /// Recompute this stage even when cached (repeat or comma-separate for several).
+        #[arg(long, value_delimiter = ',')]
+        force: Vec<String>,
+        /// Print, per patient and stage, whether it would run and why; run nothing.
+        #[arg(long)]
+        dry_run: bool,
+        /// Re-hash cached blobs and input files instead of trusting sizes and timestamps.
+        #[arg(long)]
+        verify: bool,
+    },
+    /// Show what is cached and what is stale, and why.
+    Status {
+        config: PathBuf,
+        #[arg(long, value_delimiter = ',')]
+        patients: Option<Vec<String>>,
+        /// Re-hash cached blobs and input files.
+        #[arg(long)]
+        verify: bool,
+    },
+    /// Delete cache blobs that no manifest references; report the bytes freed.
+    Gc { config: PathBuf },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Run { config, patients, until, force, dry_run, verify } => {
+            commands::run(&config, &RunArgs { patients, until, force, dry_run, verify })
+        }
+        Command::Status { config, patients, verify } => {
+            commands::status(&config, patients.as_deref(), verify).map(|table| {
+                print!("{table}");
+                0
+            })
+        }
+        Command::Gc { config } => commands::gc(&config).map(|line| {
+            println!("{line}");
+            0
+        }),
+    };
+    match result {
+        Ok(code) => ExitCode::from(code as u8),
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}

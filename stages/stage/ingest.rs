@@ -1,0 +1,96 @@
+//! `ingest`: a patient's DICOM CT series to an int16 HU volume in patient space (SPEC §3 ingest).
+//!
+//! Input: the patient's own files (any nesting; files that are not CT DICOM are skipped and
+//! listed). Outputs: `ct_hu.mhd` + `ct_hu.raw` (int16 HU, MetaImage with spacing, origin and
+//! direction) and `ct_series.json` (geometry and provenance, no patient-identifying tags: the
+//! patient is named only by the ID the dataset gives it).
+
+use crate::engine::{Context, Output, Stage, SOURCE};
+use crate::formats::{dicom, mhd};
+use anyhow::bail;
+use serde::{Deserialize, Serialize};
+
+pub const VERSION: u32 = 1;
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Largest allowed deviation of any slice gap from the median gap, as a fraction of it.
+    pub slice_gap_tolerance: f64,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { slice_gap_tolerance: 0.01 }
+    }
+}
+
+impl Params {
+    pub fn check(&self) -> anyhow::Result<()> {
+        if !(self.slice_gap_tolerance.is_finite() && (0.0..0.5).contains(&self.slice_gap_tolerance)) {
+            bail!("[ingest] slice_gap_tolerance must be in [0, 0.5) (got {})", self.slice_gap_tolerance);
+        }
+        Ok(())
+    }
+}
+
+/// What `ct_series.json` records.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct SeriesInfo {
+    pub patient: String,
+    pub geometry: crate::volume::Geometry,
+    pub slice_positions_mm: Vec<f64>,
+    pub slice_gap_mm: f64,
+    pub slice_thickness_mm: Option<f64>,
+    pub transfer_syntax: String,
+    pub hu_rounding_max_abs: f64,
+    pub hu_min: i16,
+    pub hu_max: i16,
+    /// Files of the patient folder that are not part of the CT series, with the reason.
+    pub skipped_files: Vec<(String, String)>,
+}
+
+pub struct Ingest {
+    pub params: Params,
+}
+
+impl Stage for Ingest {
+    fn name(&self) -> &'static str {
+        "ingest"
+    }
+    fn version(&self) -> u32 {
+        VERSION
+    }
+    fn inputs(&self) -> &'static [&'static str] {
+        &[SOURCE]
+    }
+    fn params(&self) -> serde_json::Value {
+        super::params_json(&self.params)
+    }
+    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
+        let files = ctx.source_files();
+        let paths: Vec<_> = files.iter().map(|f| f.path.clone()).collect();
+        let series = dicom::read_ct_series(&paths, self.params.slice_gap_tolerance)?;
+        let relative = |p: &std::path::Path| {
+            files.iter().find(|f| f.path == p).map(|f| f.rel.clone()).unwrap_or_else(|| p.display().to_string())
+        };
+        let info = SeriesInfo {
+            patient: ctx.patient().to_string(),
+            geometry: series.hu.geometry.clone(),
+            slice_positions_mm: series.slice_positions_mm.clone(),
+            slice_gap_mm: series.slice_gap_mm,
+            slice_thickness_mm: series.slice_thickness_mm,
+            transfer_syntax: series.transfer_syntax.clone(),
+            hu_rounding_max_abs: series.hu_rounding_max_abs,
+            hu_min: series.hu.data.iter().copied().min().unwrap_or(0),
+            hu_max: series.hu.data.iter().copied().max().unwrap_or(0),
+            skipped_files: series.skipped.iter().map(|(p, why)| (relative(p), why.clone())).collect(),
+        };
+        let (header, raw) = mhd::encode(&series.hu, "ct_hu.raw");
+        Ok(vec![
+            Output::new("ct_hu.mhd", header),
+            Output::new("ct_hu.raw", raw),
+            Output::new("ct_series.json", serde_json::to_vec_pretty(&info)?),
+        ])
+    }
+}

@@ -1,0 +1,65 @@
+//! A 3-D voxel volume with its placement in patient space (DICOM LPS, millimetres).
+//!
+//! The memory layout is the SPEC's `[slice][row][col]`: the column index `i` varies fastest,
+//! then the row index `j`, then the slice index `k`. Axis 0 steps along `direction[0]`
+//! (the DICOM row direction cosine), axis 1 along `direction[1]` (the column direction cosine),
+//! axis 2 along `direction[2]` (the slice normal, slices ascending).
+
+use serde::{Deserialize, Serialize};
+
+/// Where a voxel grid sits in patient space.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Geometry {
+    /// Voxel counts `[columns, rows, slices]`.
+    pub dims: [usize; 3],
+    /// Distance between voxel centres along each axis, mm.
+    pub spacing_mm: [f64; 3],
+    /// Patient-space position of the centre of voxel (0, 0, 0), mm.
+    pub origin_mm: [f64; 3],
+    /// Unit direction of each index axis in patient space: `direction[a]` is axis `a`.
+    pub direction: [[f64; 3]; 3],
+}
+
+impl Geometry {
+    /// Number of voxels.
+    pub fn len(&self) -> usize {
+        self.dims.iter().product()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Patient-space position (mm) of the centre of voxel `(i, j, k)`.
+    pub fn voxel_to_patient_mm(&self, ijk: [f64; 3]) -> [f64; 3] {
+        let mut p = self.origin_mm;
+        for (axis, &index) in ijk.iter().enumerate() {
+            for (c, pc) in p.iter_mut().enumerate() {
+                *pc += self.direction[axis][c] * self.spacing_mm[axis] * index;
+            }
+        }
+        p
+    }
+
+    /// Linear index of voxel `(i, j, k)` in the `[slice][row][col]` layout.
+    pub fn index(&self, i: usize, j: usize, k: usize) -> usize {
+        i + self.dims[0] * (j + self.dims[1] * k)
+    }
+}
+
+/// Voxel values plus their geometry.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Volume<T> {
+    pub geometry: Geometry,
+    pub data: Vec<T>,
+}
+
+impl<T: Copy> Volume<T> {
+    /// A volume whose values are `f(value)` of this one, on the same geometry.
+    pub fn map<U>(&self, f: impl Fn(T) -> U) -> Volume<U> {
+        Volume {
+            geometry: self.geometry.clone(),
+            data: self.data.iter().map(|&v| f(v)).collect(),
+        }
+    }
+}

@@ -1,0 +1,348 @@
+//! The engine on toy stages (it knows nothing about CT): caching, invalidation, early cutoff,
+//! forced runs, corrupt blobs, failure isolation and cohort fan-in.
+
+use aret_pipe::engine::progress::Progress;
+use aret_pipe::engine::run::{self, Outcome, RunOptions, RunSummary, Unit};
+use aret_pipe::engine::store::Store;
+use aret_pipe::engine::{Context, Output, Stage, StageGraph, SOURCE};
+use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+type Counter = Arc<AtomicUsize>;
+
+/// Joins the patient's files (sorted by name) with `sep`. Fails on a file named `poison`.
+struct Concat {
+    sep: String,
+    runs: Counter,
+}
+impl Stage for Concat {
+    fn name(&self) -> &'static str {
+        "concat"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn inputs(&self) -> &'static [&'static str] {
+        &[SOURCE]
+    }
+    fn params(&self) -> serde_json::Value {
+        serde_json::json!({ "sep": self.sep })
+    }
+    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
+        self.runs.fetch_add(1, Ordering::SeqCst);
+        let mut parts = Vec::new();
+        for f in ctx.source_files() {
+            if f.rel == "poison" {
+                anyhow::bail!("file `poison` is not allowed");
+            }
+            if f.rel == "panic" {
+                panic!("deliberate panic");
+            }
+            parts.push(std::fs::read_to_string(&f.path)?);
+        }
+        Ok(vec![Output::new("all.txt", parts.join(&self.sep))])
+    }
+}
+
+/// Length of `concat/all.txt`, or only its parity.
+struct Length {
+    parity_only: bool,
+    runs: Counter,
+}
+impl Stage for Length {
+    fn name(&self) -> &'static str {
+        "length"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn inputs(&self) -> &'static [&'static str] {
+        &["concat"]
+    }
+    fn params(&self) -> serde_json::Value {
+        serde_json::json!({ "parity_only": self.parity_only })
+    }
+    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
+        self.runs.fetch_add(1, Ordering::SeqCst);
+        let n = ctx.read("concat", "all.txt")?.len();
+        let v = if self.parity_only { n % 2 } else { n };
+        Ok(vec![Output::new("len.txt", v.to_string())])
+    }
+}
+
+/// Cohort: one line per patient that got through.
+struct Report {
+    runs: Counter,
+}
+impl Stage for Report {
+    fn name(&self) -> &'static str {
+        "report"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn inputs(&self) -> &'static [&'static str] {
+        &["length"]
+    }
+    fn params(&self) -> serde_json::Value {
+        serde_json::json!({})
+    }
+    fn is_cohort(&self) -> bool {
+        true
+    }
+    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
+        self.runs.fetch_add(1, Ordering::SeqCst);
+        let mut text = String::new();
+        for p in ctx.cohort_patients() {
+            let len = String::from_utf8(ctx.read_patient(p, "length", "len.txt")?)?;
+            text.push_str(&format!("{p} {len}\n"));
+        }
+        Ok(vec![Output::new("report.txt", text)])
+    }
+}
+
+#[derive(Default)]
+struct Counters {
+    concat: Counter,
+    length: Counter,
+    report: Counter,
+}
+
+impl Counters {
+    fn take(&self) -> [usize; 3] {
+        [&self.concat, &self.length, &self.report].map(|c| c.swap(0, Ordering::SeqCst))
+    }
+}
+
+struct World {
+    dir: tempfile::TempDir,
+    counters: Counters,
+}
+
+impl World {
+    fn new(patients: &[(&str, &[(&str, &str)])]) -> World {
+        let dir = tempfile::tempdir().unwrap();
+        for (p, files) in patients {
+            for (name, text) in *files {
+                let path = dir.path().join("data").join(p).join(name);
+                std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+                std::fs::write(path, text).unwrap();
+            }
+        }
+        World { dir, counters: Counters::default() }
+    }
+
+    fn graph(&self, sep: &str, parity_only: bool) -> StageGraph {
+        StageGraph::new(vec![
+            Box::new(Concat { sep: sep.into(), runs: self.counters.concat.clone() }),
+            Box::new(Length { parity_only, runs: self.counters.length.clone() }),
+            Box::new(Report { runs: self.counters.report.clone() }),
+        ])
+        .unwrap()
+    }
+
+    fn units(&self) -> Vec<Unit> {
+        let mut units: Vec<Unit> = std::fs::read_dir(self.dir.path().join("data"))
+            .unwrap()
+            .map(|e| {
+                let e = e.unwrap();
+                Unit { id: e.file_name().to_string_lossy().into(), source_dir: e.path() }
+            })
+            .collect();
+        units.sort_by(|a, b| a.id.cmp(&b.id));
+        units
+    }
+
+    fn store(&self) -> Store {
+        Store::open(&self.dir.path().join("cache")).unwrap()
+    }
+
+    fn run(&self, graph: &StageGraph, force: &[&str], verify: bool) -> RunSummary {
+        let options = RunOptions {
+            verify,
+            force: force.iter().map(|s| s.to_string()).collect(),
+            workers: [("length".to_string(), 3)].into_iter().collect(),
+            default_workers: 2,
+            out_dir: self.dir.path().join("out"),
+        };
+        run::run(graph, &self.store(), &self.units(), &options, &Progress::hidden(&[]))
+    }
+
+    fn out(&self, rel: &str) -> String {
+        std::fs::read_to_string(self.dir.path().join("out").join(rel)).unwrap()
+    }
+
+    fn path(&self, rel: &str) -> std::path::PathBuf {
+        self.dir.path().join(rel)
+    }
+}
+
+fn two_patients() -> World {
+    World::new(&[("P1", &[("a.txt", "ab"), ("b.txt", "cde")]), ("P2", &[("x.txt", "xyz")])])
+}
+
+#[test]
+fn first_run_computes_everything_and_publishes() {
+    let w = two_patients();
+    let s = w.run(&w.graph("", false), &[], false);
+    assert_eq!(w.counters.take(), [2, 2, 1]);
+    assert_eq!(s.failures().count(), 0);
+    assert_eq!(w.out("P1/all.txt"), "abcde");
+    assert_eq!(w.out("P1/len.txt"), "5");
+    assert_eq!(w.out("report.txt"), "P1 5\nP2 3\n");
+}
+
+#[test]
+fn unchanged_inputs_recompute_nothing() {
+    let w = two_patients();
+    let g = w.graph("", false);
+    w.run(&g, &[], false);
+    w.counters.take();
+    let s = w.run(&g, &[], false);
+    assert_eq!(w.counters.take(), [0, 0, 0]);
+    assert!(s.records.iter().all(|r| matches!(r.outcome, Outcome::Cached { .. })));
+}
+
+#[test]
+fn editing_a_parameter_recomputes_that_stage_and_downstream_only() {
+    let w = two_patients();
+    w.run(&w.graph("", false), &[], false);
+    w.counters.take();
+    w.run(&w.graph("", true), &[], false);
+    assert_eq!(w.counters.take(), [0, 2, 1], "only length (and the cohort reading it) recompute");
+    assert_eq!(w.out("P1/len.txt"), "1");
+}
+
+#[test]
+fn early_cutoff_stops_at_identical_bytes() {
+    let w = two_patients();
+    w.run(&w.graph("", true), &[], false);
+    w.counters.take();
+    // Same length parity: concat recomputes, length recomputes to identical bytes, report cached.
+    std::fs::write(w.path("data/P1/a.txt"), "zz").unwrap();
+    w.run(&w.graph("", true), &[], false);
+    assert_eq!(w.counters.take(), [1, 1, 0]);
+    // A touched but unchanged file re-hashes to the same content: nothing recomputes.
+    std::fs::write(w.path("data/P2/x.txt"), "xyz").unwrap();
+    w.run(&w.graph("", true), &[], false);
+    assert_eq!(w.counters.take(), [0, 0, 0]);
+}
+
+#[test]
+fn force_recomputes_only_the_forced_stage() {
+    let w = two_patients();
+    let g = w.graph("-", false);
+    w.run(&g, &[], false);
+    w.counters.take();
+    let s = w.run(&g, &["concat"], false);
+    assert_eq!(w.counters.take(), [2, 0, 0]);
+    assert_eq!(s.count("concat", |o| matches!(o, Outcome::Computed { .. })), 2);
+}
+
+#[test]
+fn truncated_or_corrupt_blob_is_recomputed_never_used() {
+    let w = two_patients();
+    let g = w.graph("", false);
+    w.run(&g, &[], false);
+    w.counters.take();
+    let store = w.store();
+    let blob = |text: &str| store.blob_path(&aret_pipe::engine::Hash::of(text.as_bytes()));
+    // Truncate P1's concat output: the size check catches it on the next run.
+    let path = blob("abcde");
+    make_writable(&path);
+    std::fs::write(&path, "abc").unwrap();
+    w.run(&g, &[], false);
+    assert_eq!(w.counters.take(), [1, 0, 0], "concat recomputed, its identical bytes keep length cached");
+    assert_eq!(std::fs::read_to_string(&path).unwrap(), "abcde");
+    // Same-size corruption passes the size check; --verify re-hashes and catches it.
+    make_writable(&path);
+    std::fs::write(&path, "abcdX").unwrap();
+    w.run(&g, &[], false);
+    assert_eq!(w.counters.take(), [0, 0, 0]);
+    w.run(&g, &[], true);
+    assert_eq!(w.counters.take(), [1, 0, 0]);
+    assert_eq!(std::fs::read_to_string(&path).unwrap(), "abcde");
+    // A deleted blob is recomputed too.
+    std::fs::remove_file(blob("5")).unwrap();
+    w.run(&g, &[], false);
+    assert_eq!(w.counters.take(), [0, 1, 0]);
+}
+
+fn make_writable(path: &Path) {
+    let mut perms = std::fs::metadata(path).unwrap().permissions();
+    #[allow(clippy::permissions_set_readonly_false)]
+    perms.set_readonly(false);
+    std::fs::set_permissions(path, perms).unwrap();
+}
+
+#[test]
+fn one_failing_patient_does_not_stop_the_others() {
+    let w = World::new(&[
+        ("P1", &[("a.txt", "ab")]),
+        ("P2", &[("poison", "!")]),
+        ("P3", &[("panic", "!")]),
+        ("P4", &[("d.txt", "dddd")]),
+    ]);
+    let s = w.run(&w.graph("", false), &[], false);
+    let failed: Vec<(String, String)> = s.failures().map(|r| (r.unit.clone(), r.stage.clone())).collect();
+    assert_eq!(failed, vec![("P2".into(), "concat".into()), ("P3".into(), "concat".into())]);
+    let cause = |unit: &str| {
+        s.records
+            .iter()
+            .find_map(|r| match (&r.outcome, r.unit == unit) {
+                (Outcome::Failed { cause }, true) => Some(cause.clone()),
+                _ => None,
+            })
+            .unwrap()
+    };
+    assert!(cause("P2").contains("`poison` is not allowed"));
+    assert!(cause("P3").contains("panic") && cause("P3").contains("deliberate"));
+    assert_eq!(s.count("length", |o| matches!(o, Outcome::Skipped { .. })), 2);
+    assert_eq!(w.out("report.txt"), "P1 2\nP4 4\n", "the cohort sees the patients that got through");
+}
+
+#[test]
+fn a_missing_patient_folder_is_a_failure_of_that_patient() {
+    let w = two_patients();
+    let mut units = w.units();
+    units.push(Unit { id: "P9".into(), source_dir: w.path("data/P9") });
+    let options = RunOptions {
+        verify: false,
+        force: vec![],
+        workers: Default::default(),
+        default_workers: 1,
+        out_dir: w.path("out"),
+    };
+    let s = run::run(&w.graph("", false), &w.store(), &units, &options, &Progress::hidden(&[]));
+    let failures: Vec<_> = s.failures().collect();
+    assert_eq!(failures.len(), 1);
+    assert_eq!(failures[0].unit, "P9");
+}
+
+#[test]
+fn gc_deletes_only_unreferenced_blobs() {
+    let w = two_patients();
+    let g = w.graph("", false);
+    w.run(&g, &[], false);
+    let store = w.store();
+    let stray = store.blob_path(&aret_pipe::engine::Hash::of(b"orphan"));
+    std::fs::create_dir_all(stray.parent().unwrap()).unwrap();
+    std::fs::write(&stray, "orphan").unwrap();
+    let (files, bytes) = store.collect_garbage().unwrap();
+    assert!(files >= 1 && bytes >= 6);
+    assert!(!stray.exists());
+    w.counters.take();
+    w.run(&g, &[], false);
+    assert_eq!(w.counters.take(), [0, 0, 0], "gc kept everything manifests reference");
+}
+
+#[test]
+fn graph_rejects_inputs_declared_later() {
+    let c = Counters::default();
+    let g = StageGraph::new(vec![
+        Box::new(Length { parity_only: false, runs: c.length.clone() }) as Box<dyn Stage>,
+        Box::new(Concat { sep: String::new(), runs: c.concat.clone() }),
+    ]);
+    assert!(g.is_err());
+}
