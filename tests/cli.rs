@@ -1,0 +1,298 @@
+//! The pipeline through its command line, on small CT series written by the tests: caching and
+//! invalidation per stage, dry-run reasons, concurrent runs, SIGKILL mid-run, failure isolation,
+//! no identifying tags in any artifact.
+
+mod support;
+
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use support::dicom_writer::{default_name, series, write_series, SliceSpec};
+
+const BIN: &str = env!("CARGO_BIN_EXE_aret-pipe");
+
+struct Project {
+    dir: tempfile::TempDir,
+}
+
+impl Project {
+    /// A dataset of `patients` folders with a small CT series each.
+    fn new(patients: &[&str], slices: usize) -> Project {
+        let p = Project { dir: tempfile::tempdir().unwrap() };
+        for (n, id) in patients.iter().enumerate() {
+            let mut specs = series(slices);
+            for s in &mut specs {
+                s.intercept = Some(-1024.0 + n as f64);
+            }
+            p.write_patient(id, &specs);
+        }
+        p.write_config("pipeline.toml", "cache", "out", "");
+        p
+    }
+
+    fn write_patient(&self, id: &str, specs: &[SliceSpec]) {
+        let dir = self.path(&format!("data/{id}/series"));
+        std::fs::create_dir_all(&dir).unwrap();
+        write_series(&dir, specs, default_name);
+    }
+
+    fn write_config(&self, name: &str, cache: &str, out: &str, extra: &str) {
+        let text = format!(
+            "[pipeline]\nname = \"test\"\ncache_dir = \"{cache}\"\nout_dir = \"{out}\"\nworkers = 2\n\
+             [dataset]\nkind = \"dicom\"\nroot = \"data\"\n{extra}"
+        );
+        std::fs::write(self.path(name), text).unwrap();
+    }
+
+    fn path(&self, rel: &str) -> PathBuf {
+        self.dir.path().join(rel)
+    }
+
+    fn aret(&self, args: &[&str]) -> Output {
+        Command::new(BIN).args(args).current_dir(self.dir.path()).env("CI", "true").output().unwrap()
+    }
+
+    fn run(&self, args: &[&str]) -> Value {
+        let mut all = vec!["run", "pipeline.toml"];
+        all.extend_from_slice(args);
+        let out = self.aret(&all);
+        assert!(out.status.success(), "run failed:\n{}\n{}", text(&out.stdout), text(&out.stderr));
+        self.report("out")
+    }
+
+    fn report(&self, out_dir: &str) -> Value {
+        serde_json::from_slice(&std::fs::read(self.path(&format!("{out_dir}/run_report.json"))).unwrap()).unwrap()
+    }
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+/// How many (patient, stage) records of `stage` had `outcome`.
+fn count(report: &Value, stage: &str, outcome: &str) -> usize {
+    report["records"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|r| r["stage"] == stage && r["outcome"] == outcome)
+        .count()
+}
+
+#[test]
+fn editing_hu_recomputes_hu_only_and_forced_runs_cut_off_early() {
+    let p = Project::new(&["P1", "P2"], 4);
+    let r = p.run(&[]);
+    assert_eq!((count(&r, "ingest", "computed"), count(&r, "hu", "computed")), (2, 2));
+    assert!(p.path("out/P1/ct_hu.mhd").exists() && p.path("out/P2/ct_unit.raw").exists());
+
+    let r = p.run(&[]);
+    assert_eq!((count(&r, "ingest", "cached"), count(&r, "hu", "cached")), (2, 2), "unchanged config: nothing runs");
+
+    p.write_config("pipeline.toml", "cache", "out", "[hu]\nhu_max = 500.0\n");
+    let dry = p.aret(&["run", "pipeline.toml", "--dry-run"]);
+    let dry_text = text(&dry.stdout);
+    assert!(dry_text.contains("parameter `hu_max` changed: 400.0 → 500.0"), "{dry_text}");
+    assert!(dry_text.lines().filter(|l| l.contains("ingest")).all(|l| l.contains("cached")), "{dry_text}");
+    let r = p.run(&[]);
+    assert_eq!((count(&r, "ingest", "cached"), count(&r, "hu", "computed")), (2, 2));
+
+    let r = p.run(&["--force", "hu"]);
+    assert_eq!((count(&r, "ingest", "cached"), count(&r, "hu", "computed")), (2, 2));
+
+    // Early cutoff: ingest recomputes (its parameter changed) to identical bytes; hu stays cached.
+    p.write_config("pipeline.toml", "cache", "out", "[hu]\nhu_max = 500.0\n[ingest]\nslice_gap_tolerance = 0.02\n");
+    let r = p.run(&[]);
+    assert_eq!((count(&r, "ingest", "computed"), count(&r, "hu", "cached")), (2, 2));
+
+    let status = text(&p.aret(&["status", "pipeline.toml"]).stdout);
+    assert!(status.lines().filter(|l| l.starts_with("P")).all(|l| l.matches("cached").count() == 2), "{status}");
+}
+
+#[test]
+fn dry_run_explains_new_and_changed_inputs() {
+    let p = Project::new(&["P1"], 3);
+    let dry = text(&p.aret(&["run", "pipeline.toml", "--dry-run"]).stdout);
+    assert!(dry.contains("ingest   would run: never run"), "{dry}");
+    assert!(!p.path("out").exists(), "a dry run writes no results");
+    p.run(&[]);
+    let mut specs = series(3);
+    specs[1].intercept = Some(-1000.0);
+    p.write_patient("P1", &specs);
+    let dry = text(&p.aret(&["run", "pipeline.toml", "--dry-run"]).stdout);
+    assert!(dry.contains("input changed: source/series/slice_1.dcm"), "{dry}");
+    assert!(dry.contains("would run after `ingest`"), "{dry}");
+}
+
+#[test]
+fn hu_output_matches_the_window_formula() {
+    let p = Project::new(&["P1"], 3);
+    p.run(&[]);
+    let hu = std::fs::read(p.path("out/P1/ct_hu.raw")).unwrap();
+    let unit = std::fs::read(p.path("out/P1/ct_unit.raw")).unwrap();
+    assert_eq!(unit.len(), hu.len() * 2);
+    for (h, u) in hu.chunks_exact(2).zip(unit.chunks_exact(4)) {
+        let h = f64::from(i16::from_le_bytes([h[0], h[1]]));
+        let u = f32::from_le_bytes([u[0], u[1], u[2], u[3]]);
+        let expected = ((h.clamp(-1000.0, 400.0) + 1000.0) / 1400.0) as f32;
+        assert_eq!(u, expected);
+    }
+}
+
+#[test]
+fn a_bad_patient_fails_alone_with_a_clear_message() {
+    let p = Project::new(&["P1", "P2"], 3);
+    let mut specs = series(3);
+    specs[2].ipp[2] = specs[1].ipp[2]; // duplicate slice position
+    p.write_patient("P2", &specs);
+    let out = p.aret(&["run", "pipeline.toml"]);
+    assert_eq!(out.status.code(), Some(1));
+    let stdout = text(&out.stdout);
+    assert!(stdout.contains("failed: P2 · ingest:"), "{stdout}");
+    assert!(stdout.to_lowercase().contains("duplicate"), "{stdout}");
+    let r = p.report("out");
+    assert_eq!(count(&r, "hu", "computed"), 1);
+    assert_eq!(count(&r, "hu", "skipped"), 1);
+}
+
+#[test]
+fn no_identifying_tag_reaches_any_artifact() {
+    let p = Project::new(&["P1"], 2);
+    let mut specs = series(2);
+    for s in &mut specs {
+        s.patient = Some(("SECRET^NAME".into(), "SECRETID42".into()));
+    }
+    p.write_patient("P1", &specs);
+    let out = p.aret(&["run", "pipeline.toml"]);
+    assert!(out.status.success());
+    for entry in walkdir::WalkDir::new(p.path("out")).into_iter().chain(walkdir::WalkDir::new(p.path("cache"))) {
+        let entry = entry.unwrap();
+        if entry.file_type().is_file() {
+            let bytes = std::fs::read(entry.path()).unwrap();
+            let body = String::from_utf8_lossy(&bytes);
+            assert!(!body.contains("SECRET"), "{} leaks a patient tag", entry.path().display());
+        }
+    }
+    assert!(!text(&out.stdout).contains("SECRET") && !text(&out.stderr).contains("SECRET"));
+}
+
+#[test]
+fn config_errors_name_key_and_line_and_bad_patients_are_listed() {
+    let p = Project::new(&["P1"], 2);
+    p.write_config("pipeline.toml", "cache", "out", "[hu]\nhu_mx = 3\n");
+    let out = p.aret(&["run", "pipeline.toml"]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = text(&out.stderr);
+    assert!(err.contains("pipeline.toml") && err.contains("line 10") && err.contains("hu_mx"), "{err}");
+
+    p.write_config("pipeline.toml", "cache", "out", "");
+    let err = text(&p.aret(&["run", "pipeline.toml", "--patients", "P1,P7"]).stderr);
+    assert!(err.contains("`P7`") && err.contains("it has: P1"), "{err}");
+    let err = text(&p.aret(&["run", "pipeline.toml", "--until", "hx"]).stderr);
+    assert!(err.contains("--until hx"), "{err}");
+    let err = text(&p.aret(&["run", "pipeline.toml", "--force", "drr"]).stderr);
+    assert!(err.contains("--force drr"), "{err}");
+}
+
+#[test]
+fn until_and_patients_narrow_the_run() {
+    let p = Project::new(&["P1", "P2"], 2);
+    let r = p.run(&["--until", "ingest", "--patients", "P2"]);
+    assert_eq!(count(&r, "ingest", "computed"), 1);
+    assert_eq!(count(&r, "hu", "computed") + count(&r, "hu", "cached"), 0);
+    assert!(p.path("out/P2/ct_hu.mhd").exists() && !p.path("out/P1").exists());
+}
+
+#[test]
+fn concurrent_runs_on_one_cache_both_finish_and_compute_each_stage_once() {
+    let p = Project::new(&["P1", "P2", "P3", "P4"], 6);
+    p.write_config("a.toml", "cache", "out_a", "");
+    p.write_config("b.toml", "cache", "out_b", "");
+    let spawn = |cfg: &str| Command::new(BIN).args(["run", cfg]).current_dir(p.dir.path()).env("CI", "true").spawn().unwrap();
+    let (mut a, mut b) = (spawn("a.toml"), spawn("b.toml"));
+    assert!(a.wait().unwrap().success() && b.wait().unwrap().success());
+    let (ra, rb) = (p.report("out_a"), p.report("out_b"));
+    for stage in ["ingest", "hu"] {
+        assert_eq!(count(&ra, stage, "computed") + count(&rb, stage, "computed"), 4, "{stage} computed once per patient");
+    }
+    for id in ["P1", "P2", "P3", "P4"] {
+        for f in ["ct_hu.raw", "ct_unit.raw", "ct_series.json"] {
+            let a = std::fs::read(p.path(&format!("out_a/{id}/{f}"))).unwrap();
+            assert_eq!(a, std::fs::read(p.path(&format!("out_b/{id}/{f}"))).unwrap());
+        }
+    }
+}
+
+/// Bigger slices so that a run lasts long enough to be killed in the middle of it.
+fn big_series(n: usize) -> Vec<SliceSpec> {
+    (0..n)
+        .map(|k| {
+            let mut s = SliceSpec::ct(k);
+            s.rows = 384;
+            s.cols = 384;
+            s.stored = (0..384 * 384).map(|i| ((i * 7 + k * 13) % 2000) as i32).collect();
+            s
+        })
+        .collect()
+}
+
+#[test]
+fn a_run_killed_at_any_moment_leaves_nothing_a_later_run_trusts() {
+    let p = Project::new(&[], 0);
+    for id in ["P1", "P2", "P3"] {
+        p.write_patient(id, &big_series(24));
+    }
+    p.write_config("reference.toml", "ref_cache", "ref_out", "");
+    let out = p.aret(&["run", "reference.toml"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    for delay_ms in [5u64, 30, 60, 100, 150, 250, 400] {
+        let mut child = Command::new(BIN)
+            .args(["run", "pipeline.toml", "--force", "ingest,hu"])
+            .current_dir(p.dir.path())
+            .env("CI", "true")
+            .spawn()
+            .unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(delay_ms));
+        unsafe_kill(child.id());
+        let _ = child.wait();
+        // Whatever the kill left, a normal run completes and gives the reference bytes.
+        let out = p.aret(&["run", "pipeline.toml"]);
+        assert!(out.status.success(), "after kill at {delay_ms} ms: {}", text(&out.stderr));
+        assert_same_results(&p.path("out"), &p.path("ref_out"));
+        let r = p.run(&["--verify"]);
+        assert_eq!(count(&r, "ingest", "computed") + count(&r, "hu", "computed"), 0, "verify finds nothing corrupt");
+    }
+}
+
+fn unsafe_kill(pid: u32) {
+    let status = Command::new("kill").args(["-KILL", &pid.to_string()]).status().unwrap();
+    assert!(status.success() || status.code() == Some(1));
+}
+
+fn assert_same_results(out: &Path, reference: &Path) {
+    for id in ["P1", "P2", "P3"] {
+        for f in ["ct_hu.mhd", "ct_hu.raw", "ct_unit.mhd", "ct_unit.raw", "ct_series.json"] {
+            let a = std::fs::read(out.join(id).join(f)).unwrap();
+            let b = std::fs::read(reference.join(id).join(f)).unwrap();
+            assert!(a == b, "{id}/{f} differs from the reference run");
+        }
+    }
+}
+
+#[test]
+fn gc_deletes_orphan_blobs_and_reports_what_it_frees() {
+    let p = Project::new(&["P1"], 2);
+    p.run(&[]);
+    // A killed run can leave a blob whose manifest was never written.
+    let hash = blake3::hash(b"orphan").to_hex().to_string();
+    let orphan = p.path(&format!("cache/blobs/{}/{hash}", &hash[..2]));
+    std::fs::create_dir_all(orphan.parent().unwrap()).unwrap();
+    std::fs::write(&orphan, vec![7u8; 4096]).unwrap();
+    let out = p.aret(&["gc", "pipeline.toml"]);
+    assert!(out.status.success());
+    let line = text(&out.stdout);
+    assert!(line.starts_with("gc: deleted") && line.contains("MiB"), "{line}");
+    assert!(!orphan.exists());
+    let r = p.run(&[]);
+    assert_eq!(count(&r, "hu", "cached"), 1, "gc keeps what manifests reference");
+}
