@@ -3,7 +3,7 @@
 //! Each stage's table deserialises straight into that stage's `Params`; unknown keys and wrong
 //! types are errors. Relative paths are taken relative to the configuration file's folder.
 
-use crate::stage::{hu, ingest_tmp as ingest};
+use crate::stage::{hu, ingest};
 use anyhow::{anyhow, bail, Context as _};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -97,7 +97,8 @@ impl Config {
 
     /// Parses configuration text (paths stay relative).
     pub fn parse(text: &str) -> anyhow::Result<Config> {
-        let config: Config = toml::from_str(text).map_err(|e| anyhow!("{}", e.to_string().trim_end()))?;
+        let config: Config =
+            toml::from_str(text).map_err(|e| anyhow!("{}", e.to_string().trim_end()))?;
         config.check()?;
         Ok(config)
     }
@@ -109,7 +110,10 @@ impl Config {
         let stages = crate::stage::STAGE_NAMES;
         for (name, &n) in &self.pipeline.stage_workers {
             if !stages.contains(&name.as_str()) {
-                bail!("[pipeline.stage_workers] has `{name}`, which is not a stage (stages: {})", stages.join(", "));
+                bail!(
+                    "[pipeline.stage_workers] has `{name}`, which is not a stage (stages: {})",
+                    stages.join(", ")
+                );
             }
             if n == 0 {
                 bail!("[pipeline.stage_workers] {name} must be at least 1");
@@ -145,7 +149,8 @@ impl Config {
 mod tests {
     use super::*;
 
-    const MINIMAL: &str = "[pipeline]\nname = \"t\"\n[dataset]\nkind = \"dicom\"\nroot = \"data\"\n";
+    const MINIMAL: &str =
+        "[pipeline]\nname = \"t\"\n[dataset]\nkind = \"dicom\"\nroot = \"data\"\n";
 
     #[test]
     fn minimal_config_gets_defaults() {
@@ -170,13 +175,18 @@ mod tests {
 
     #[test]
     fn keys_in_future_stage_tables_are_rejected() {
-        let e = Config::parse(&format!("{MINIMAL}[train]\niters = 3\n")).unwrap_err().to_string();
+        let e = Config::parse(&format!("{MINIMAL}[train]\niters = 3\n"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("iters"), "{e}");
     }
 
     #[test]
     fn stage_workers_must_name_stages() {
-        let text = MINIMAL.replace("name = \"t\"\n", "name = \"t\"\nstage_workers = { trian = 1 }\n");
+        let text = MINIMAL.replace(
+            "name = \"t\"\n",
+            "name = \"t\"\nstage_workers = { trian = 1 }\n",
+        );
         let e = Config::parse(&text).unwrap_err().to_string();
         assert!(e.contains("trian"), "{e}");
     }

@@ -15,7 +15,10 @@ pub enum State {
     Compute(Vec<String>),
     /// Depends on an upstream stage that would compute first; whether this one then recomputes
     /// depends on whether that output's bytes change (early cutoff). Own reasons listed if any.
-    AfterUpstream { upstream: String, own: Vec<String> },
+    AfterUpstream {
+        upstream: String,
+        own: Vec<String>,
+    },
     /// Its inputs cannot be read (e.g. the patient's folder is gone).
     Blocked(String),
 }
@@ -27,7 +30,13 @@ pub struct Row {
     pub state: State,
 }
 
-pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, force: &[String]) -> Vec<Row> {
+pub fn preview(
+    graph: &StageGraph,
+    store: &Store,
+    units: &[Unit],
+    verify: bool,
+    force: &[String],
+) -> Vec<Row> {
     let mut rows = Vec::new();
     let mut cohort: BTreeMap<String, Finished> = BTreeMap::new();
     let mut cohort_blocker: Option<String> = None;
@@ -39,12 +48,17 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
             let stage = stage.as_ref();
             let state = match (&sources, &pending) {
                 (Err(e), _) if stage.inputs().contains(&SOURCE) => State::Blocked(format!("{e:#}")),
-                (_, Some(up)) if depends_on(graph, stage, up) => {
-                    State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, &unit.id) }
-                }
+                (_, Some(up)) if depends_on(graph, stage, up) => State::AfterUpstream {
+                    upstream: up.clone(),
+                    own: own_changes(store, stage, &unit.id),
+                },
                 _ => {
                     let files = sources.as_deref().unwrap_or(&[]);
-                    let keyed = plan::key(stage, &unit.id, plan::patient_inputs(stage, files, &finished));
+                    let keyed = plan::key(
+                        stage,
+                        &unit.id,
+                        plan::patient_inputs(stage, files, &finished),
+                    );
                     let forced = force.iter().any(|f| f == stage.name());
                     match plan::decide(store, stage, &unit.id, &keyed, verify, forced) {
                         Decision::Cached(m) => {
@@ -58,7 +72,11 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
             if !matches!(state, State::Cached) && pending.is_none() {
                 pending = Some(stage.name().to_string());
             }
-            rows.push(Row { unit: unit.id.clone(), stage: stage.name().into(), state });
+            rows.push(Row {
+                unit: unit.id.clone(),
+                stage: stage.name().into(),
+                state,
+            });
         }
         if let Some(p) = pending {
             cohort_blocker.get_or_insert(format!("{}/{p}", unit.id));
@@ -69,9 +87,16 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
     for stage in graph.stages().iter().filter(|s| s.is_cohort()) {
         let stage = stage.as_ref();
         let state = if let Some(up) = &cohort_blocker {
-            State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, COHORT) }
+            State::AfterUpstream {
+                upstream: up.clone(),
+                own: own_changes(store, stage, COHORT),
+            }
         } else {
-            let keyed = plan::key(stage, COHORT, plan::cohort_inputs(stage, &cohort, &cohort_finished, &[]));
+            let keyed = plan::key(
+                stage,
+                COHORT,
+                plan::cohort_inputs(stage, &cohort, &cohort_finished, &[]),
+            );
             let forced = force.iter().any(|f| f == stage.name());
             match plan::decide(store, stage, COHORT, &keyed, verify, forced) {
                 Decision::Cached(m) => {
@@ -84,14 +109,21 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
                 }
             }
         };
-        rows.push(Row { unit: COHORT.into(), stage: stage.name().into(), state });
+        rows.push(Row {
+            unit: COHORT.into(),
+            stage: stage.name().into(),
+            state,
+        });
     }
     rows
 }
 
 /// Whether `stage` reads `upstream`, directly or through other stages.
 fn depends_on(graph: &StageGraph, stage: &dyn Stage, upstream: &str) -> bool {
-    stage.inputs().iter().any(|&i| i == upstream || graph.get(i).is_some_and(|s| depends_on(graph, s, upstream)))
+    stage
+        .inputs()
+        .iter()
+        .any(|&i| i == upstream || graph.get(i).is_some_and(|s| depends_on(graph, s, upstream)))
 }
 
 /// Changes of the stage itself (version, parameters) since it last ran for `unit`.
@@ -101,7 +133,11 @@ fn own_changes(store: &Store, stage: &dyn Stage, unit: &str) -> Vec<String> {
     };
     let mut out = Vec::new();
     if last.version != stage.version() {
-        out.push(format!("stage version changed ({} → {})", last.version, stage.version()));
+        out.push(format!(
+            "stage version changed ({} → {})",
+            last.version,
+            stage.version()
+        ));
     }
     out.extend(plan::param_changes(&last.params, &stage.params()));
     out
@@ -118,7 +154,9 @@ pub fn describe(rows: &[Row]) -> String {
             State::AfterUpstream { upstream, own } if own.is_empty() => {
                 format!("would run after `{upstream}` unless its outputs come out unchanged")
             }
-            State::AfterUpstream { upstream, own } => format!("would run: {} (and after `{upstream}`)", own.join("; ")),
+            State::AfterUpstream { upstream, own } => {
+                format!("would run: {} (and after `{upstream}`)", own.join("; "))
+            }
             State::Blocked(why) => format!("cannot run: {why}"),
         };
         out.push_str(&format!("{:<width$}  {:<8} {what}\n", r.unit, r.stage));

@@ -32,9 +32,17 @@ struct Fingerprint {
 
 /// Lists every regular file under `dir` (any nesting, hidden names skipped, sorted) with its
 /// content hash, reusing remembered hashes whose fingerprint still matches.
-pub fn scan(store: &Store, unit: &str, dir: &Path, verify: bool) -> anyhow::Result<Vec<SourceFile>> {
+pub fn scan(
+    store: &Store,
+    unit: &str,
+    dir: &Path,
+    verify: bool,
+) -> anyhow::Result<Vec<SourceFile>> {
     if !dir.is_dir() {
-        return Err(anyhow!("patient folder {} does not exist or is not a folder", dir.display()));
+        return Err(anyhow!(
+            "patient folder {} does not exist or is not a folder",
+            dir.display()
+        ));
     }
     let remembered: HashMap<String, Fingerprint> = std::fs::read(store.sources_path(unit))
         .ok()
@@ -52,7 +60,9 @@ pub fn scan(store: &Store, unit: &str, dir: &Path, verify: bool) -> anyhow::Resu
         if !entry.file_type().is_file() {
             continue;
         }
-        let meta = entry.metadata().with_context(|| format!("reading {}", entry.path().display()))?;
+        let meta = entry
+            .metadata()
+            .with_context(|| format!("reading {}", entry.path().display()))?;
         let rel = entry
             .path()
             .strip_prefix(dir)
@@ -67,19 +77,36 @@ pub fn scan(store: &Store, unit: &str, dir: &Path, verify: bool) -> anyhow::Resu
             .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
             .map(|d| d.as_nanos() as i128)
             .unwrap_or(-1);
-        let known = remembered.get(&rel).filter(|f| !verify && f.size == meta.len() && f.mtime_ns == mtime_ns);
+        let known = remembered
+            .get(&rel)
+            .filter(|f| !verify && f.size == meta.len() && f.mtime_ns == mtime_ns);
         let hash = match known {
             Some(f) => f.hash,
             None => {
                 changed = true;
-                hash_file(entry.path()).with_context(|| format!("reading {}", entry.path().display()))?
+                hash_file(entry.path())
+                    .with_context(|| format!("reading {}", entry.path().display()))?
             }
         };
-        prints.push(Fingerprint { rel: rel.clone(), size: meta.len(), mtime_ns, hash });
-        files.push(SourceFile { rel, path: entry.path().to_path_buf(), size: meta.len(), hash });
+        prints.push(Fingerprint {
+            rel: rel.clone(),
+            size: meta.len(),
+            mtime_ns,
+            hash,
+        });
+        files.push(SourceFile {
+            rel,
+            path: entry.path().to_path_buf(),
+            size: meta.len(),
+            hash,
+        });
     }
     if changed || prints.len() != remembered.len() {
-        write_atomic(&store.sources_path(unit), &serde_json::to_vec(&prints)?, false)?;
+        write_atomic(
+            &store.sources_path(unit),
+            &serde_json::to_vec(&prints)?,
+            false,
+        )?;
     }
     Ok(files)
 }

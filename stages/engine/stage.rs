@@ -19,7 +19,10 @@ pub struct Output {
 
 impl Output {
     pub fn new(name: impl Into<String>, bytes: impl Into<Vec<u8>>) -> Output {
-        Output { name: name.into(), bytes: bytes.into() }
+        Output {
+            name: name.into(),
+            bytes: bytes.into(),
+        }
     }
 }
 
@@ -64,12 +67,21 @@ impl StageGraph {
             }
             for input in s.inputs() {
                 if !seen.contains(input) {
-                    return Err(anyhow!("stage `{}` reads `{input}`, which is not declared before it", s.name()));
+                    return Err(anyhow!(
+                        "stage `{}` reads `{input}`, which is not declared before it",
+                        s.name()
+                    ));
                 }
             }
-            let cohort_input = s.inputs().iter().any(|i| stages.iter().any(|t| t.name() == *i && t.is_cohort()));
+            let cohort_input = s
+                .inputs()
+                .iter()
+                .any(|i| stages.iter().any(|t| t.name() == *i && t.is_cohort()));
             if cohort_input && !s.is_cohort() {
-                return Err(anyhow!("per-patient stage `{}` cannot read a cohort stage", s.name()));
+                return Err(anyhow!(
+                    "per-patient stage `{}` cannot read a cohort stage",
+                    s.name()
+                ));
             }
             seen.push(s.name());
         }
@@ -85,13 +97,19 @@ impl StageGraph {
     }
 
     pub fn get(&self, name: &str) -> Option<&dyn Stage> {
-        self.stages.iter().find(|s| s.name() == name).map(|s| s.as_ref())
+        self.stages
+            .iter()
+            .find(|s| s.name() == name)
+            .map(|s| s.as_ref())
     }
 
     /// The graph cut after `last`: `last` and every stage it depends on, in order.
     pub fn until(self, last: &str) -> anyhow::Result<StageGraph> {
         if self.get(last).is_none() {
-            return Err(anyhow!("--until {last}: no such stage (stages: {})", self.names().join(", ")));
+            return Err(anyhow!(
+                "--until {last}: no such stage (stages: {})",
+                self.names().join(", ")
+            ));
         }
         let mut needed = vec![last];
         for s in self.stages.iter().rev() {
@@ -99,7 +117,11 @@ impl StageGraph {
                 needed.extend(s.inputs().iter().copied());
             }
         }
-        let stages = self.stages.into_iter().filter(|s| needed.contains(&s.name())).collect();
+        let stages = self
+            .stages
+            .into_iter()
+            .filter(|s| needed.contains(&s.name()))
+            .collect();
         Ok(StageGraph { stages })
     }
 }
@@ -148,10 +170,17 @@ impl<'a> Context<'a> {
 
     /// Path of a stored upstream output, for stages that stream a large file.
     pub fn path(&self, stage: &str, name: &str) -> anyhow::Result<PathBuf> {
-        Ok(self.store.blob_path(&self.find(self.inputs, stage, name)?.hash))
+        Ok(self
+            .store
+            .blob_path(&self.find(self.inputs, stage, name)?.hash))
     }
 
-    fn find<'f>(&self, finished: &'f Finished, stage: &str, name: &str) -> anyhow::Result<&'f OutputRef> {
+    fn find<'f>(
+        &self,
+        finished: &'f Finished,
+        stage: &str,
+        name: &str,
+    ) -> anyhow::Result<&'f OutputRef> {
         finished
             .get(stage)
             .ok_or_else(|| anyhow!("stage `{stage}` is not an input here"))?
@@ -163,6 +192,7 @@ impl<'a> Context<'a> {
     fn read_from(&self, finished: &Finished, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
         let output = self.find(finished, stage, name)?;
         let path = self.store.blob_path(&output.hash);
-        std::fs::read(&path).with_context(|| format!("reading {stage}/{name} from the cache ({})", path.display()))
+        std::fs::read(&path)
+            .with_context(|| format!("reading {stage}/{name} from the cache ({})", path.display()))
     }
 }

@@ -1,2 +1,3 @@
 //! File formats, one module each. No pipeline knowledge lives here.
+pub mod dicom;
 pub mod mhd;

@@ -4,19 +4,25 @@
 //! pure `run`. Stages know nothing about caching.
 
 pub mod hu;
-// pub mod ingest; (waiting for formats::dicom)
+pub mod ingest;
 
 use crate::config::Config;
 use crate::engine::{Stage, StageGraph};
 
 /// Every stage name, in pipeline order (later stages arrive in later releases).
-pub const STAGE_NAMES: &[&str] = &["ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics"];
+pub const STAGE_NAMES: &[&str] = &[
+    "ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics",
+];
 
 /// The per-patient and cohort stages this build runs, configured from `config`.
 pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
     let stages: Vec<Box<dyn Stage>> = vec![
-        //Box::new(ingest::Ingest { params: config.ingest.clone() }),
-        Box::new(hu::Hu { params: config.hu.clone() }),
+        Box::new(ingest::Ingest {
+            params: config.ingest.clone(),
+        }),
+        Box::new(hu::Hu {
+            params: config.hu.clone(),
+        }),
     ];
     StageGraph::new(stages)
 }
@@ -25,4 +31,3 @@ pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
 pub(crate) fn params_json<P: serde::Serialize>(params: &P) -> serde_json::Value {
     serde_json::to_value(params).expect("stage parameters serialise to JSON")
 }
-pub mod ingest_tmp { #[derive(Debug,Clone,Default,serde::Serialize,serde::Deserialize)] pub struct Params{} impl Params { pub fn check(&self)->anyhow::Result<()>{Ok(())} } }

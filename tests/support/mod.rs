@@ -1,0 +1,1 @@
+pub mod dicom_writer;
