@@ -108,15 +108,7 @@ pub fn why_stale(store: &Store, stage: &dyn Stage, unit: &str, keyed: &Keyed) ->
     let Some(last) = store.latest(stage.name(), unit) else {
         return vec!["never run".into()];
     };
-    let mut reasons = Vec::new();
-    if last.version != stage.version() {
-        reasons.push(format!(
-            "stage version changed ({} → {})",
-            last.version,
-            stage.version()
-        ));
-    }
-    reasons.extend(param_changes(&last.params, &keyed.params));
+    let mut reasons = own_changes(&last, stage, &keyed.params);
     let old: Vec<(String, String, Hash)> = last
         .inputs
         .iter()
@@ -127,6 +119,20 @@ pub fn why_stale(store: &Store, stage: &dyn Stage, unit: &str, keyed: &Keyed) ->
         reasons.push("not in the cache (removed, or computed by another configuration)".into());
     }
     reasons
+}
+
+/// Changes of the stage itself (version, parameters) since `last` was computed.
+pub fn own_changes(last: &Manifest, stage: &dyn Stage, params: &serde_json::Value) -> Vec<String> {
+    let mut out = Vec::new();
+    if last.version != stage.version() {
+        out.push(format!(
+            "stage version changed ({} → {})",
+            last.version,
+            stage.version()
+        ));
+    }
+    out.extend(param_changes(&last.params, params));
+    out
 }
 
 /// `param name: old → new` for every parameter that differs (nested keys dotted).

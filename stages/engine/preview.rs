@@ -126,21 +126,12 @@ fn depends_on(graph: &StageGraph, stage: &dyn Stage, upstream: &str) -> bool {
         .any(|&i| i == upstream || graph.get(i).is_some_and(|s| depends_on(graph, s, upstream)))
 }
 
-/// Changes of the stage itself (version, parameters) since it last ran for `unit`.
+/// Changes of the stage itself since it last ran for `unit` ("never run" if it never did).
 fn own_changes(store: &Store, stage: &dyn Stage, unit: &str) -> Vec<String> {
-    let Some(last) = store.latest(stage.name(), unit) else {
-        return vec!["never run".into()];
-    };
-    let mut out = Vec::new();
-    if last.version != stage.version() {
-        out.push(format!(
-            "stage version changed ({} → {})",
-            last.version,
-            stage.version()
-        ));
+    match store.latest(stage.name(), unit) {
+        None => vec!["never run".into()],
+        Some(last) => plan::own_changes(&last, stage, &stage.params()),
     }
-    out.extend(plan::param_changes(&last.params, &stage.params()));
-    out
 }
 
 /// One line per (unit, stage), for `run --dry-run`.
