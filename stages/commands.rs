@@ -28,11 +28,7 @@ struct Prepared {
     store: Store,
 }
 
-fn prepare(
-    config_path: &Path,
-    patients: Option<&[String]>,
-    until: Option<&str>,
-) -> anyhow::Result<Prepared> {
+fn prepare(config_path: &Path, patients: Option<&[String]>, until: Option<&str>) -> anyhow::Result<Prepared> {
     let config = Config::load(config_path)?;
     let mut graph = stage::graph(&config)?;
     if let Some(last) = until {
@@ -40,12 +36,7 @@ fn prepare(
     }
     let units = dataset::units(&config, patients)?;
     let store = Store::open(&config.cache_dir())?;
-    Ok(Prepared {
-        config,
-        graph,
-        units,
-        store,
-    })
+    Ok(Prepared { config, graph, units, store })
 }
 
 /// `aret-pipe run`. Returns the process exit code: 0 when every stage of every patient succeeded.
@@ -53,10 +44,7 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     let p = prepare(config_path, args.patients.as_deref(), args.until.as_deref())?;
     for f in &args.force {
         if p.graph.get(f).is_none() {
-            bail!(
-                "--force {f}: no such stage in this run (stages: {})",
-                p.graph.names().join(", ")
-            );
+            bail!("--force {f}: no such stage in this run (stages: {})", p.graph.names().join(", "));
         }
     }
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
@@ -68,58 +56,27 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     let options = RunOptions {
         verify: args.verify,
         force: args.force.clone(),
-        workers: p
-            .config
-            .pipeline
-            .stage_workers
-            .clone()
-            .into_iter()
-            .collect(),
+        workers: p.config.pipeline.stage_workers.clone().into_iter().collect(),
         default_workers: p.config.pipeline.workers,
         out_dir: p.config.out_dir(),
     };
-    let totals: Vec<(&str, u64)> = p
-        .graph
-        .stages()
-        .iter()
-        .map(|s| {
-            (
-                s.name(),
-                if s.is_cohort() {
-                    1
-                } else {
-                    p.units.len() as u64
-                },
-            )
-        })
-        .collect();
+    let totals: Vec<(&str, u64)> =
+        p.graph.stages().iter().map(|s| (s.name(), if s.is_cohort() { 1 } else { p.units.len() as u64 })).collect();
     let progress = Progress::auto(&totals);
     let summary = run::run(&p.graph, &p.store, &p.units, &options, &progress);
     drop(progress);
     print!("{}", progress::table(&summary, &p.graph.names()));
     write_report(&options.out_dir, &summary)?;
-    Ok(if summary.failures().next().is_some() {
-        1
-    } else {
-        0
-    })
+    Ok(if summary.failures().next().is_some() { 1 } else { 0 })
 }
 
 /// Writes `out_dir/run_report.json`: every (patient, stage) outcome with its time.
 fn write_report(out_dir: &Path, summary: &RunSummary) -> anyhow::Result<()> {
-    write_atomic(
-        &out_dir.join("run_report.json"),
-        &serde_json::to_vec_pretty(summary)?,
-        false,
-    )
+    write_atomic(&out_dir.join("run_report.json"), &serde_json::to_vec_pretty(summary)?, false)
 }
 
 /// `aret-pipe status`: a table of what is cached and what is stale, and why.
-pub fn status(
-    config_path: &Path,
-    patients: Option<&[String]>,
-    verify: bool,
-) -> anyhow::Result<String> {
+pub fn status(config_path: &Path, patients: Option<&[String]>, verify: bool) -> anyhow::Result<String> {
     let p = prepare(config_path, patients, None)?;
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
     let rows = preview::preview(&p.graph, &p.store, &p.units, verify, &[]);
@@ -142,10 +99,7 @@ pub fn status(
         }
         cells.push((r.unit.clone(), r.stage.clone(), cell.to_string()));
     }
-    Ok(format!(
-        "{}{notes}",
-        progress::grid(&cells, &p.graph.names())
-    ))
+    Ok(format!("{}{notes}", progress::grid(&cells, &p.graph.names())))
 }
 
 /// `aret-pipe gc`: deletes blobs no manifest references. Returns a one-line report.
@@ -153,10 +107,7 @@ pub fn gc(config_path: &Path) -> anyhow::Result<String> {
     let config = Config::load(config_path)?;
     let store = Store::open(&config.cache_dir())?;
     let Some(_exclusive) = FileLock::try_exclusive(&store.global_lock_path())? else {
-        bail!(
-            "another aret-pipe process is using the cache {}; run gc when it has finished",
-            store.root().display()
-        );
+        bail!("another aret-pipe process is using the cache {}; run gc when it has finished", store.root().display());
     };
     let (files, bytes) = store.collect_garbage()?;
     Ok(format!(

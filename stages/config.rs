@@ -85,8 +85,8 @@ pub struct DatasetSection {
 impl Config {
     /// Reads and checks `path`. Errors name the file, the key and its line.
     pub fn load(path: &Path) -> anyhow::Result<Config> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read configuration {}", path.display()))?;
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("cannot read configuration {}", path.display()))?;
         let mut config = Config::parse(&text).map_err(|e| anyhow!("{}: {e}", path.display()))?;
         config.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
         if config.base_dir.as_os_str().is_empty() {
@@ -97,8 +97,7 @@ impl Config {
 
     /// Parses configuration text (paths stay relative).
     pub fn parse(text: &str) -> anyhow::Result<Config> {
-        let config: Config =
-            toml::from_str(text).map_err(|e| anyhow!("{}", e.to_string().trim_end()))?;
+        let config: Config = toml::from_str(text).map_err(|e| anyhow!("{}", e.to_string().trim_end()))?;
         config.check()?;
         Ok(config)
     }
@@ -110,10 +109,7 @@ impl Config {
         let stages = crate::stage::STAGE_NAMES;
         for (name, &n) in &self.pipeline.stage_workers {
             if !stages.contains(&name.as_str()) {
-                bail!(
-                    "[pipeline.stage_workers] has `{name}`, which is not a stage (stages: {})",
-                    stages.join(", ")
-                );
+                bail!("[pipeline.stage_workers] has `{name}`, which is not a stage (stages: {})", stages.join(", "));
             }
             if n == 0 {
                 bail!("[pipeline.stage_workers] {name} must be at least 1");
@@ -149,8 +145,7 @@ impl Config {
 mod tests {
     use super::*;
 
-    const MINIMAL: &str =
-        "[pipeline]\nname = \"t\"\n[dataset]\nkind = \"dicom\"\nroot = \"data\"\n";
+    const MINIMAL: &str = "[pipeline]\nname = \"t\"\n[dataset]\nkind = \"dicom\"\nroot = \"data\"\n";
 
     #[test]
     fn minimal_config_gets_defaults() {
@@ -175,18 +170,13 @@ mod tests {
 
     #[test]
     fn keys_in_future_stage_tables_are_rejected() {
-        let e = Config::parse(&format!("{MINIMAL}[train]\niters = 3\n"))
-            .unwrap_err()
-            .to_string();
+        let e = Config::parse(&format!("{MINIMAL}[train]\niters = 3\n")).unwrap_err().to_string();
         assert!(e.contains("iters"), "{e}");
     }
 
     #[test]
     fn stage_workers_must_name_stages() {
-        let text = MINIMAL.replace(
-            "name = \"t\"\n",
-            "name = \"t\"\nstage_workers = { trian = 1 }\n",
-        );
+        let text = MINIMAL.replace("name = \"t\"\n", "name = \"t\"\nstage_workers = { trian = 1 }\n");
         let e = Config::parse(&text).unwrap_err().to_string();
         assert!(e.contains("trian"), "{e}");
     }

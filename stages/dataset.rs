@@ -12,19 +12,12 @@ pub fn units(config: &Config, only: Option<&[String]>) -> anyhow::Result<Vec<Uni
     };
     units.sort_by(|a, b| a.id.cmp(&b.id));
     if let Some(only) = only {
-        let unknown: Vec<&String> = only
-            .iter()
-            .filter(|id| !units.iter().any(|u| &u.id == *id))
-            .collect();
+        let unknown: Vec<&String> = only.iter().filter(|id| !units.iter().any(|u| &u.id == *id)).collect();
         if !unknown.is_empty() {
             let known: Vec<&str> = units.iter().map(|u| u.id.as_str()).collect();
             bail!(
                 "--patients names {} not in the dataset at {} (it has: {})",
-                unknown
-                    .iter()
-                    .map(|s| format!("`{s}`"))
-                    .collect::<Vec<_>>()
-                    .join(", "),
+                unknown.iter().map(|s| format!("`{s}`")).collect::<Vec<_>>().join(", "),
                 root.display(),
                 known.join(", ")
             );
@@ -50,16 +43,10 @@ fn dicom_folders(root: &std::path::Path) -> anyhow::Result<Vec<Unit>> {
         if name.starts_with('.') || !entry.path().is_dir() {
             continue;
         }
-        units.push(Unit {
-            id: name,
-            source_dir: entry.path(),
-        });
+        units.push(Unit::folder(name, entry.path()));
     }
     if units.is_empty() {
-        bail!(
-            "[dataset] root {} has no patient folders: expected one sub-folder per patient",
-            root.display()
-        );
+        bail!("[dataset] root {} has no patient folders: expected one sub-folder per patient", root.display());
     }
     Ok(units)
 }

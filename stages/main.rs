@@ -6,11 +6,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Parser)]
-#[command(
-    name = "aret-pipe",
-    version,
-    about = "Measure lung nodules in 3D from three X-rays"
-)]
+#[command(name = "aret-pipe", version, about = "Measure lung nodules in 3D from three X-rays")]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -54,31 +50,15 @@ enum Command {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Run {
-            config,
-            patients,
-            until,
-            force,
-            dry_run,
-            verify,
-        } => commands::run(
-            &config,
-            &RunArgs {
-                patients,
-                until,
-                force,
-                dry_run,
-                verify,
-            },
-        ),
-        Command::Status {
-            config,
-            patients,
-            verify,
-        } => commands::status(&config, patients.as_deref(), verify).map(|table| {
-            print!("{table}");
-            0
-        }),
+        Command::Run { config, patients, until, force, dry_run, verify } => {
+            commands::run(&config, &RunArgs { patients, until, force, dry_run, verify })
+        }
+        Command::Status { config, patients, verify } => {
+            commands::status(&config, patients.as_deref(), verify).map(|table| {
+                print!("{table}");
+                0
+            })
+        }
         Command::Gc { config } => commands::gc(&config).map(|line| {
             println!("{line}");
             0

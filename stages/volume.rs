@@ -57,9 +57,6 @@ pub struct Volume<T> {
 impl<T: Copy> Volume<T> {
     /// A volume whose values are `f(value)` of this one, on the same geometry.
     pub fn map<U>(&self, f: impl Fn(T) -> U) -> Volume<U> {
-        Volume {
-            geometry: self.geometry.clone(),
-            data: self.data.iter().map(|&v| f(v)).collect(),
-        }
+        Volume { geometry: self.geometry.clone(), data: self.data.iter().map(|&v| f(v)).collect() }
     }
 }

@@ -18,9 +18,7 @@ struct Project {
 impl Project {
     /// A dataset of `patients` folders with a small CT series each.
     fn new(patients: &[&str], slices: usize) -> Project {
-        let p = Project {
-            dir: tempfile::tempdir().unwrap(),
-        };
+        let p = Project { dir: tempfile::tempdir().unwrap() };
         for (n, id) in patients.iter().enumerate() {
             let mut specs = series(slices);
             for s in &mut specs {
@@ -51,32 +49,19 @@ impl Project {
     }
 
     fn aret(&self, args: &[&str]) -> Output {
-        Command::new(BIN)
-            .args(args)
-            .current_dir(self.dir.path())
-            .env("CI", "true")
-            .output()
-            .unwrap()
+        Command::new(BIN).args(args).current_dir(self.dir.path()).env("CI", "true").output().unwrap()
     }
 
     fn run(&self, args: &[&str]) -> Value {
         let mut all = vec!["run", "pipeline.toml"];
         all.extend_from_slice(args);
         let out = self.aret(&all);
-        assert!(
-            out.status.success(),
-            "run failed:\n{}\n{}",
-            text(&out.stdout),
-            text(&out.stderr)
-        );
+        assert!(out.status.success(), "run failed:\n{}\n{}", text(&out.stdout), text(&out.stderr));
         self.report("out")
     }
 
     fn report(&self, out_dir: &str) -> Value {
-        serde_json::from_slice(
-            &std::fs::read(self.path(&format!("{out_dir}/run_report.json"))).unwrap(),
-        )
-        .unwrap()
+        serde_json::from_slice(&std::fs::read(self.path(&format!("{out_dir}/run_report.json"))).unwrap()).unwrap()
     }
 }
 
@@ -86,78 +71,37 @@ fn text(b: &[u8]) -> String {
 
 /// How many (patient, stage) records of `stage` had `outcome`.
 fn count(report: &Value, stage: &str, outcome: &str) -> usize {
-    report["records"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|r| r["stage"] == stage && r["outcome"] == outcome)
-        .count()
+    report["records"].as_array().unwrap().iter().filter(|r| r["stage"] == stage && r["outcome"] == outcome).count()
 }
 
 #[test]
 fn editing_hu_recomputes_hu_only_and_forced_runs_cut_off_early() {
     let p = Project::new(&["P1", "P2"], 4);
     let r = p.run(&[]);
-    assert_eq!(
-        (count(&r, "ingest", "computed"), count(&r, "hu", "computed")),
-        (2, 2)
-    );
+    assert_eq!((count(&r, "ingest", "computed"), count(&r, "hu", "computed")), (2, 2));
     assert!(p.path("out/P1/ct_hu.mhd").exists() && p.path("out/P2/ct_unit.raw").exists());
 
     let r = p.run(&[]);
-    assert_eq!(
-        (count(&r, "ingest", "cached"), count(&r, "hu", "cached")),
-        (2, 2),
-        "unchanged config: nothing runs"
-    );
+    assert_eq!((count(&r, "ingest", "cached"), count(&r, "hu", "cached")), (2, 2), "unchanged config: nothing runs");
 
     p.write_config("pipeline.toml", "cache", "out", "[hu]\nhu_max = 500.0\n");
     let dry = p.aret(&["run", "pipeline.toml", "--dry-run"]);
     let dry_text = text(&dry.stdout);
-    assert!(
-        dry_text.contains("parameter `hu_max` changed: 400.0 → 500.0"),
-        "{dry_text}"
-    );
-    assert!(
-        dry_text
-            .lines()
-            .filter(|l| l.contains("ingest"))
-            .all(|l| l.contains("cached")),
-        "{dry_text}"
-    );
+    assert!(dry_text.contains("parameter `hu_max` changed: 400.0 → 500.0"), "{dry_text}");
+    assert!(dry_text.lines().filter(|l| l.contains("ingest")).all(|l| l.contains("cached")), "{dry_text}");
     let r = p.run(&[]);
-    assert_eq!(
-        (count(&r, "ingest", "cached"), count(&r, "hu", "computed")),
-        (2, 2)
-    );
+    assert_eq!((count(&r, "ingest", "cached"), count(&r, "hu", "computed")), (2, 2));
 
     let r = p.run(&["--force", "hu"]);
-    assert_eq!(
-        (count(&r, "ingest", "cached"), count(&r, "hu", "computed")),
-        (2, 2)
-    );
+    assert_eq!((count(&r, "ingest", "cached"), count(&r, "hu", "computed")), (2, 2));
 
     // Early cutoff: ingest recomputes (its parameter changed) to identical bytes; hu stays cached.
-    p.write_config(
-        "pipeline.toml",
-        "cache",
-        "out",
-        "[hu]\nhu_max = 500.0\n[ingest]\nslice_gap_tolerance = 0.02\n",
-    );
+    p.write_config("pipeline.toml", "cache", "out", "[hu]\nhu_max = 500.0\n[ingest]\nslice_gap_tolerance = 0.02\n");
     let r = p.run(&[]);
-    assert_eq!(
-        (count(&r, "ingest", "computed"), count(&r, "hu", "cached")),
-        (2, 2)
-    );
+    assert_eq!((count(&r, "ingest", "computed"), count(&r, "hu", "cached")), (2, 2));
 
     let status = text(&p.aret(&["status", "pipeline.toml"]).stdout);
-    assert!(
-        status
-            .lines()
-            .filter(|l| l.starts_with("P"))
-            .all(|l| l.matches("cached").count() == 2),
-        "{status}"
-    );
+    assert!(status.lines().filter(|l| l.starts_with("P")).all(|l| l.matches("cached").count() == 2), "{status}");
 }
 
 #[test]
@@ -171,10 +115,7 @@ fn dry_run_explains_new_and_changed_inputs() {
     specs[1].intercept = Some(-1000.0);
     p.write_patient("P1", &specs);
     let dry = text(&p.aret(&["run", "pipeline.toml", "--dry-run"]).stdout);
-    assert!(
-        dry.contains("input changed: source/series/slice_1.dcm"),
-        "{dry}"
-    );
+    assert!(dry.contains("input changed: source/series/slice_1.dcm"), "{dry}");
     assert!(dry.contains("would run after `ingest`"), "{dry}");
 }
 
@@ -219,19 +160,12 @@ fn no_identifying_tag_reaches_any_artifact() {
     p.write_patient("P1", &specs);
     let out = p.aret(&["run", "pipeline.toml"]);
     assert!(out.status.success());
-    for entry in walkdir::WalkDir::new(p.path("out"))
-        .into_iter()
-        .chain(walkdir::WalkDir::new(p.path("cache")))
-    {
+    for entry in walkdir::WalkDir::new(p.path("out")).into_iter().chain(walkdir::WalkDir::new(p.path("cache"))) {
         let entry = entry.unwrap();
         if entry.file_type().is_file() {
             let bytes = std::fs::read(entry.path()).unwrap();
             let body = String::from_utf8_lossy(&bytes);
-            assert!(
-                !body.contains("SECRET"),
-                "{} leaks a patient tag",
-                entry.path().display()
-            );
+            assert!(!body.contains("SECRET"), "{} leaks a patient tag", entry.path().display());
         }
     }
     assert!(!text(&out.stdout).contains("SECRET") && !text(&out.stderr).contains("SECRET"));
@@ -244,16 +178,10 @@ fn config_errors_name_key_and_line_and_bad_patients_are_listed() {
     let out = p.aret(&["run", "pipeline.toml"]);
     assert_eq!(out.status.code(), Some(2));
     let err = text(&out.stderr);
-    assert!(
-        err.contains("pipeline.toml") && err.contains("line 10") && err.contains("hu_mx"),
-        "{err}"
-    );
+    assert!(err.contains("pipeline.toml") && err.contains("line 10") && err.contains("hu_mx"), "{err}");
 
     p.write_config("pipeline.toml", "cache", "out", "");
-    let err = text(
-        &p.aret(&["run", "pipeline.toml", "--patients", "P1,P7"])
-            .stderr,
-    );
+    let err = text(&p.aret(&["run", "pipeline.toml", "--patients", "P1,P7"]).stderr);
     assert!(err.contains("`P7`") && err.contains("it has: P1"), "{err}");
     let err = text(&p.aret(&["run", "pipeline.toml", "--until", "hx"]).stderr);
     assert!(err.contains("--until hx"), "{err}");
@@ -297,10 +225,7 @@ fn concurrent_runs_on_one_cache_both_finish_and_compute_each_stage_once() {
     for id in ["P1", "P2", "P3", "P4"] {
         for f in ["ct_hu.raw", "ct_unit.raw", "ct_series.json"] {
             let a = std::fs::read(p.path(&format!("out_a/{id}/{f}"))).unwrap();
-            assert_eq!(
-                a,
-                std::fs::read(p.path(&format!("out_b/{id}/{f}"))).unwrap()
-            );
+            assert_eq!(a, std::fs::read(p.path(&format!("out_b/{id}/{f}"))).unwrap());
         }
     }
 }
@@ -312,9 +237,7 @@ fn big_series(n: usize) -> Vec<SliceSpec> {
             let mut s = SliceSpec::ct(k);
             s.rows = 384;
             s.cols = 384;
-            s.stored = (0..384 * 384)
-                .map(|i| ((i * 7 + k * 13) % 2000) as i32)
-                .collect();
+            s.stored = (0..384 * 384).map(|i| ((i * 7 + k * 13) % 2000) as i32).collect();
             s
         })
         .collect()
@@ -343,38 +266,21 @@ fn a_run_killed_at_any_moment_leaves_nothing_a_later_run_trusts() {
         let _ = child.wait();
         // Whatever the kill left, a normal run completes and gives the reference bytes.
         let out = p.aret(&["run", "pipeline.toml"]);
-        assert!(
-            out.status.success(),
-            "after kill at {delay_ms} ms: {}",
-            text(&out.stderr)
-        );
+        assert!(out.status.success(), "after kill at {delay_ms} ms: {}", text(&out.stderr));
         assert_same_results(&p.path("out"), &p.path("ref_out"));
         let r = p.run(&["--verify"]);
-        assert_eq!(
-            count(&r, "ingest", "computed") + count(&r, "hu", "computed"),
-            0,
-            "verify finds nothing corrupt"
-        );
+        assert_eq!(count(&r, "ingest", "computed") + count(&r, "hu", "computed"), 0, "verify finds nothing corrupt");
     }
 }
 
 fn unsafe_kill(pid: u32) {
-    let status = Command::new("kill")
-        .args(["-KILL", &pid.to_string()])
-        .status()
-        .unwrap();
+    let status = Command::new("kill").args(["-KILL", &pid.to_string()]).status().unwrap();
     assert!(status.success() || status.code() == Some(1));
 }
 
 fn assert_same_results(out: &Path, reference: &Path) {
     for id in ["P1", "P2", "P3"] {
-        for f in [
-            "ct_hu.mhd",
-            "ct_hu.raw",
-            "ct_unit.mhd",
-            "ct_unit.raw",
-            "ct_series.json",
-        ] {
+        for f in ["ct_hu.mhd", "ct_hu.raw", "ct_unit.mhd", "ct_unit.raw", "ct_series.json"] {
             let a = std::fs::read(out.join(id).join(f)).unwrap();
             let b = std::fs::read(reference.join(id).join(f)).unwrap();
             assert!(a == b, "{id}/{f} differs from the reference run");
@@ -394,15 +300,8 @@ fn gc_deletes_orphan_blobs_and_reports_what_it_frees() {
     let out = p.aret(&["gc", "pipeline.toml"]);
     assert!(out.status.success());
     let line = text(&out.stdout);
-    assert!(
-        line.starts_with("gc: deleted") && line.contains("MiB"),
-        "{line}"
-    );
+    assert!(line.starts_with("gc: deleted") && line.contains("MiB"), "{line}");
     assert!(!orphan.exists());
     let r = p.run(&[]);
-    assert_eq!(
-        count(&r, "hu", "cached"),
-        1,
-        "gc keeps what manifests reference"
-    );
+    assert_eq!(count(&r, "hu", "cached"), 1, "gc keeps what manifests reference");
 }

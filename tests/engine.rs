@@ -130,25 +130,14 @@ impl World {
                 std::fs::write(path, text).unwrap();
             }
         }
-        World {
-            dir,
-            counters: Counters::default(),
-        }
+        World { dir, counters: Counters::default() }
     }
 
     fn graph(&self, sep: &str, parity_only: bool) -> StageGraph {
         StageGraph::new(vec![
-            Box::new(Concat {
-                sep: sep.into(),
-                runs: self.counters.concat.clone(),
-            }),
-            Box::new(Length {
-                parity_only,
-                runs: self.counters.length.clone(),
-            }),
-            Box::new(Report {
-                runs: self.counters.report.clone(),
-            }),
+            Box::new(Concat { sep: sep.into(), runs: self.counters.concat.clone() }),
+            Box::new(Length { parity_only, runs: self.counters.length.clone() }),
+            Box::new(Report { runs: self.counters.report.clone() }),
         ])
         .unwrap()
     }
@@ -158,10 +147,7 @@ impl World {
             .unwrap()
             .map(|e| {
                 let e = e.unwrap();
-                Unit {
-                    id: e.file_name().to_string_lossy().into(),
-                    source_dir: e.path(),
-                }
+                Unit::folder(e.file_name().to_string_lossy(), e.path())
             })
             .collect();
         units.sort_by(|a, b| a.id.cmp(&b.id));
@@ -180,13 +166,7 @@ impl World {
             default_workers: 2,
             out_dir: self.dir.path().join("out"),
         };
-        run::run(
-            graph,
-            &self.store(),
-            &self.units(),
-            &options,
-            &Progress::hidden(&[]),
-        )
+        run::run(graph, &self.store(), &self.units(), &options, &Progress::hidden(&[]))
     }
 
     fn out(&self, rel: &str) -> String {
@@ -199,10 +179,7 @@ impl World {
 }
 
 fn two_patients() -> World {
-    World::new(&[
-        ("P1", &[("a.txt", "ab"), ("b.txt", "cde")]),
-        ("P2", &[("x.txt", "xyz")]),
-    ])
+    World::new(&[("P1", &[("a.txt", "ab"), ("b.txt", "cde")]), ("P2", &[("x.txt", "xyz")])])
 }
 
 #[test]
@@ -224,10 +201,7 @@ fn unchanged_inputs_recompute_nothing() {
     w.counters.take();
     let s = w.run(&g, &[], false);
     assert_eq!(w.counters.take(), [0, 0, 0]);
-    assert!(s
-        .records
-        .iter()
-        .all(|r| matches!(r.outcome, Outcome::Cached { .. })));
+    assert!(s.records.iter().all(|r| matches!(r.outcome, Outcome::Cached { .. })));
 }
 
 #[test]
@@ -236,11 +210,7 @@ fn editing_a_parameter_recomputes_that_stage_and_downstream_only() {
     w.run(&w.graph("", false), &[], false);
     w.counters.take();
     w.run(&w.graph("", true), &[], false);
-    assert_eq!(
-        w.counters.take(),
-        [0, 2, 1],
-        "only length (and the cohort reading it) recompute"
-    );
+    assert_eq!(w.counters.take(), [0, 2, 1], "only length (and the cohort reading it) recompute");
     assert_eq!(w.out("P1/len.txt"), "1");
 }
 
@@ -267,10 +237,7 @@ fn force_recomputes_only_the_forced_stage() {
     w.counters.take();
     let s = w.run(&g, &["concat"], false);
     assert_eq!(w.counters.take(), [2, 0, 0]);
-    assert_eq!(
-        s.count("concat", |o| matches!(o, Outcome::Computed { .. })),
-        2
-    );
+    assert_eq!(s.count("concat", |o| matches!(o, Outcome::Computed { .. })), 2);
 }
 
 #[test]
@@ -286,11 +253,7 @@ fn truncated_or_corrupt_blob_is_recomputed_never_used() {
     make_writable(&path);
     std::fs::write(&path, "abc").unwrap();
     w.run(&g, &[], false);
-    assert_eq!(
-        w.counters.take(),
-        [1, 0, 0],
-        "concat recomputed, its identical bytes keep length cached"
-    );
+    assert_eq!(w.counters.take(), [1, 0, 0], "concat recomputed, its identical bytes keep length cached");
     assert_eq!(std::fs::read_to_string(&path).unwrap(), "abcde");
     // Same-size corruption passes the size check; --verify re-hashes and catches it.
     make_writable(&path);
@@ -322,17 +285,8 @@ fn one_failing_patient_does_not_stop_the_others() {
         ("P4", &[("d.txt", "dddd")]),
     ]);
     let s = w.run(&w.graph("", false), &[], false);
-    let failed: Vec<(String, String)> = s
-        .failures()
-        .map(|r| (r.unit.clone(), r.stage.clone()))
-        .collect();
-    assert_eq!(
-        failed,
-        vec![
-            ("P2".into(), "concat".into()),
-            ("P3".into(), "concat".into())
-        ]
-    );
+    let failed: Vec<(String, String)> = s.failures().map(|r| (r.unit.clone(), r.stage.clone())).collect();
+    assert_eq!(failed, vec![("P2".into(), "concat".into()), ("P3".into(), "concat".into())]);
     let cause = |unit: &str| {
         s.records
             .iter()
@@ -344,25 +298,15 @@ fn one_failing_patient_does_not_stop_the_others() {
     };
     assert!(cause("P2").contains("`poison` is not allowed"));
     assert!(cause("P3").contains("panic") && cause("P3").contains("deliberate"));
-    assert_eq!(
-        s.count("length", |o| matches!(o, Outcome::Skipped { .. })),
-        2
-    );
-    assert_eq!(
-        w.out("report.txt"),
-        "P1 2\nP4 4\n",
-        "the cohort sees the patients that got through"
-    );
+    assert_eq!(s.count("length", |o| matches!(o, Outcome::Skipped { .. })), 2);
+    assert_eq!(w.out("report.txt"), "P1 2\nP4 4\n", "the cohort sees the patients that got through");
 }
 
 #[test]
 fn a_missing_patient_folder_is_a_failure_of_that_patient() {
     let w = two_patients();
     let mut units = w.units();
-    units.push(Unit {
-        id: "P9".into(),
-        source_dir: w.path("data/P9"),
-    });
+    units.push(Unit::folder("P9", w.path("data/P9")));
     let options = RunOptions {
         verify: false,
         force: vec![],
@@ -370,13 +314,7 @@ fn a_missing_patient_folder_is_a_failure_of_that_patient() {
         default_workers: 1,
         out_dir: w.path("out"),
     };
-    let s = run::run(
-        &w.graph("", false),
-        &w.store(),
-        &units,
-        &options,
-        &Progress::hidden(&[]),
-    );
+    let s = run::run(&w.graph("", false), &w.store(), &units, &options, &Progress::hidden(&[]));
     let failures: Vec<_> = s.failures().collect();
     assert_eq!(failures.len(), 1);
     assert_eq!(failures[0].unit, "P9");
@@ -396,25 +334,15 @@ fn gc_deletes_only_unreferenced_blobs() {
     assert!(!stray.exists());
     w.counters.take();
     w.run(&g, &[], false);
-    assert_eq!(
-        w.counters.take(),
-        [0, 0, 0],
-        "gc kept everything manifests reference"
-    );
+    assert_eq!(w.counters.take(), [0, 0, 0], "gc kept everything manifests reference");
 }
 
 #[test]
 fn graph_rejects_inputs_declared_later() {
     let c = Counters::default();
     let g = StageGraph::new(vec![
-        Box::new(Length {
-            parity_only: false,
-            runs: c.length.clone(),
-        }) as Box<dyn Stage>,
-        Box::new(Concat {
-            sep: String::new(),
-            runs: c.concat.clone(),
-        }),
+        Box::new(Length { parity_only: false, runs: c.length.clone() }) as Box<dyn Stage>,
+        Box::new(Concat { sep: String::new(), runs: c.concat.clone() }),
     ]);
     assert!(g.is_err());
 }

@@ -34,19 +34,13 @@ fn name_of(path: &Path) -> String {
 #[track_caller]
 fn assert_mentions(message: &str, needles: &[&str]) {
     for needle in needles {
-        assert!(
-            message.contains(needle),
-            "message lacks {needle:?}:\n{message}"
-        );
+        assert!(message.contains(needle), "message lacks {needle:?}:\n{message}");
     }
 }
 
 /// The HU volume the reader must build from `specs`, given in ascending slice order.
 fn expected_volume(specs_ascending: &[&SliceSpec]) -> Vec<i16> {
-    specs_ascending
-        .iter()
-        .flat_map(|s| s.expected_hu())
-        .collect()
+    specs_ascending.iter().flat_map(|s| s.expected_hu()).collect()
 }
 
 // ----------------------------------------------------------------------------- success
@@ -65,10 +59,7 @@ fn reads_a_plain_series_with_its_geometry() {
     assert_eq!(g.spacing_mm[1], 0.7);
     assert!((g.spacing_mm[2] - 2.5).abs() < 1e-9);
     assert_eq!(g.origin_mm, [-100.0, -80.0, 10.0]);
-    assert_eq!(
-        g.direction,
-        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-    );
+    assert_eq!(g.direction, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
     assert_eq!(s.slice_positions_mm, vec![10.0, 12.5, 15.0, 17.5, 20.0]);
     assert!((s.slice_gap_mm - 2.5).abs() < 1e-9);
     assert_eq!(s.slice_thickness_mm, Some(2.5));
@@ -78,10 +69,7 @@ fn reads_a_plain_series_with_its_geometry() {
     let ordered: Vec<&SliceSpec> = specs.iter().collect();
     assert_eq!(s.hu.data, expected_volume(&ordered));
     // Layout [slice][row][col]: voxel (i=3, j=2, k=4) is stored value 900+37*(2*8+3)+400.
-    assert_eq!(
-        s.hu.data[g.index(3, 2, 4)],
-        (900 + 37 * 19 + 400 - 1024) as i16
-    );
+    assert_eq!(s.hu.data[g.index(3, 2, 4)], (900 + 37 * 19 + 400 - 1024) as i16);
 }
 
 #[test]
@@ -169,10 +157,7 @@ fn oblique_and_sagittal_orientations_sort_along_the_normal() {
     }
     let files = w::write_series(dir.path(), &specs, w::default_name);
     let s = read_ok(&files);
-    assert_eq!(
-        s.hu.geometry.direction,
-        [[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], normal]
-    );
+    assert_eq!(s.hu.geometry.direction, [[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], normal]);
     assert_eq!(s.hu.geometry.origin_mm, [9.0, -10.0, 30.0]);
     assert_eq!(s.slice_positions_mm, vec![-9.0, -7.0, -5.0]);
     let ascending: Vec<&SliceSpec> = specs.iter().rev().collect();
@@ -191,24 +176,18 @@ fn signed_and_unsigned_pixel_data() {
             s.stored = (0..48).map(|p| 30000 + p * 300).collect();
             s.intercept = Some(-32768.0);
         }),
-        (
-            "signed 12-bit, high bits zero: sign-extended",
-            |s: &mut SliceSpec| {
-                s.bits_stored = 12;
-                s.mask_to_bits_stored = true;
-                s.stored = (0..48).map(|p| p * 80 - 2000).collect();
-            },
-        ),
+        ("signed 12-bit, high bits zero: sign-extended", |s: &mut SliceSpec| {
+            s.bits_stored = 12;
+            s.mask_to_bits_stored = true;
+            s.stored = (0..48).map(|p| p * 80 - 2000).collect();
+        }),
         // As pydicom 3: unsigned data is masked to BitsStored (junk high bits dropped).
-        (
-            "unsigned 12-bit with high bits set: masked",
-            |s: &mut SliceSpec| {
-                s.signed = false;
-                s.bits_stored = 12;
-                s.stored = (0..48).map(|p| 0xF000 + p * 50).collect();
-                s.intercept = Some(0.0);
-            },
-        ),
+        ("unsigned 12-bit with high bits set: masked", |s: &mut SliceSpec| {
+            s.signed = false;
+            s.bits_stored = 12;
+            s.stored = (0..48).map(|p| 0xF000 + p * 50).collect();
+            s.intercept = Some(0.0);
+        }),
         ("unsigned 8-bit", |s: &mut SliceSpec| {
             s.bits_allocated = 8;
             s.bits_stored = 8;
@@ -252,12 +231,7 @@ fn all_native_transfer_syntaxes_and_missing_preamble_read_the_same() {
     let dir = tmp();
     let reference_files = w::write_series(dir.path(), &w::series(3), |k| format!("ref{k}.dcm"));
     let reference = read_ok(&reference_files);
-    for ts in [
-        w::IMPLICIT_LE,
-        w::EXPLICIT_BE,
-        w::DEFLATED_LE,
-        w::EXPLICIT_LE,
-    ] {
+    for ts in [w::IMPLICIT_LE, w::EXPLICIT_BE, w::DEFLATED_LE, w::EXPLICIT_LE] {
         for preamble in [true, false] {
             let sub = tmp();
             let mut specs = w::series(3);
@@ -293,17 +267,11 @@ fn non_dicom_and_non_ct_files_are_skipped_with_a_reason() {
 
     let s = read_ok(&files);
     assert_eq!(s.hu.geometry.dims, [8, 6, 3]);
-    let reasons: Vec<(String, &str)> = s
-        .skipped
-        .iter()
-        .map(|(p, r)| (name_of(p), r.as_str()))
-        .collect();
+    let reasons: Vec<(String, &str)> = s.skipped.iter().map(|(p, r)| (name_of(p), r.as_str())).collect();
     assert_eq!(reasons.len(), 4, "{reasons:?}");
     for (name, reason) in &reasons {
         match name.as_str() {
-            "scout.dcm" => {
-                assert_mentions(reason, &["not a CT image", "Modality (0008,0060)", "'CR'"])
-            }
+            "scout.dcm" => assert_mentions(reason, &["not a CT image", "Modality (0008,0060)", "'CR'"]),
             _ => assert_mentions(reason, &["not a DICOM file", "DICM"]),
         }
     }
@@ -325,11 +293,7 @@ fn single_slice_spacing_falls_back_to_thickness_then_spacing_between_slices_then
     let dir = tmp();
     let mut spec = SliceSpec::ct(0);
     let path = dir.path().join("one.dcm");
-    let cases = [
-        (Some(3.0), Some(4.0), 3.0),
-        (None, Some(4.0), 4.0),
-        (None, None, 1.0),
-    ];
+    let cases = [(Some(3.0), Some(4.0), 3.0), (None, Some(4.0), 4.0), (None, None, 1.0)];
     for (thickness, between, expected) in cases {
         spec.slice_thickness = thickness;
         spec.spacing_between_slices = between;
@@ -380,10 +344,7 @@ fn error_when_no_file_is_ct() {
             "SOPClassUID (0008,0016)",
         ],
     );
-    assert!(matches!(
-        read_ct_series(&[], DEFAULT_GAP_TOLERANCE),
-        Err(DicomError::NoCtSlices { examined: 0, .. })
-    ));
+    assert!(matches!(read_ct_series(&[], DEFAULT_GAP_TOLERANCE), Err(DicomError::NoCtSlices { examined: 0, .. })));
 }
 
 #[test]
@@ -412,22 +373,13 @@ fn error_on_mixed_series() {
 fn error_on_each_missing_required_tag() {
     let cases = [
         (tags::PIXEL_SPACING, "PixelSpacing (0028,0030)"),
-        (
-            tags::IMAGE_POSITION_PATIENT,
-            "ImagePositionPatient (0020,0032)",
-        ),
-        (
-            tags::IMAGE_ORIENTATION_PATIENT,
-            "ImageOrientationPatient (0020,0037)",
-        ),
+        (tags::IMAGE_POSITION_PATIENT, "ImagePositionPatient (0020,0032)"),
+        (tags::IMAGE_ORIENTATION_PATIENT, "ImageOrientationPatient (0020,0037)"),
         (tags::ROWS, "Rows (0028,0010)"),
         (tags::COLUMNS, "Columns (0028,0011)"),
         (tags::PIXEL_DATA, "PixelData (7FE0,0010)"),
         (tags::BITS_ALLOCATED, "BitsAllocated (0028,0100)"),
-        (
-            tags::PIXEL_REPRESENTATION,
-            "PixelRepresentation (0028,0103)",
-        ),
+        (tags::PIXEL_REPRESENTATION, "PixelRepresentation (0028,0103)"),
     ];
     for (tag, label) in cases {
         let dir = tmp();
@@ -445,15 +397,7 @@ fn error_on_malformed_geometry_values() {
     let mut specs = w::series(2);
     specs[1].pixel_spacing = [0.0, 0.6];
     let files = w::write_series(dir.path(), &specs, w::default_name);
-    assert_mentions(
-        &read_err(&files),
-        &[
-            "slice_1.dcm",
-            "PixelSpacing (0028,0030)",
-            "'0\\0.6'",
-            "positive",
-        ],
-    );
+    assert_mentions(&read_err(&files), &["slice_1.dcm", "PixelSpacing (0028,0030)", "'0\\0.6'", "positive"]);
 }
 
 #[test]
@@ -500,21 +444,13 @@ fn error_on_unknown_private_transfer_syntax() {
     // Same-length swap of the meta's TransferSyntaxUID: "1.2.840.10008.1.2.1\0" → "...2.9\0".
     let bytes = std::fs::read(&files[1]).unwrap();
     let needle = b"1.2.840.10008.1.2.1\0";
-    let at = bytes
-        .windows(needle.len())
-        .position(|win| win == needle)
-        .unwrap();
+    let at = bytes.windows(needle.len()).position(|win| win == needle).unwrap();
     let mut patched = bytes.clone();
     patched[at..at + needle.len()].copy_from_slice(b"1.2.840.10008.1.2.9\0");
     std::fs::write(&files[1], patched).unwrap();
     assert_mentions(
         &read_err(&files),
-        &[
-            "slice_1.dcm",
-            "TransferSyntaxUID (0002,0010)",
-            "1.2.840.10008.1.2.9",
-            "unknown or private",
-        ],
+        &["slice_1.dcm", "TransferSyntaxUID (0002,0010)", "1.2.840.10008.1.2.9", "unknown or private"],
     );
 }
 
@@ -528,13 +464,7 @@ fn error_on_multi_frame_file() {
     let files = w::write_series(dir.path(), &specs, w::default_name);
     assert_mentions(
         &read_err(&files),
-        &[
-            "slice_0.dcm",
-            "multi-frame",
-            "NumberOfFrames (0028,0008) = 2",
-            "not supported",
-            "one file per slice",
-        ],
+        &["slice_0.dcm", "multi-frame", "NumberOfFrames (0028,0008) = 2", "not supported", "one file per slice"],
     );
 }
 
@@ -558,11 +488,7 @@ fn error_on_inconsistent_slices() {
             "Columns (0028,0011) = 6",
             "from 8",
         ),
-        (
-            |s| s.pixel_spacing = [0.7, 0.65],
-            "PixelSpacing (0028,0030) = 0.7\\0.65",
-            "from 0.7\\0.6",
-        ),
+        (|s| s.pixel_spacing = [0.7, 0.65], "PixelSpacing (0028,0030) = 0.7\\0.65", "from 0.7\\0.6"),
         (
             |s| s.iop = [1.0, 0.0, 0.0, 0.0, 0.0, -1.0],
             "ImageOrientationPatient (0020,0037) = 1\\0\\0\\0\\0\\-1",
@@ -575,16 +501,7 @@ fn error_on_inconsistent_slices() {
         edit(&mut specs[2]);
         let files = w::write_series(dir.path(), &specs, w::default_name);
         let msg = read_err(&files);
-        assert_mentions(
-            &msg,
-            &[
-                "slice_2.dcm",
-                value,
-                reference,
-                "slice_0.dcm",
-                "one series per patient folder",
-            ],
-        );
+        assert_mentions(&msg, &["slice_2.dcm", value, reference, "slice_0.dcm", "one series per patient folder"]);
     }
 }
 
@@ -658,12 +575,7 @@ fn error_on_non_orthogonal_orientation() {
     let files = w::write_series(dir.path(), &specs, w::default_name);
     assert_mentions(
         &read_err(&files),
-        &[
-            "slice_0.dcm",
-            "ImageOrientationPatient (0020,0037)",
-            "not orthogonal unit vectors",
-            "angle 84.26",
-        ],
+        &["slice_0.dcm", "ImageOrientationPatient (0020,0037)", "not orthogonal unit vectors", "angle 84.26"],
     );
 }
 
@@ -678,14 +590,8 @@ fn error_on_unsupported_pixel_encoding() {
             },
             "BitsAllocated (0028,0100) = 32",
         ),
-        (
-            |s| s.samples_per_pixel = 3,
-            "SamplesPerPixel (0028,0002) = 3",
-        ),
-        (
-            |s| s.photometric = "PALETTE COLOR".into(),
-            "PhotometricInterpretation (0028,0004) = PALETTE COLOR",
-        ),
+        (|s| s.samples_per_pixel = 3, "SamplesPerPixel (0028,0002) = 3"),
+        (|s| s.photometric = "PALETTE COLOR".into(), "PhotometricInterpretation (0028,0004) = PALETTE COLOR"),
         (|s| s.bits_stored = 17, "BitsStored (0028,0101) = 17"),
     ];
     for (edit, label) in cases {
@@ -693,10 +599,7 @@ fn error_on_unsupported_pixel_encoding() {
         let mut specs = w::series(2);
         edit(&mut specs[1]);
         let files = w::write_series(dir.path(), &specs, w::default_name);
-        assert_mentions(
-            &read_err(&files),
-            &["slice_1.dcm", label, "not supported", "supported:"],
-        );
+        assert_mentions(&read_err(&files), &["slice_1.dcm", label, "not supported", "supported:"]);
     }
 }
 
@@ -708,12 +611,7 @@ fn error_on_short_pixel_data() {
     let files = w::write_series(dir.path(), &specs, w::default_name);
     assert_mentions(
         &read_err(&files),
-        &[
-            "slice_0.dcm",
-            "PixelData (7FE0,0010) holds 80 bytes",
-            "needs 96",
-            "truncated",
-        ],
+        &["slice_0.dcm", "PixelData (7FE0,0010) holds 80 bytes", "needs 96", "truncated"],
     );
 }
 
@@ -723,10 +621,7 @@ fn error_on_truncated_dicom_file() {
     let files = w::write_series(dir.path(), &w::series(2), w::default_name);
     let bytes = std::fs::read(&files[1]).unwrap();
     std::fs::write(&files[1], &bytes[..200]).unwrap();
-    assert_mentions(
-        &read_err(&files),
-        &["slice_1.dcm", "cannot be parsed", "truncated or damaged"],
-    );
+    assert_mentions(&read_err(&files), &["slice_1.dcm", "cannot be parsed", "truncated or damaged"]);
 }
 
 #[test]
@@ -743,14 +638,7 @@ fn damaged_non_ct_file_is_skipped_but_a_damaged_ct_slice_is_not() {
     files.push(cr_path);
     let s = read_ok(&files);
     assert_eq!(s.skipped.len(), 1);
-    assert_mentions(
-        &s.skipped[0].1,
-        &[
-            "damaged DICOM file",
-            "not a CT image",
-            "1.2.840.10008.5.1.4.1.1.1",
-        ],
-    );
+    assert_mentions(&s.skipped[0].1, &["damaged DICOM file", "not a CT image", "1.2.840.10008.5.1.4.1.1.1"]);
 }
 
 #[test]

@@ -18,8 +18,7 @@ pub fn publish(store: &Store, dir: &Path, outputs: &[OutputRef]) -> anyhow::Resu
         }
         let tmp = dir.join(temp_name());
         if fs::hard_link(&blob, &tmp).is_err() {
-            fs::copy(&blob, &tmp)
-                .with_context(|| format!("copying {} to {}", blob.display(), tmp.display()))?;
+            fs::copy(&blob, &tmp).with_context(|| format!("copying {} to {}", blob.display(), tmp.display()))?;
         }
         fs::rename(&tmp, &target).with_context(|| format!("writing {}", target.display()))?;
     }

@@ -51,8 +51,7 @@ impl Serialize for Hash {
 impl<'de> Deserialize<'de> for Hash {
     fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Hash, D::Error> {
         let s = String::deserialize(d)?;
-        Hash::from_hex(&s)
-            .ok_or_else(|| serde::de::Error::custom(format!("not a blake3 hex hash: {s}")))
+        Hash::from_hex(&s).ok_or_else(|| serde::de::Error::custom(format!("not a blake3 hex hash: {s}")))
     }
 }
 
@@ -108,35 +107,15 @@ mod tests {
     fn key_changes_with_each_part() {
         let p = json!({"x": 1});
         let inputs = vec![("up".to_string(), "a.raw".to_string(), Hash::of(b"a"))];
-        let base = KeyParts {
-            stage: "s",
-            version: 1,
-            params: &p,
-            unit: "P1",
-            inputs: &inputs,
-        };
+        let base = KeyParts { stage: "s", version: 1, params: &p, unit: "P1", inputs: &inputs };
         let k = base.key();
         let p2 = json!({"x": 2});
-        assert_ne!(
-            k,
-            KeyParts {
-                params: &p2,
-                ..base
-            }
-            .key()
-        );
+        assert_ne!(k, KeyParts { params: &p2, ..base }.key());
         assert_ne!(k, KeyParts { version: 2, ..base }.key());
         assert_ne!(k, KeyParts { unit: "P2", ..base }.key());
         assert_ne!(k, KeyParts { stage: "t", ..base }.key());
         let inputs2 = vec![("up".to_string(), "a.raw".to_string(), Hash::of(b"b"))];
-        assert_ne!(
-            k,
-            KeyParts {
-                inputs: &inputs2,
-                ..base
-            }
-            .key()
-        );
+        assert_ne!(k, KeyParts { inputs: &inputs2, ..base }.key());
         assert_eq!(k, KeyParts { ..base }.key());
     }
 

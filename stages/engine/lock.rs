@@ -26,15 +26,13 @@ fn open(path: &Path) -> anyhow::Result<File> {
 impl FileLock {
     pub fn shared(path: &Path) -> anyhow::Result<FileLock> {
         let file = open(path)?;
-        file.lock_shared()
-            .with_context(|| format!("locking {}", path.display()))?;
+        file.lock_shared().with_context(|| format!("locking {}", path.display()))?;
         Ok(FileLock { _file: file })
     }
 
     pub fn exclusive(path: &Path) -> anyhow::Result<FileLock> {
         let file = open(path)?;
-        file.lock()
-            .with_context(|| format!("locking {}", path.display()))?;
+        file.lock().with_context(|| format!("locking {}", path.display()))?;
         Ok(FileLock { _file: file })
     }
 
@@ -44,9 +42,7 @@ impl FileLock {
         match file.try_lock() {
             Ok(()) => Ok(Some(FileLock { _file: file })),
             Err(std::fs::TryLockError::WouldBlock) => Ok(None),
-            Err(std::fs::TryLockError::Error(e)) => {
-                Err(e).with_context(|| format!("locking {}", path.display()))
-            }
+            Err(std::fs::TryLockError::Error(e)) => Err(e).with_context(|| format!("locking {}", path.display())),
         }
     }
 }

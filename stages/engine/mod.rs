@@ -17,4 +17,4 @@ pub mod stage;
 pub mod store;
 
 pub use key::Hash;
-pub use stage::{Context, Output, OutputRef, Stage, StageGraph, SOURCE};
+pub use stage::{Context, InputFile, Output, OutputRef, Stage, StageGraph, SOURCE};

@@ -16,25 +16,13 @@ pub struct Keyed {
 }
 
 /// The `(stage, output, hash)` triples a per-patient stage reads.
-pub fn patient_inputs(
-    stage: &dyn Stage,
-    sources: &[SourceFile],
-    finished: &Finished,
-) -> Vec<(String, String, Hash)> {
+pub fn patient_inputs(stage: &dyn Stage, sources: &[SourceFile], finished: &Finished) -> Vec<(String, String, Hash)> {
     let mut out = Vec::new();
     for &input in stage.inputs() {
         if input == SOURCE {
-            out.extend(
-                sources
-                    .iter()
-                    .map(|f| (SOURCE.to_string(), f.rel.clone(), f.hash)),
-            );
+            out.extend(sources.iter().map(|f| (SOURCE.to_string(), f.rel.clone(), f.hash)));
         } else if let Some(outputs) = finished.get(input) {
-            out.extend(
-                outputs
-                    .iter()
-                    .map(|o| (input.to_string(), o.name.clone(), o.hash)),
-            );
+            out.extend(outputs.iter().map(|o| (input.to_string(), o.name.clone(), o.hash)));
         }
     }
     out
@@ -54,29 +42,14 @@ pub fn cohort_inputs(
             out.push((format!("{patient}/{}", triple.0), triple.1, triple.2));
         }
     }
-    out.extend(
-        failed
-            .iter()
-            .map(|p| ("failed".to_string(), p.clone(), Hash::of(b""))),
-    );
+    out.extend(failed.iter().map(|p| ("failed".to_string(), p.clone(), Hash::of(b""))));
     out
 }
 
 pub fn key(stage: &dyn Stage, unit: &str, inputs: Vec<(String, String, Hash)>) -> Keyed {
     let params = stage.params();
-    let key = KeyParts {
-        stage: stage.name(),
-        version: stage.version(),
-        params: &params,
-        unit,
-        inputs: &inputs,
-    }
-    .key();
-    Keyed {
-        key,
-        params,
-        inputs,
-    }
+    let key = KeyParts { stage: stage.name(), version: stage.version(), params: &params, unit, inputs: &inputs }.key();
+    Keyed { key, params, inputs }
 }
 
 /// Cached (with its manifest), or to be computed (with the reasons).
@@ -85,14 +58,7 @@ pub enum Decision {
     Compute(Vec<String>),
 }
 
-pub fn decide(
-    store: &Store,
-    stage: &dyn Stage,
-    unit: &str,
-    keyed: &Keyed,
-    verify: bool,
-    forced: bool,
-) -> Decision {
+pub fn decide(store: &Store, stage: &dyn Stage, unit: &str, keyed: &Keyed, verify: bool, forced: bool) -> Decision {
     if forced {
         return Decision::Compute(vec!["forced with --force".into()]);
     }
@@ -109,11 +75,8 @@ pub fn why_stale(store: &Store, stage: &dyn Stage, unit: &str, keyed: &Keyed) ->
         return vec!["never run".into()];
     };
     let mut reasons = own_changes(&last, stage, &keyed.params);
-    let old: Vec<(String, String, Hash)> = last
-        .inputs
-        .iter()
-        .map(|i| (i.stage.clone(), i.name.clone(), i.hash))
-        .collect();
+    let old: Vec<(String, String, Hash)> =
+        last.inputs.iter().map(|i| (i.stage.clone(), i.name.clone(), i.hash)).collect();
     reasons.extend(input_changes(&old, &keyed.inputs));
     if reasons.is_empty() {
         reasons.push("not in the cache (removed, or computed by another configuration)".into());
@@ -125,11 +88,7 @@ pub fn why_stale(store: &Store, stage: &dyn Stage, unit: &str, keyed: &Keyed) ->
 pub fn own_changes(last: &Manifest, stage: &dyn Stage, params: &serde_json::Value) -> Vec<String> {
     let mut out = Vec::new();
     if last.version != stage.version() {
-        out.push(format!(
-            "stage version changed ({} → {})",
-            last.version,
-            stage.version()
-        ));
+        out.push(format!("stage version changed ({} → {})", last.version, stage.version()));
     }
     out.extend(param_changes(&last.params, params));
     out
@@ -145,13 +104,7 @@ pub fn param_changes(old: &serde_json::Value, new: &serde_json::Value) -> Vec<St
     names
         .into_iter()
         .filter(|n| a.get(*n) != b.get(*n))
-        .map(|n| {
-            format!(
-                "parameter `{n}` changed: {} → {}",
-                show(a.get(n)),
-                show(b.get(n))
-            )
-        })
+        .map(|n| format!("parameter `{n}` changed: {} → {}", show(a.get(n)), show(b.get(n))))
         .collect()
 }
 
@@ -159,11 +112,7 @@ fn flatten(prefix: &str, v: &serde_json::Value, out: &mut BTreeMap<String, Strin
     match v {
         serde_json::Value::Object(map) if !map.is_empty() => {
             for (k, v) in map {
-                let name = if prefix.is_empty() {
-                    k.clone()
-                } else {
-                    format!("{prefix}.{k}")
-                };
+                let name = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
                 flatten(&name, v, out);
             }
         }
@@ -175,14 +124,8 @@ fn flatten(prefix: &str, v: &serde_json::Value, out: &mut BTreeMap<String, Strin
 }
 
 fn input_changes(old: &[(String, String, Hash)], new: &[(String, String, Hash)]) -> Vec<String> {
-    let old_map: BTreeMap<(&str, &str), Hash> = old
-        .iter()
-        .map(|(s, n, h)| ((s.as_str(), n.as_str()), *h))
-        .collect();
-    let new_map: BTreeMap<(&str, &str), Hash> = new
-        .iter()
-        .map(|(s, n, h)| ((s.as_str(), n.as_str()), *h))
-        .collect();
+    let old_map: BTreeMap<(&str, &str), Hash> = old.iter().map(|(s, n, h)| ((s.as_str(), n.as_str()), *h)).collect();
+    let new_map: BTreeMap<(&str, &str), Hash> = new.iter().map(|(s, n, h)| ((s.as_str(), n.as_str()), *h)).collect();
     let mut changed: Vec<String> = Vec::new();
     for (k, h) in &new_map {
         match old_map.get(k) {
@@ -191,21 +134,13 @@ fn input_changes(old: &[(String, String, Hash)], new: &[(String, String, Hash)])
             _ => {}
         }
     }
-    changed.extend(
-        old_map
-            .keys()
-            .filter(|k| !new_map.contains_key(*k))
-            .map(|k| format!("{}/{} (gone)", k.0, k.1)),
-    );
+    changed.extend(old_map.keys().filter(|k| !new_map.contains_key(*k)).map(|k| format!("{}/{} (gone)", k.0, k.1)));
     if changed.is_empty() {
         return vec![];
     }
     const SHOWN: usize = 3;
     let more = changed.len().saturating_sub(SHOWN);
-    let mut line = format!(
-        "input changed: {}",
-        changed[..changed.len().min(SHOWN)].join(", ")
-    );
+    let mut line = format!("input changed: {}", changed[..changed.len().min(SHOWN)].join(", "));
     if more > 0 {
         line.push_str(&format!(" and {more} more"));
     }
@@ -219,10 +154,7 @@ mod tests {
 
     #[test]
     fn param_changes_name_old_and_new() {
-        let c = param_changes(
-            &json!({"hu_max": 400, "hu_min": -1000}),
-            &json!({"hu_max": 500, "hu_min": -1000}),
-        );
+        let c = param_changes(&json!({"hu_max": 400, "hu_min": -1000}), &json!({"hu_max": 500, "hu_min": -1000}));
         assert_eq!(c, vec!["parameter `hu_max` changed: 400 → 500"]);
         assert!(param_changes(&json!({}), &json!({})).is_empty());
         let nested = param_changes(&json!({"a": {"b": 1}}), &json!({"a": {"b": 1, "c": true}}));
@@ -232,18 +164,9 @@ mod tests {
     #[test]
     fn input_changes_are_summarised() {
         let h = |s: &str| Hash::of(s.as_bytes());
-        let old = vec![
-            ("source".into(), "a.dcm".into(), h("a")),
-            ("source".into(), "b.dcm".into(), h("b")),
-        ];
-        let new = vec![
-            ("source".into(), "a.dcm".into(), h("A")),
-            ("source".into(), "c.dcm".into(), h("c")),
-        ];
+        let old = vec![("source".into(), "a.dcm".into(), h("a")), ("source".into(), "b.dcm".into(), h("b"))];
+        let new = vec![("source".into(), "a.dcm".into(), h("A")), ("source".into(), "c.dcm".into(), h("c"))];
         let c = input_changes(&old, &new);
-        assert_eq!(
-            c,
-            vec!["input changed: source/a.dcm, source/c.dcm (new), source/b.dcm (gone)"]
-        );
+        assert_eq!(c, vec!["input changed: source/a.dcm, source/c.dcm (new), source/b.dcm (gone)"]);
     }
 }

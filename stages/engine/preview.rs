@@ -30,35 +30,24 @@ pub struct Row {
     pub state: State,
 }
 
-pub fn preview(
-    graph: &StageGraph,
-    store: &Store,
-    units: &[Unit],
-    verify: bool,
-    force: &[String],
-) -> Vec<Row> {
+pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, force: &[String]) -> Vec<Row> {
     let mut rows = Vec::new();
     let mut cohort: BTreeMap<String, Finished> = BTreeMap::new();
     let mut cohort_blocker: Option<String> = None;
     for unit in units {
         let mut finished = Finished::new();
         let mut pending: Option<String> = None; // first stage of this unit that would not be cached
-        let sources = source::scan(store, &unit.id, &unit.source_dir, verify);
+        let sources = source::scan(store, unit, verify);
         for stage in graph.stages().iter().filter(|s| !s.is_cohort()) {
             let stage = stage.as_ref();
             let state = match (&sources, &pending) {
                 (Err(e), _) if stage.inputs().contains(&SOURCE) => State::Blocked(format!("{e:#}")),
-                (_, Some(up)) if depends_on(graph, stage, up) => State::AfterUpstream {
-                    upstream: up.clone(),
-                    own: own_changes(store, stage, &unit.id),
-                },
+                (_, Some(up)) if depends_on(graph, stage, up) => {
+                    State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, &unit.id) }
+                }
                 _ => {
                     let files = sources.as_deref().unwrap_or(&[]);
-                    let keyed = plan::key(
-                        stage,
-                        &unit.id,
-                        plan::patient_inputs(stage, files, &finished),
-                    );
+                    let keyed = plan::key(stage, &unit.id, plan::patient_inputs(stage, files, &finished));
                     let forced = force.iter().any(|f| f == stage.name());
                     match plan::decide(store, stage, &unit.id, &keyed, verify, forced) {
                         Decision::Cached(m) => {
@@ -72,11 +61,7 @@ pub fn preview(
             if !matches!(state, State::Cached) && pending.is_none() {
                 pending = Some(stage.name().to_string());
             }
-            rows.push(Row {
-                unit: unit.id.clone(),
-                stage: stage.name().into(),
-                state,
-            });
+            rows.push(Row { unit: unit.id.clone(), stage: stage.name().into(), state });
         }
         if let Some(p) = pending {
             cohort_blocker.get_or_insert(format!("{}/{p}", unit.id));
@@ -87,16 +72,9 @@ pub fn preview(
     for stage in graph.stages().iter().filter(|s| s.is_cohort()) {
         let stage = stage.as_ref();
         let state = if let Some(up) = &cohort_blocker {
-            State::AfterUpstream {
-                upstream: up.clone(),
-                own: own_changes(store, stage, COHORT),
-            }
+            State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, COHORT) }
         } else {
-            let keyed = plan::key(
-                stage,
-                COHORT,
-                plan::cohort_inputs(stage, &cohort, &cohort_finished, &[]),
-            );
+            let keyed = plan::key(stage, COHORT, plan::cohort_inputs(stage, &cohort, &cohort_finished, &[]));
             let forced = force.iter().any(|f| f == stage.name());
             match plan::decide(store, stage, COHORT, &keyed, verify, forced) {
                 Decision::Cached(m) => {
@@ -109,21 +87,14 @@ pub fn preview(
                 }
             }
         };
-        rows.push(Row {
-            unit: COHORT.into(),
-            stage: stage.name().into(),
-            state,
-        });
+        rows.push(Row { unit: COHORT.into(), stage: stage.name().into(), state });
     }
     rows
 }
 
 /// Whether `stage` reads `upstream`, directly or through other stages.
 fn depends_on(graph: &StageGraph, stage: &dyn Stage, upstream: &str) -> bool {
-    stage
-        .inputs()
-        .iter()
-        .any(|&i| i == upstream || graph.get(i).is_some_and(|s| depends_on(graph, s, upstream)))
+    stage.inputs().iter().any(|&i| i == upstream || graph.get(i).is_some_and(|s| depends_on(graph, s, upstream)))
 }
 
 /// Changes of the stage itself since it last ran for `unit` ("never run" if it never did).

@@ -18,10 +18,7 @@ struct Counts {
 }
 
 enum Mode {
-    Bars {
-        _multi: MultiProgress,
-        bars: BTreeMap<String, ProgressBar>,
-    },
+    Bars { _multi: MultiProgress, bars: BTreeMap<String, ProgressBar> },
     Lines,
     Quiet,
 }
@@ -38,28 +35,18 @@ impl Progress {
             Progress::with_mode(Mode::Quiet, stages)
         } else if std::io::stderr().is_terminal() {
             let multi = MultiProgress::with_draw_target(ProgressDrawTarget::stderr());
-            let style =
-                ProgressStyle::with_template("{prefix:>8} [{bar:30.cyan/blue}] {pos}/{len} {msg}")
-                    .expect("valid template")
-                    .progress_chars("=> ");
+            let style = ProgressStyle::with_template("{prefix:>8} [{bar:30.cyan/blue}] {pos}/{len} {msg}")
+                .expect("valid template")
+                .progress_chars("=> ");
             let bars = stages
                 .iter()
                 .map(|&(name, total)| {
-                    let bar = multi.add(
-                        ProgressBar::new(total)
-                            .with_style(style.clone())
-                            .with_prefix(name.to_string()),
-                    );
+                    let bar =
+                        multi.add(ProgressBar::new(total).with_style(style.clone()).with_prefix(name.to_string()));
                     (name.to_string(), bar)
                 })
                 .collect();
-            Progress::with_mode(
-                Mode::Bars {
-                    _multi: multi,
-                    bars,
-                },
-                stages,
-            )
+            Progress::with_mode(Mode::Bars { _multi: multi, bars }, stages)
         } else {
             Progress::with_mode(Mode::Lines, stages)
         }
@@ -71,14 +58,8 @@ impl Progress {
     }
 
     fn with_mode(mode: Mode, stages: &[(&str, u64)]) -> Progress {
-        let counts = stages
-            .iter()
-            .map(|(n, _)| (n.to_string(), Counts::default()))
-            .collect();
-        Progress {
-            mode,
-            counts: Mutex::new(counts),
-        }
+        let counts = stages.iter().map(|(n, _)| (n.to_string(), Counts::default())).collect();
+        Progress { mode, counts: Mutex::new(counts) }
     }
 
     pub fn started(&self, stage: &str, unit: &str) {
@@ -122,17 +103,8 @@ impl Progress {
     }
 
     fn tally(&self, stage: &str) -> String {
-        let c = self
-            .counts
-            .lock()
-            .expect("progress counts")
-            .get(stage)
-            .copied()
-            .unwrap_or_default();
-        format!(
-            "{} computed · {} cached · {} failed",
-            c.computed, c.cached, c.failed
-        )
+        let c = self.counts.lock().expect("progress counts").get(stage).copied().unwrap_or_default();
+        format!("{} computed · {} cached · {} failed", c.computed, c.cached, c.failed)
     }
 }
 
@@ -146,12 +118,7 @@ pub fn grid(cells: &[(String, String, String)], stages: &[&str]) -> String {
         }
         by_key.insert((unit, stage), cell);
     }
-    let first = units
-        .iter()
-        .map(|u| u.len())
-        .max()
-        .unwrap_or(0)
-        .max("patient".len());
+    let first = units.iter().map(|u| u.len()).max().unwrap_or(0).max("patient".len());
     let widths: Vec<usize> = stages.iter().map(|s| s.len().max(8)).collect();
     let mut out = format!("{:<first$}", "patient");
     for (s, w) in stages.iter().zip(&widths) {

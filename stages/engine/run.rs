@@ -22,11 +22,22 @@ use std::time::Instant;
 /// The unit a cohort stage runs for, and its folder name under `out_dir` (none: `out_dir` itself).
 pub const COHORT: &str = "cohort";
 
-/// One patient: an ID and the folder of its own files.
+/// One patient: an ID and its own files.
 #[derive(Debug, Clone)]
 pub struct Unit {
     pub id: String,
+    /// The folder holding the patient's files.
     pub source_dir: PathBuf,
+    /// When set, only these files (relative to `source_dir`) are the patient's; otherwise every
+    /// file under the folder is.
+    pub source_files: Option<Vec<String>>,
+}
+
+impl Unit {
+    /// A patient whose files are everything under `dir`.
+    pub fn folder(id: impl Into<String>, dir: PathBuf) -> Unit {
+        Unit { id: id.into(), source_dir: dir, source_files: None }
+    }
 }
 
 pub struct RunOptions {
@@ -43,11 +54,7 @@ pub struct RunOptions {
 
 impl RunOptions {
     fn workers_for(&self, stage: &str) -> usize {
-        self.workers
-            .get(stage)
-            .copied()
-            .unwrap_or(self.default_workers)
-            .max(1)
+        self.workers.get(stage).copied().unwrap_or(self.default_workers).max(1)
     }
 }
 
@@ -88,16 +95,11 @@ pub struct RunSummary {
 
 impl RunSummary {
     pub fn failures(&self) -> impl Iterator<Item = &Record> {
-        self.records
-            .iter()
-            .filter(|r| matches!(r.outcome, Outcome::Failed { .. }))
+        self.records.iter().filter(|r| matches!(r.outcome, Outcome::Failed { .. }))
     }
 
     pub fn count(&self, stage: &str, pred: impl Fn(&Outcome) -> bool) -> usize {
-        self.records
-            .iter()
-            .filter(|r| r.stage == stage && pred(&r.outcome))
-            .count()
+        self.records.iter().filter(|r| r.stage == stage && pred(&r.outcome)).count()
     }
 }
 
@@ -118,63 +120,30 @@ struct Shared<'a> {
 }
 
 /// Runs `graph` for every unit, then its cohort stages. Never stops early for a failure.
-pub fn run(
-    graph: &StageGraph,
-    store: &Store,
-    units: &[Unit],
-    options: &RunOptions,
-    progress: &Progress,
-) -> RunSummary {
+pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptions, progress: &Progress) -> RunSummary {
     let started = Instant::now();
-    let shared = Shared {
-        store,
-        options,
-        progress,
-    };
-    let patient_stages: Vec<&dyn Stage> = graph
-        .stages()
-        .iter()
-        .filter(|s| !s.is_cohort())
-        .map(|s| s.as_ref())
-        .collect();
+    let shared = Shared { store, options, progress };
+    let patient_stages: Vec<&dyn Stage> =
+        graph.stages().iter().filter(|s| !s.is_cohort()).map(|s| s.as_ref()).collect();
     let mut jobs = stream_patients(&shared, &patient_stages, units);
     jobs.sort_by(|a, b| a.unit.id.cmp(&b.unit.id));
 
-    let mut records: Vec<Record> = jobs
-        .iter_mut()
-        .flat_map(|j| std::mem::take(&mut j.records))
-        .collect();
-    let failed: Vec<String> = jobs
-        .iter()
-        .filter(|j| j.failed_at.is_some())
-        .map(|j| j.unit.id.clone())
-        .collect();
-    let patients: BTreeMap<String, Finished> = jobs
-        .into_iter()
-        .filter(|j| j.failed_at.is_none())
-        .map(|j| (j.unit.id, j.finished))
-        .collect();
+    let mut records: Vec<Record> = jobs.iter_mut().flat_map(|j| std::mem::take(&mut j.records)).collect();
+    let failed: Vec<String> = jobs.iter().filter(|j| j.failed_at.is_some()).map(|j| j.unit.id.clone()).collect();
+    let patients: BTreeMap<String, Finished> =
+        jobs.into_iter().filter(|j| j.failed_at.is_none()).map(|j| (j.unit.id, j.finished)).collect();
     // Cohort stages run in order; each may read the patients' outputs and earlier cohort stages.
     let mut cohort_finished = Finished::new();
     let mut cohort_failed: Option<String> = None;
     for stage in graph.stages().iter().filter(|s| s.is_cohort()) {
         let stage = stage.as_ref();
         let outcome = if let Some(up) = &cohort_failed {
-            Outcome::Skipped {
-                upstream: up.clone(),
-            }
+            Outcome::Skipped { upstream: up.clone() }
         } else {
             progress.started(stage.name(), COHORT);
             let inputs = plan::cohort_inputs(stage, &patients, &cohort_finished, &failed);
-            let ctx = Context {
-                unit: COHORT,
-                store,
-                sources: &[],
-                inputs: &cohort_finished,
-                cohort: &patients,
-            };
-            let (outcome, outputs) =
-                run_stage(&shared, stage, COHORT, inputs, &ctx, &options.out_dir);
+            let ctx = Context { unit: COHORT, store, sources: &[], inputs: &cohort_finished, cohort: &patients };
+            let (outcome, outputs) = run_stage(&shared, stage, COHORT, inputs, &ctx, &options.out_dir);
             match outputs {
                 Some(outputs) => drop(cohort_finished.insert(stage.name(), outputs)),
                 None => cohort_failed = Some(stage.name().to_string()),
@@ -182,16 +151,9 @@ pub fn run(
             outcome
         };
         progress.finished(stage.name(), COHORT, &outcome);
-        records.push(Record {
-            unit: COHORT.into(),
-            stage: stage.name().into(),
-            outcome,
-        });
+        records.push(Record { unit: COHORT.into(), stage: stage.name().into(), outcome });
     }
-    RunSummary {
-        records,
-        wall_seconds: started.elapsed().as_secs_f64(),
-    }
+    RunSummary { records, wall_seconds: started.elapsed().as_secs_f64() }
 }
 
 /// Pushes every unit through the per-patient stages, each stage with its own worker pool.
@@ -237,9 +199,7 @@ fn stream_patients(shared: &Shared, stages: &[&dyn Stage], units: &[Unit]) -> Ve
 /// One stage for one patient: serve from the cache or compute, then publish.
 fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
     let outcome = if let Some(up) = &job.failed_at {
-        Outcome::Skipped {
-            upstream: up.clone(),
-        }
+        Outcome::Skipped { upstream: up.clone() }
     } else {
         shared.progress.started(stage.name(), &job.unit.id);
         let outcome = match ensure_sources(shared, stage, job) {
@@ -268,25 +228,13 @@ fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
         }
         outcome
     };
-    shared
-        .progress
-        .finished(stage.name(), &job.unit.id, &outcome);
-    job.records.push(Record {
-        unit: job.unit.id.clone(),
-        stage: stage.name().into(),
-        outcome,
-    });
+    shared.progress.finished(stage.name(), &job.unit.id, &outcome);
+    job.records.push(Record { unit: job.unit.id.clone(), stage: stage.name().into(), outcome });
 }
 
 fn ensure_sources(shared: &Shared, stage: &dyn Stage, job: &mut Job) -> Result<(), String> {
     if job.sources.is_none() && stage.inputs().contains(&SOURCE) {
-        let files = source::scan(
-            shared.store,
-            &job.unit.id,
-            &job.unit.source_dir,
-            shared.options.verify,
-        )
-        .map_err(|e| format!("{e:#}"))?;
+        let files = source::scan(shared.store, &job.unit, shared.options.verify).map_err(|e| format!("{e:#}"))?;
         job.sources = Some(files);
     }
     Ok(())
@@ -305,56 +253,30 @@ fn run_stage(
     let forced = shared.options.force.iter().any(|f| f == stage.name());
     let keyed = plan::key(stage, unit, inputs);
     let served = |manifest: Manifest| {
-        let outcome = Outcome::Cached {
-            seconds: manifest.wall_seconds,
-        };
-        finish(store, &manifest, publish_dir).map(|()| (outcome, Some(manifest.outputs)))
+        let outcome = Outcome::Cached { seconds: manifest.wall_seconds };
+        finish(store, stage, &manifest, publish_dir).map(|()| (outcome, Some(manifest.outputs)))
     };
     let result = (|| -> anyhow::Result<(Outcome, Option<Vec<OutputRef>>)> {
-        if let Decision::Cached(m) =
-            plan::decide(store, stage, unit, &keyed, shared.options.verify, forced)
-        {
+        if let Decision::Cached(m) = plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
             return served(m);
         }
-        let _lock = FileLock::exclusive(&store.lock_path(&format!(
-            "{}-{}",
-            stage.name(),
-            keyed.key.hex()
-        )))?;
+        let _lock = FileLock::exclusive(&store.lock_path(&format!("{}-{}", stage.name(), keyed.key.hex())))?;
         // Another process may have computed it while we waited for the lock.
-        if let Decision::Cached(m) =
-            plan::decide(store, stage, unit, &keyed, shared.options.verify, forced)
-        {
+        if let Decision::Cached(m) = plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
             return served(m);
         }
         let started = Instant::now();
         let outputs = match catch_unwind(AssertUnwindSafe(|| stage.run(ctx))) {
             Ok(Ok(outputs)) => outputs,
-            Ok(Err(e)) => {
-                return Ok((
-                    Outcome::Failed {
-                        cause: format!("{e:#}"),
-                    },
-                    None,
-                ))
-            }
+            Ok(Err(e)) => return Ok((Outcome::Failed { cause: format!("{e:#}") }, None)),
             Err(panic) => {
-                return Ok((
-                    Outcome::Failed {
-                        cause: format!("internal error (panic): {}", panic_text(&panic)),
-                    },
-                    None,
-                ))
+                return Ok((Outcome::Failed { cause: format!("internal error (panic): {}", panic_text(&panic)) }, None))
             }
         };
         let mut refs = Vec::with_capacity(outputs.len());
         for output in &outputs {
             if refs.iter().any(|r: &OutputRef| r.name == output.name) {
-                anyhow::bail!(
-                    "stage `{}` returned output `{}` twice",
-                    stage.name(),
-                    output.name
-                );
+                anyhow::bail!("stage `{}` returned output `{}` twice", stage.name(), output.name);
             }
             refs.push(store.put_blob(&output.name, &output.bytes)?);
         }
@@ -368,11 +290,7 @@ fn run_stage(
             inputs: keyed
                 .inputs
                 .iter()
-                .map(|(s, n, h)| InputRef {
-                    stage: s.clone(),
-                    name: n.clone(),
-                    hash: *h,
-                })
+                .map(|(s, n, h)| InputRef { stage: s.clone(), name: n.clone(), hash: *h })
                 .collect(),
             outputs: refs.clone(),
             wall_seconds: seconds,
@@ -383,22 +301,17 @@ fn run_stage(
                 .unwrap_or(0),
         };
         store.put_manifest(&manifest)?;
-        finish(store, &manifest, publish_dir)?;
+        finish(store, stage, &manifest, publish_dir)?;
         Ok((Outcome::Computed { seconds }, Some(refs)))
     })();
-    result.unwrap_or_else(|e| {
-        (
-            Outcome::Failed {
-                cause: format!("{e:#}"),
-            },
-            None,
-        )
-    })
+    result.unwrap_or_else(|e| (Outcome::Failed { cause: format!("{e:#}") }, None))
 }
 
-fn finish(store: &Store, manifest: &Manifest, publish_dir: &std::path::Path) -> anyhow::Result<()> {
+/// Remembers the manifest as the unit's latest and publishes the outputs the stage shows.
+fn finish(store: &Store, stage: &dyn Stage, manifest: &Manifest, publish_dir: &std::path::Path) -> anyhow::Result<()> {
     store.set_latest(manifest)?;
-    publish(store, publish_dir, &manifest.outputs)
+    let shown: Vec<OutputRef> = manifest.outputs.iter().filter(|o| stage.publishes(&o.name)).cloned().collect();
+    publish(store, publish_dir, &shown)
 }
 
 fn panic_text(panic: &Box<dyn std::any::Any + Send>) -> String {

@@ -19,11 +19,15 @@ pub struct Output {
 
 impl Output {
     pub fn new(name: impl Into<String>, bytes: impl Into<Vec<u8>>) -> Output {
-        Output {
-            name: name.into(),
-            bytes: bytes.into(),
-        }
+        Output { name: name.into(), bytes: bytes.into() }
     }
+}
+
+/// An input file: its name (relative path for source files) and where to read it.
+#[derive(Debug, Clone)]
+pub struct InputFile {
+    pub name: String,
+    pub path: PathBuf,
 }
 
 /// A stored output: its file name and the content hash of its bytes.
@@ -48,6 +52,10 @@ pub trait Stage: Send + Sync {
     fn is_cohort(&self) -> bool {
         false
     }
+    /// Whether output `name` is published to `out_dir` (all are, unless a stage says otherwise).
+    fn publishes(&self, _name: &str) -> bool {
+        true
+    }
     /// Compute the outputs. Must not read anything the context does not hand it.
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>>;
 }
@@ -67,21 +75,12 @@ impl StageGraph {
             }
             for input in s.inputs() {
                 if !seen.contains(input) {
-                    return Err(anyhow!(
-                        "stage `{}` reads `{input}`, which is not declared before it",
-                        s.name()
-                    ));
+                    return Err(anyhow!("stage `{}` reads `{input}`, which is not declared before it", s.name()));
                 }
             }
-            let cohort_input = s
-                .inputs()
-                .iter()
-                .any(|i| stages.iter().any(|t| t.name() == *i && t.is_cohort()));
+            let cohort_input = s.inputs().iter().any(|i| stages.iter().any(|t| t.name() == *i && t.is_cohort()));
             if cohort_input && !s.is_cohort() {
-                return Err(anyhow!(
-                    "per-patient stage `{}` cannot read a cohort stage",
-                    s.name()
-                ));
+                return Err(anyhow!("per-patient stage `{}` cannot read a cohort stage", s.name()));
             }
             seen.push(s.name());
         }
@@ -97,19 +96,13 @@ impl StageGraph {
     }
 
     pub fn get(&self, name: &str) -> Option<&dyn Stage> {
-        self.stages
-            .iter()
-            .find(|s| s.name() == name)
-            .map(|s| s.as_ref())
+        self.stages.iter().find(|s| s.name() == name).map(|s| s.as_ref())
     }
 
     /// The graph cut after `last`: `last` and every stage it depends on, in order.
     pub fn until(self, last: &str) -> anyhow::Result<StageGraph> {
         if self.get(last).is_none() {
-            return Err(anyhow!(
-                "--until {last}: no such stage (stages: {})",
-                self.names().join(", ")
-            ));
+            return Err(anyhow!("--until {last}: no such stage (stages: {})", self.names().join(", ")));
         }
         let mut needed = vec![last];
         for s in self.stages.iter().rev() {
@@ -117,11 +110,7 @@ impl StageGraph {
                 needed.extend(s.inputs().iter().copied());
             }
         }
-        let stages = self
-            .stages
-            .into_iter()
-            .filter(|s| needed.contains(&s.name()))
-            .collect();
+        let stages = self.stages.into_iter().filter(|s| needed.contains(&s.name())).collect();
         Ok(StageGraph { stages })
     }
 }
@@ -161,26 +150,29 @@ impl<'a> Context<'a> {
 
     /// Bytes of output `name` of stage `stage` for `patient` (cohort stages only).
     pub fn read_patient(&self, patient: &str, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
-        let finished = self
-            .cohort
-            .get(patient)
-            .ok_or_else(|| anyhow!("patient `{patient}` did not reach this cohort stage"))?;
+        let finished =
+            self.cohort.get(patient).ok_or_else(|| anyhow!("patient `{patient}` did not reach this cohort stage"))?;
         self.read_from(finished, stage, name)
+    }
+
+    /// The files of input `stage` as named paths: the patient's own files for [`SOURCE`], else
+    /// that stage's stored outputs. Lets a stage read a file set wherever it came from.
+    pub fn input_files(&self, stage: &str) -> anyhow::Result<Vec<InputFile>> {
+        if stage == SOURCE {
+            let files = self.sources.iter();
+            return Ok(files.map(|f| InputFile { name: f.rel.clone(), path: f.path.clone() }).collect());
+        }
+        let outputs = self.inputs.get(stage).ok_or_else(|| anyhow!("stage `{stage}` is not an input here"))?;
+        let store = self.store;
+        Ok(outputs.iter().map(|o| InputFile { name: o.name.clone(), path: store.blob_path(&o.hash) }).collect())
     }
 
     /// Path of a stored upstream output, for stages that stream a large file.
     pub fn path(&self, stage: &str, name: &str) -> anyhow::Result<PathBuf> {
-        Ok(self
-            .store
-            .blob_path(&self.find(self.inputs, stage, name)?.hash))
+        Ok(self.store.blob_path(&self.find(self.inputs, stage, name)?.hash))
     }
 
-    fn find<'f>(
-        &self,
-        finished: &'f Finished,
-        stage: &str,
-        name: &str,
-    ) -> anyhow::Result<&'f OutputRef> {
+    fn find<'f>(&self, finished: &'f Finished, stage: &str, name: &str) -> anyhow::Result<&'f OutputRef> {
         finished
             .get(stage)
             .ok_or_else(|| anyhow!("stage `{stage}` is not an input here"))?
@@ -192,7 +184,6 @@ impl<'a> Context<'a> {
     fn read_from(&self, finished: &Finished, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
         let output = self.find(finished, stage, name)?;
         let path = self.store.blob_path(&output.hash);
-        std::fs::read(&path)
-            .with_context(|| format!("reading {stage}/{name} from the cache ({})", path.display()))
+        std::fs::read(&path).with_context(|| format!("reading {stage}/{name} from the cache ({})", path.display()))
     }
 }

@@ -62,13 +62,10 @@ impl Store {
     /// Opens (creating if needed) the cache at `root`.
     pub fn open(root: &Path) -> anyhow::Result<Store> {
         for sub in ["blobs", "manifests", "latest", "sources", "locks"] {
-            fs::create_dir_all(root.join(sub)).with_context(|| {
-                format!("creating cache directory {}", root.join(sub).display())
-            })?;
+            fs::create_dir_all(root.join(sub))
+                .with_context(|| format!("creating cache directory {}", root.join(sub).display()))?;
         }
-        Ok(Store {
-            root: root.to_path_buf(),
-        })
+        Ok(Store { root: root.to_path_buf() })
     }
 
     pub fn root(&self) -> &Path {
@@ -81,17 +78,11 @@ impl Store {
     }
 
     fn manifest_path(&self, stage: &str, key: &Hash) -> PathBuf {
-        self.root
-            .join("manifests")
-            .join(stage)
-            .join(format!("{}.json", key.hex()))
+        self.root.join("manifests").join(stage).join(format!("{}.json", key.hex()))
     }
 
     fn latest_path(&self, stage: &str, unit: &str) -> PathBuf {
-        self.root
-            .join("latest")
-            .join(stage)
-            .join(format!("{unit}.json"))
+        self.root.join("latest").join(stage).join(format!("{unit}.json"))
     }
 
     pub fn sources_path(&self, unit: &str) -> PathBuf {
@@ -112,11 +103,7 @@ impl Store {
         let path = self.blob_path(&hash);
         // Always (re)write: a blob we recompute may be replacing a corrupt copy.
         write_atomic(&path, bytes, true)?;
-        Ok(OutputRef {
-            name: name.to_string(),
-            hash,
-            size: bytes.len() as u64,
-        })
+        Ok(OutputRef { name: name.to_string(), hash, size: bytes.len() as u64 })
     }
 
     /// Why a stored output cannot be used, or `None` when it can.
@@ -137,18 +124,8 @@ impl Store {
         if verify {
             match hash_file(&path) {
                 Ok(h) if h == output.hash => {}
-                Ok(_) => {
-                    return Some(format!(
-                        "cached output `{}` is corrupt (hash mismatch)",
-                        output.name
-                    ))
-                }
-                Err(e) => {
-                    return Some(format!(
-                        "cached output `{}` cannot be read: {e}",
-                        output.name
-                    ))
-                }
+                Ok(_) => return Some(format!("cached output `{}` is corrupt (hash mismatch)", output.name)),
+                Err(e) => return Some(format!("cached output `{}` cannot be read: {e}", output.name)),
             }
         }
         None
@@ -163,15 +140,10 @@ impl Store {
         };
         let manifest: Manifest = match serde_json::from_slice(&text) {
             Ok(m) => m,
-            Err(e) => {
-                return Lookup::Broken(format!("manifest {} is unreadable: {e}", path.display()))
-            }
+            Err(e) => return Lookup::Broken(format!("manifest {} is unreadable: {e}", path.display())),
         };
         if manifest.key != *key || manifest.stage != stage {
-            return Lookup::Broken(format!(
-                "manifest {} does not describe this key",
-                path.display()
-            ));
+            return Lookup::Broken(format!("manifest {} does not describe this key", path.display()));
         }
         for output in &manifest.outputs {
             if let Some(why) = self.check_blob(output, verify) {
@@ -184,11 +156,7 @@ impl Store {
     /// Records a computed stage: manifest last, after its blobs are in place.
     pub fn put_manifest(&self, manifest: &Manifest) -> anyhow::Result<()> {
         let bytes = serde_json::to_vec_pretty(manifest)?;
-        write_atomic(
-            &self.manifest_path(&manifest.stage, &manifest.key),
-            &bytes,
-            false,
-        )
+        write_atomic(&self.manifest_path(&manifest.stage, &manifest.key), &bytes, false)
     }
 
     /// The manifest last used for `unit` at `stage`, if any.
@@ -199,27 +167,17 @@ impl Store {
 
     /// Remembers `manifest` as the last one used for its unit (skipped when unchanged).
     pub fn set_latest(&self, manifest: &Manifest) -> anyhow::Result<()> {
-        if self
-            .latest(&manifest.stage, &manifest.unit)
-            .is_some_and(|m| m.key == manifest.key)
-        {
+        if self.latest(&manifest.stage, &manifest.unit).is_some_and(|m| m.key == manifest.key) {
             return Ok(());
         }
         let bytes = serde_json::to_vec_pretty(manifest)?;
-        write_atomic(
-            &self.latest_path(&manifest.stage, &manifest.unit),
-            &bytes,
-            false,
-        )
+        write_atomic(&self.latest_path(&manifest.stage, &manifest.unit), &bytes, false)
     }
 
     /// Every manifest in the cache.
     pub fn all_manifests(&self) -> anyhow::Result<Vec<Manifest>> {
         let mut out = Vec::new();
-        for entry in walkdir::WalkDir::new(self.root.join("manifests"))
-            .min_depth(2)
-            .max_depth(2)
-        {
+        for entry in walkdir::WalkDir::new(self.root.join("manifests")).min_depth(2).max_depth(2) {
             let entry = entry?;
             let name = entry.file_name().to_string_lossy();
             if name.starts_with(".tmp-") || !name.ends_with(".json") {
@@ -235,11 +193,8 @@ impl Store {
     /// Deletes blobs no manifest references, leftover temporary files and lock files.
     /// Call only while holding the cache's exclusive lock. Returns (files, bytes) freed.
     pub fn collect_garbage(&self) -> anyhow::Result<(u64, u64)> {
-        let referenced: std::collections::HashSet<Hash> = self
-            .all_manifests()?
-            .iter()
-            .flat_map(|m| m.outputs.iter().map(|o| o.hash))
-            .collect();
+        let referenced: std::collections::HashSet<Hash> =
+            self.all_manifests()?.iter().flat_map(|m| m.outputs.iter().map(|o| o.hash)).collect();
         let (mut files, mut bytes) = (0u64, 0u64);
         for entry in walkdir::WalkDir::new(&self.root).min_depth(1) {
             let entry = entry?;
@@ -247,18 +202,14 @@ impl Store {
                 continue;
             }
             let name = entry.file_name().to_string_lossy().to_string();
-            let rel = entry
-                .path()
-                .strip_prefix(&self.root)
-                .unwrap_or(entry.path());
+            let rel = entry.path().strip_prefix(&self.root).unwrap_or(entry.path());
             let in_blobs = rel.starts_with("blobs");
             let garbage = name.starts_with(".tmp-")
                 || rel.starts_with("locks")
                 || (in_blobs && Hash::from_hex(&name).is_none_or(|h| !referenced.contains(&h)));
             if garbage {
                 let size = entry.metadata().map(|m| m.len()).unwrap_or(0);
-                fs::remove_file(entry.path())
-                    .with_context(|| format!("deleting {}", entry.path().display()))?;
+                fs::remove_file(entry.path()).with_context(|| format!("deleting {}", entry.path().display()))?;
                 files += 1;
                 bytes += size;
             }
@@ -293,10 +244,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8], read_only: bool) -> anyhow::Resul
 /// A name no other process or thread is using at the same moment.
 pub fn temp_name() -> String {
     let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_nanos())
-        .unwrap_or(0);
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
     format!(".tmp-{}-{n}-{nanos}", std::process::id())
 }
 

@@ -67,11 +67,7 @@ pub struct TagRef {
 
 impl fmt::Display for TagRef {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "{} ({:04X},{:04X})",
-            self.keyword, self.tag.0, self.tag.1
-        )
+        write!(f, "{} ({:04X},{:04X})", self.keyword, self.tag.0, self.tag.1)
     }
 }
 
@@ -132,7 +128,9 @@ pub enum DicomError {
         "no CT image slices among the {examined} file(s) looked at ({not_dicom} not DICOM, {not_ct} \
          DICOM but not CT{example}): none has {} = CT or {} = {}; put the patient's CT series \
          (one DICOM file per slice) in this folder",
-        attr::MODALITY, attr::SOP_CLASS_UID, uids::CT_IMAGE_STORAGE
+        attr::MODALITY,
+        attr::SOP_CLASS_UID,
+        uids::CT_IMAGE_STORAGE
     )]
     NoCtSlices {
         examined: usize,
@@ -163,12 +161,7 @@ pub enum DicomError {
         "{}: tag {tag} has value '{value}', expected {expected}; fix or re-export this file",
         path.display()
     )]
-    BadValue {
-        path: PathBuf,
-        tag: TagRef,
-        value: String,
-        expected: &'static str,
-    },
+    BadValue { path: PathBuf, tag: TagRef, value: String, expected: &'static str },
 
     #[error(
         "{}: {} = {uid} ({name}) is not supported: only uncompressed native encodings are \
@@ -177,11 +170,7 @@ pub enum DicomError {
          or `dcmdjpeg IN OUT` (JPEG) / `dcmdrle IN OUT` (RLE)",
         path.display(), attr::TRANSFER_SYNTAX_UID
     )]
-    UnsupportedTransferSyntax {
-        path: PathBuf,
-        uid: String,
-        name: &'static str,
-    },
+    UnsupportedTransferSyntax { path: PathBuf, uid: String, name: &'static str },
 
     #[error(
         "{}: multi-frame image ({} = {frames}, e.g. Enhanced CT) is not supported; convert it \
@@ -195,24 +184,14 @@ pub enum DicomError {
          share it, so the folder probably mixes reconstructions: keep one series per patient folder",
         path.display(), reference.display()
     )]
-    Inconsistent {
-        path: PathBuf,
-        reference: PathBuf,
-        tag: TagRef,
-        value: String,
-        reference_value: String,
-    },
+    Inconsistent { path: PathBuf, reference: PathBuf, tag: TagRef, value: String, reference_value: String },
 
     #[error(
         "{} and {} lie at the same slice position {position_mm:.3} mm along the slice normal \
          ({}); remove the duplicate file (a slice exported twice, or two series sharing one {})",
         first.display(), second.display(), attr::IMAGE_POSITION_PATIENT, attr::SERIES_INSTANCE_UID
     )]
-    DuplicatePosition {
-        first: PathBuf,
-        second: PathBuf,
-        position_mm: f64,
-    },
+    DuplicatePosition { first: PathBuf, second: PathBuf, position_mm: f64 },
 
     #[error(
         "non-uniform slice spacing (from {}): the gap between {} and {} is {gap_mm:.4} mm but \
@@ -221,14 +200,7 @@ pub enum DicomError {
          complete series or resample it to uniform spacing",
         attr::IMAGE_POSITION_PATIENT, before.display(), after.display()
     )]
-    NonUniformSpacing {
-        before: PathBuf,
-        after: PathBuf,
-        gap_mm: f64,
-        median_mm: f64,
-        n_bad: usize,
-        n_gaps: usize,
-    },
+    NonUniformSpacing { before: PathBuf, after: PathBuf, gap_mm: f64, median_mm: f64, n_bad: usize, n_gaps: usize },
 
     #[error(
         "{}: {} row and column cosines are not orthogonal unit vectors (angle {angle_deg:.3}° \
@@ -236,12 +208,7 @@ pub enum DicomError {
          re-export the series",
         path.display(), attr::IMAGE_ORIENTATION_PATIENT
     )]
-    NonOrthogonalOrientation {
-        path: PathBuf,
-        angle_deg: f64,
-        row_len: f64,
-        col_len: f64,
-    },
+    NonOrthogonalOrientation { path: PathBuf, angle_deg: f64, row_len: f64, col_len: f64 },
 
     #[error(
         "{}: the step from {} ({}) is tilted {angle_deg:.2}° away from the slice normal given by \
@@ -251,34 +218,21 @@ pub enum DicomError {
         path.display(), previous.display(), attr::IMAGE_POSITION_PATIENT,
         attr::IMAGE_ORIENTATION_PATIENT
     )]
-    GantryTilt {
-        path: PathBuf,
-        previous: PathBuf,
-        angle_deg: f64,
-    },
+    GantryTilt { path: PathBuf, previous: PathBuf, angle_deg: f64 },
 
     #[error(
         "{}: {tag} = {value} is not supported (supported: {supported}); convert the series to \
          single-sample 8- or 16-bit grayscale, e.g. `gdcmconv --raw`",
         path.display()
     )]
-    UnsupportedPixelEncoding {
-        path: PathBuf,
-        tag: TagRef,
-        value: String,
-        supported: &'static str,
-    },
+    UnsupportedPixelEncoding { path: PathBuf, tag: TagRef, value: String, supported: &'static str },
 
     #[error(
         "{}: {} holds {found} bytes but Rows × Columns × BitsAllocated/8 needs {expected}; the \
          file is truncated: re-export it",
         path.display(), attr::PIXEL_DATA
     )]
-    PixelDataLength {
-        path: PathBuf,
-        found: usize,
-        expected: usize,
-    },
+    PixelDataLength { path: PathBuf, found: usize, expected: usize },
 }
 
 fn describe_series(series: &[(String, usize, PathBuf)]) -> String {
@@ -371,16 +325,11 @@ const NATIVE_TRANSFER_SYNTAXES: [&str; 4] = [
 ];
 
 fn read_file(path: &Path) -> Result<FileKind, DicomError> {
-    let bytes = std::fs::read(path).map_err(|source| DicomError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    let bytes = std::fs::read(path).map_err(|source| DicomError::Io { path: path.to_path_buf(), source })?;
     // Part 10 files start with "DICM" after a 128-byte preamble; some writers omit the
     // preamble. Without the marker it is not a DICOM file we can trust (README, XML, ...).
     let Some(start) = dicm_offset(&bytes) else {
-        return Ok(FileKind::Skipped(
-            "not a DICOM file (no 'DICM' marker at byte 128 or 0)".into(),
-        ));
+        return Ok(FileKind::Skipped("not a DICOM file (no 'DICM' marker at byte 128 or 0)".into()));
     };
     let bytes = &bytes[start..];
     // The meta group reader trusts length fields too (see `length_guard`).
@@ -424,12 +373,7 @@ fn dicm_offset(bytes: &[u8]) -> Option<usize> {
 
 /// A file in a transfer syntax we cannot decode: an error if it is a CT slice (the series
 /// would have a hole), skipped otherwise (e.g. a JPEG-compressed CR in the same folder).
-fn classify_undecodable(
-    path: &Path,
-    bytes: &[u8],
-    meta: &FileMetaTable,
-    ts: String,
-) -> Result<FileKind, DicomError> {
+fn classify_undecodable(path: &Path, bytes: &[u8], meta: &FileMetaTable, ts: String) -> Result<FileKind, DicomError> {
     let unsupported = || DicomError::UnsupportedTransferSyntax {
         path: path.to_path_buf(),
         name: transfer_syntax_name(&ts),
@@ -464,12 +408,7 @@ fn meta_says_ct(meta: &FileMetaTable) -> bool {
 }
 
 /// Parse the data set (after the "DICM" magic), optionally stopping before `until`.
-fn parse(
-    path: &Path,
-    bytes: &[u8],
-    until: Option<Tag>,
-    ts: &str,
-) -> Result<InMemDicomObject, DicomError> {
+fn parse(path: &Path, bytes: &[u8], until: Option<Tag>, ts: &str) -> Result<InMemDicomObject, DicomError> {
     // The parser sizes (and zero-fills) a buffer from each element's declared length before
     // reading it: one damaged length field costs seconds and gigabytes. Check first.
     if let Some(encoding) = length_guard::encoding_of(ts) {
@@ -481,8 +420,7 @@ fn parse(
     }
     // The parser is third-party code fed with arbitrary bytes: a panic in it must become
     // an error for this file, not abort the whole pipeline.
-    let result =
-        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| options.from_reader(bytes)));
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| options.from_reader(bytes)));
     match result {
         Ok(Ok(file)) => Ok(file.into_inner()),
         Ok(Err(e)) => Err(corrupt(path, &read_error_detail(&e))),
@@ -491,10 +429,7 @@ fn parse(
 }
 
 fn corrupt(path: &Path, detail: &str) -> DicomError {
-    DicomError::Corrupt {
-        path: path.to_path_buf(),
-        detail: detail.to_string(),
-    }
+    DicomError::Corrupt { path: path.to_path_buf(), detail: detail.to_string() }
 }
 
 /// A parse error's description without data values: `UnexpectedToken` prints the token,
@@ -523,8 +458,7 @@ fn error_chain(e: &dyn std::error::Error) -> String {
 /// otherwise why it is skipped.
 fn not_ct_reason(obj: &InMemDicomObject, meta: &FileMetaTable) -> Option<String> {
     let modality = text(obj, tags::MODALITY);
-    let sop_class = text(obj, tags::SOP_CLASS_UID)
-        .unwrap_or_else(|| meta.media_storage_sop_class_uid().to_string());
+    let sop_class = text(obj, tags::SOP_CLASS_UID).unwrap_or_else(|| meta.media_storage_sop_class_uid().to_string());
     if modality.as_deref() == Some("CT") || sop_class == uids::CT_IMAGE_STORAGE {
         return None;
     }
@@ -550,12 +484,7 @@ fn ct_slice(path: &Path, obj: &InMemDicomObject, ts: String) -> Result<CtSlice, 
     let cols = required_u32(path, obj, attr::COLUMNS)?;
     let pixel_spacing = required_f64s::<2>(path, obj, attr::PIXEL_SPACING)?;
     if pixel_spacing.iter().any(|&s| s <= 0.0) {
-        return Err(bad_value(
-            path,
-            obj,
-            attr::PIXEL_SPACING,
-            "two positive numbers (mm)",
-        ));
+        return Err(bad_value(path, obj, attr::PIXEL_SPACING, "two positive numbers (mm)"));
     }
     let ipp = required_f64s::<3>(path, obj, attr::IMAGE_POSITION_PATIENT)?;
     let iop = required_f64s::<6>(path, obj, attr::IMAGE_ORIENTATION_PATIENT)?;
@@ -589,10 +518,7 @@ fn check_single_frame(path: &Path, obj: &InMemDicomObject) -> Result<(), DicomEr
         None => Ok(()),
         Some(s) => match s.trim().parse::<u32>() {
             Ok(0 | 1) => Ok(()),
-            Ok(frames) => Err(DicomError::MultiFrame {
-                path: path.to_path_buf(),
-                frames,
-            }),
+            Ok(frames) => Err(DicomError::MultiFrame { path: path.to_path_buf(), frames }),
             Err(_) => Err(bad_value(path, obj, attr::NUMBER_OF_FRAMES, "an integer")),
         },
     }
@@ -606,67 +532,39 @@ struct PixelFormat {
 }
 
 fn pixel_format(path: &Path, obj: &InMemDicomObject) -> Result<PixelFormat, DicomError> {
-    let unsupported = |tag: TagRef, value: String, supported: &'static str| {
-        DicomError::UnsupportedPixelEncoding {
-            path: path.to_path_buf(),
-            tag,
-            value,
-            supported,
-        }
+    let unsupported = |tag: TagRef, value: String, supported: &'static str| DicomError::UnsupportedPixelEncoding {
+        path: path.to_path_buf(),
+        tag,
+        value,
+        supported,
     };
     // SamplesPerPixel and PhotometricInterpretation are Type 1, but when absent the only
     // sensible reading of a CT slice is single-sample grayscale, so we assume it.
     let samples = optional_u32(path, obj, attr::SAMPLES_PER_PIXEL)?.unwrap_or(1);
     if samples != 1 {
-        return Err(unsupported(
-            attr::SAMPLES_PER_PIXEL,
-            samples.to_string(),
-            "1",
-        ));
+        return Err(unsupported(attr::SAMPLES_PER_PIXEL, samples.to_string(), "1"));
     }
     // MONOCHROME1 only inverts the *display*; HU come from the stored values either way
     // (pydicom's pixel_array does not invert it either).
     if let Some(pi) = text(obj, tags::PHOTOMETRIC_INTERPRETATION) {
         if pi != "MONOCHROME1" && pi != "MONOCHROME2" {
-            return Err(unsupported(
-                attr::PHOTOMETRIC_INTERPRETATION,
-                printable(&pi),
-                "MONOCHROME1, MONOCHROME2",
-            ));
+            return Err(unsupported(attr::PHOTOMETRIC_INTERPRETATION, printable(&pi), "MONOCHROME1, MONOCHROME2"));
         }
     }
     let bits_allocated = required_u32(path, obj, attr::BITS_ALLOCATED)?;
     if bits_allocated != 8 && bits_allocated != 16 {
-        return Err(unsupported(
-            attr::BITS_ALLOCATED,
-            bits_allocated.to_string(),
-            "8, 16",
-        ));
+        return Err(unsupported(attr::BITS_ALLOCATED, bits_allocated.to_string(), "8, 16"));
     }
     let bits_stored = optional_u32(path, obj, attr::BITS_STORED)?.unwrap_or(bits_allocated);
     if bits_stored == 0 || bits_stored > bits_allocated {
-        return Err(unsupported(
-            attr::BITS_STORED,
-            bits_stored.to_string(),
-            "1 to BitsAllocated",
-        ));
+        return Err(unsupported(attr::BITS_STORED, bits_stored.to_string(), "1 to BitsAllocated"));
     }
     let signed = match required_u32(path, obj, attr::PIXEL_REPRESENTATION)? {
         0 => false,
         1 => true,
-        other => {
-            return Err(unsupported(
-                attr::PIXEL_REPRESENTATION,
-                other.to_string(),
-                "0 (unsigned), 1 (signed)",
-            ))
-        }
+        other => return Err(unsupported(attr::PIXEL_REPRESENTATION, other.to_string(), "0 (unsigned), 1 (signed)")),
     };
-    Ok(PixelFormat {
-        bits_allocated,
-        bits_stored,
-        signed,
-    })
+    Ok(PixelFormat { bits_allocated, bits_stored, signed })
 }
 
 /// RescaleSlope and RescaleIntercept, defaulting to 1 and 0 (SPEC).
@@ -689,12 +587,7 @@ fn rescale(path: &Path, obj: &InMemDicomObject) -> Result<Rescale, DicomError> {
     }
     let slope = slope.unwrap_or(1.0);
     if slope == 0.0 {
-        return Err(bad_value(
-            path,
-            obj,
-            attr::RESCALE_SLOPE,
-            "a non-zero number",
-        ));
+        return Err(bad_value(path, obj, attr::RESCALE_SLOPE, "a non-zero number"));
     }
     let intercept = optional_f64(path, obj, attr::RESCALE_INTERCEPT)?.unwrap_or(0.0);
     Ok(Rescale { slope, intercept })
@@ -710,19 +603,14 @@ fn stored_values(
 ) -> Result<Vec<i32>, DicomError> {
     let element = obj
         .get(tags::PIXEL_DATA)
-        .ok_or_else(|| DicomError::MissingTag {
+        .ok_or_else(|| DicomError::MissingTag { path: path.to_path_buf(), tag: attr::PIXEL_DATA })?;
+    let raw = match element.value() {
+        Value::Primitive(p) => file_order_bytes(p, big_endian).ok_or_else(|| DicomError::BadValue {
             path: path.to_path_buf(),
             tag: attr::PIXEL_DATA,
-        })?;
-    let raw = match element.value() {
-        Value::Primitive(p) => {
-            file_order_bytes(p, big_endian).ok_or_else(|| DicomError::BadValue {
-                path: path.to_path_buf(),
-                tag: attr::PIXEL_DATA,
-                value: "a non-binary value".into(),
-                expected: "binary pixel data (OB/OW)",
-            })?
-        }
+            value: "a non-binary value".into(),
+            expected: "binary pixel data (OB/OW)",
+        })?,
         // Cannot happen with a native transfer syntax unless the file lies about it.
         _ => {
             return Err(DicomError::BadValue {
@@ -736,11 +624,7 @@ fn stored_values(
     let bytes_per_pixel = format.bits_allocated as usize / 8;
     let expected = n_pixels * bytes_per_pixel;
     if raw.len() < expected {
-        return Err(DicomError::PixelDataLength {
-            path: path.to_path_buf(),
-            found: raw.len(),
-            expected,
-        });
+        return Err(DicomError::PixelDataLength { path: path.to_path_buf(), found: raw.len(), expected });
     }
     // Extra bytes (an odd-length pad byte) are ignored, as pydicom does.
     Ok(decode_pixels(&raw[..expected], format, big_endian))
@@ -750,26 +634,16 @@ fn stored_values(
 /// (already swapped to host order); pydicom works on the file's bytes, so we go back to
 /// those and decode once, in the transfer syntax's byte order, whatever VR was used.
 fn file_order_bytes(value: &PrimitiveValue, big_endian: bool) -> Option<Cow<'_, [u8]>> {
-    let words = |iter: &mut dyn Iterator<Item = [u8; 2]>| -> Cow<'_, [u8]> {
-        Cow::Owned(iter.flatten().collect())
-    };
+    let words = |iter: &mut dyn Iterator<Item = [u8; 2]>| -> Cow<'_, [u8]> { Cow::Owned(iter.flatten().collect()) };
     match value {
         PrimitiveValue::Empty => Some(Cow::Borrowed(&[])),
         PrimitiveValue::U8(bytes) => Some(Cow::Borrowed(&bytes[..])),
-        PrimitiveValue::U16(values) => Some(words(&mut values.iter().map(|v| {
-            if big_endian {
-                v.to_be_bytes()
-            } else {
-                v.to_le_bytes()
-            }
-        }))),
-        PrimitiveValue::I16(values) => Some(words(&mut values.iter().map(|v| {
-            if big_endian {
-                v.to_be_bytes()
-            } else {
-                v.to_le_bytes()
-            }
-        }))),
+        PrimitiveValue::U16(values) => {
+            Some(words(&mut values.iter().map(|v| if big_endian { v.to_be_bytes() } else { v.to_le_bytes() })))
+        }
+        PrimitiveValue::I16(values) => {
+            Some(words(&mut values.iter().map(|v| if big_endian { v.to_be_bytes() } else { v.to_le_bytes() })))
+        }
         _ => None,
     }
 }
@@ -780,23 +654,13 @@ fn file_order_bytes(value: &PrimitiveValue, big_endian: bool) -> Option<Cow<'_, 
 fn decode_pixels(raw: &[u8], format: &PixelFormat, big_endian: bool) -> Vec<i32> {
     let unused_bits = format.bits_allocated - format.bits_stored;
     match (format.bits_allocated, format.signed) {
-        (8, false) => raw
-            .iter()
-            .map(|&b| i32::from(b & (0xFF >> unused_bits)))
-            .collect(),
-        (8, true) => raw
-            .iter()
-            .map(|&b| i32::from(((b as i8) << unused_bits) >> unused_bits))
-            .collect(),
+        (8, false) => raw.iter().map(|&b| i32::from(b & (0xFF >> unused_bits))).collect(),
+        (8, true) => raw.iter().map(|&b| i32::from(((b as i8) << unused_bits) >> unused_bits)).collect(),
         (_, signed) => raw
             .chunks_exact(2)
             .map(|pair| {
                 let bytes = [pair[0], pair[1]];
-                let word = if big_endian {
-                    u16::from_be_bytes(bytes)
-                } else {
-                    u16::from_le_bytes(bytes)
-                };
+                let word = if big_endian { u16::from_be_bytes(bytes) } else { u16::from_le_bytes(bytes) };
                 if signed {
                     i32::from(((word as i16) << unused_bits) >> unused_bits)
                 } else {
@@ -814,9 +678,7 @@ fn to_hu(stored: &[i32], rescale: Rescale) -> (Vec<i16>, f64) {
         .iter()
         .map(|&v| {
             let exact = f64::from(v) * rescale.slope + rescale.intercept;
-            let rounded = exact
-                .round()
-                .clamp(f64::from(i16::MIN), f64::from(i16::MAX));
+            let rounded = exact.round().clamp(f64::from(i16::MIN), f64::from(i16::MAX));
             max_loss = max_loss.max((exact - rounded).abs());
             rounded as i16
         })
@@ -835,12 +697,7 @@ fn text(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
     (!value.is_empty()).then(|| value.to_string())
 }
 
-fn bad_value(
-    path: &Path,
-    obj: &InMemDicomObject,
-    tag: TagRef,
-    expected: &'static str,
-) -> DicomError {
+fn bad_value(path: &Path, obj: &InMemDicomObject, tag: TagRef, expected: &'static str) -> DicomError {
     DicomError::BadValue {
         path: path.to_path_buf(),
         tag,
@@ -850,24 +707,15 @@ fn bad_value(
 }
 
 fn missing(path: &Path, tag: TagRef) -> DicomError {
-    DicomError::MissingTag {
-        path: path.to_path_buf(),
-        tag,
-    }
+    DicomError::MissingTag { path: path.to_path_buf(), tag }
 }
 
 /// Finite numbers of a multi-valued attribute (`a\b\c`).
 fn numbers(s: &str) -> Option<Vec<f64>> {
-    s.split('\\')
-        .map(|part| part.trim().parse::<f64>().ok().filter(|v| v.is_finite()))
-        .collect()
+    s.split('\\').map(|part| part.trim().parse::<f64>().ok().filter(|v| v.is_finite())).collect()
 }
 
-fn optional_u32(
-    path: &Path,
-    obj: &InMemDicomObject,
-    tag: TagRef,
-) -> Result<Option<u32>, DicomError> {
+fn optional_u32(path: &Path, obj: &InMemDicomObject, tag: TagRef) -> Result<Option<u32>, DicomError> {
     match text(obj, tag.tag) {
         None => Ok(None),
         Some(s) => s
@@ -888,11 +736,7 @@ fn required_u32(path: &Path, obj: &InMemDicomObject, tag: TagRef) -> Result<u32,
     Ok(v)
 }
 
-fn optional_f64(
-    path: &Path,
-    obj: &InMemDicomObject,
-    tag: TagRef,
-) -> Result<Option<f64>, DicomError> {
+fn optional_f64(path: &Path, obj: &InMemDicomObject, tag: TagRef) -> Result<Option<f64>, DicomError> {
     match text(obj, tag.tag) {
         None => Ok(None),
         Some(s) => match numbers(&s).as_deref() {
@@ -905,40 +749,22 @@ fn optional_f64(
 /// An informative positive number: zero, negative (seen in the wild on reformats) or
 /// unparsable counts as absent rather than failing the whole series.
 fn optional_positive(path: &Path, obj: &InMemDicomObject, tag: TagRef) -> Option<f64> {
-    optional_f64(path, obj, tag)
-        .ok()
-        .flatten()
-        .filter(|&v| v > 0.0)
+    optional_f64(path, obj, tag).ok().flatten().filter(|&v| v > 0.0)
 }
 
-fn required_f64s<const N: usize>(
-    path: &Path,
-    obj: &InMemDicomObject,
-    tag: TagRef,
-) -> Result<[f64; N], DicomError> {
+fn required_f64s<const N: usize>(path: &Path, obj: &InMemDicomObject, tag: TagRef) -> Result<[f64; N], DicomError> {
     let s = text(obj, tag.tag).ok_or_else(|| missing(path, tag))?;
     let expected = match N {
         2 => "2 finite numbers separated by '\\'",
         3 => "3 finite numbers separated by '\\'",
         _ => "6 finite numbers separated by '\\'",
     };
-    numbers(&s)
-        .and_then(|v| <[f64; N]>::try_from(v).ok())
-        .ok_or_else(|| bad_value(path, obj, tag, expected))
+    numbers(&s).and_then(|v| <[f64; N]>::try_from(v).ok()).ok_or_else(|| bad_value(path, obj, tag, expected))
 }
 
 /// Keep only plain printable ASCII and cap the length: values go into one-line messages.
 fn printable(s: &str) -> String {
-    let clean: String = s
-        .chars()
-        .map(|c| {
-            if c.is_ascii_graphic() || c == ' ' {
-                c
-            } else {
-                '?'
-            }
-        })
-        .collect();
+    let clean: String = s.chars().map(|c| if c.is_ascii_graphic() || c == ' ' { c } else { '?' }).collect();
     truncate(&clean, 80)
 }
 
@@ -964,17 +790,13 @@ fn transfer_syntax_name(uid: &str) -> &'static str {
         "1.2.840.10008.1.2.4.81" => "JPEG-LS Lossy (Near-Lossless) Image Compression",
         "1.2.840.10008.1.2.4.90" => "JPEG 2000 Image Compression (Lossless Only)",
         "1.2.840.10008.1.2.4.91" => "JPEG 2000 Image Compression",
-        "1.2.840.10008.1.2.4.92" => {
-            "JPEG 2000 Part 2 Multi-component Image Compression (Lossless Only)"
-        }
+        "1.2.840.10008.1.2.4.92" => "JPEG 2000 Part 2 Multi-component Image Compression (Lossless Only)",
         "1.2.840.10008.1.2.4.93" => "JPEG 2000 Part 2 Multi-component Image Compression",
         "1.2.840.10008.1.2.4.110" => "JPEG XL Lossless",
         "1.2.840.10008.1.2.4.111" => "JPEG XL JPEG Recompression",
         "1.2.840.10008.1.2.4.112" => "JPEG XL",
         "1.2.840.10008.1.2.4.201" => "High-Throughput JPEG 2000 Image Compression (Lossless Only)",
-        "1.2.840.10008.1.2.4.202" => {
-            "High-Throughput JPEG 2000 with RPCL Options Image Compression (Lossless Only)"
-        }
+        "1.2.840.10008.1.2.4.202" => "High-Throughput JPEG 2000 with RPCL Options Image Compression (Lossless Only)",
         "1.2.840.10008.1.2.4.203" => "High-Throughput JPEG 2000 Image Compression",
         "1.2.840.10008.1.2.5" => "RLE Lossless",
         "1.2.840.10008.1.2.8.1" => "Deflated Image Frame Compression",
@@ -990,11 +812,7 @@ fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
 }
 
 fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
 fn norm(a: [f64; 3]) -> f64 {
@@ -1031,11 +849,7 @@ impl Axes {
     fn from_iop(iop: &[f64; 6]) -> Axes {
         let (row, col) = row_col(iop);
         let (row, col) = (unit(row), unit(col));
-        Axes {
-            row,
-            col,
-            normal: unit(cross(row, col)),
-        }
+        Axes { row, col, normal: unit(cross(row, col)) }
     }
 }
 
@@ -1047,10 +861,7 @@ fn check_orthonormal(path: &Path, iop: &[f64; 6]) -> Result<(), DicomError> {
     } else {
         1.0 // degenerate: report as parallel
     };
-    if (row_len - 1.0).abs() > ORTHO_TOL
-        || (col_len - 1.0).abs() > ORTHO_TOL
-        || cos.abs() > ORTHO_TOL
-    {
+    if (row_len - 1.0).abs() > ORTHO_TOL || (col_len - 1.0).abs() > ORTHO_TOL || cos.abs() > ORTHO_TOL {
         return Err(DicomError::NonOrthogonalOrientation {
             path: path.to_path_buf(),
             angle_deg: cos.clamp(-1.0, 1.0).acos().to_degrees(),
@@ -1062,22 +873,14 @@ fn check_orthonormal(path: &Path, iop: &[f64; 6]) -> Result<(), DicomError> {
 }
 
 fn no_ct_slices(examined: usize, skipped: &[(PathBuf, String)]) -> DicomError {
-    let not_dicom = skipped
-        .iter()
-        .filter(|(_, reason)| reason.starts_with("not a DICOM file"))
-        .count();
+    let not_dicom = skipped.iter().filter(|(_, reason)| reason.starts_with("not a DICOM file")).count();
     let example = skipped
         .iter()
         .find(|(_, reason)| !reason.starts_with("not a DICOM file"))
         .or(skipped.first())
         .map(|(path, reason)| format!(", e.g. {}: {reason}", path.display()))
         .unwrap_or_default();
-    DicomError::NoCtSlices {
-        examined,
-        not_dicom,
-        not_ct: skipped.len() - not_dicom,
-        example,
-    }
+    DicomError::NoCtSlices { examined, not_dicom, not_ct: skipped.len() - not_dicom, example }
 }
 
 fn check_single_series(slices: &[CtSlice]) -> Result<(), DicomError> {
@@ -1099,58 +902,29 @@ fn check_single_series(slices: &[CtSlice]) -> Result<(), DicomError> {
 /// the volume has one of each.
 fn check_consistent(slices: &[CtSlice]) -> Result<(), DicomError> {
     let reference = &slices[0];
-    let fmt_list = |v: &[f64]| {
-        v.iter()
-            .map(|x| format!("{x}"))
-            .collect::<Vec<_>>()
-            .join("\\")
-    };
+    let fmt_list = |v: &[f64]| v.iter().map(|x| format!("{x}")).collect::<Vec<_>>().join("\\");
     for s in &slices[1..] {
-        let differs =
-            |tag: TagRef, value: String, reference_value: String| DicomError::Inconsistent {
-                path: s.path.clone(),
-                reference: reference.path.clone(),
-                tag,
-                value,
-                reference_value,
-            };
+        let differs = |tag: TagRef, value: String, reference_value: String| DicomError::Inconsistent {
+            path: s.path.clone(),
+            reference: reference.path.clone(),
+            tag,
+            value,
+            reference_value,
+        };
         if s.rows != reference.rows {
-            return Err(differs(
-                attr::ROWS,
-                s.rows.to_string(),
-                reference.rows.to_string(),
-            ));
+            return Err(differs(attr::ROWS, s.rows.to_string(), reference.rows.to_string()));
         }
         if s.cols != reference.cols {
-            return Err(differs(
-                attr::COLUMNS,
-                s.cols.to_string(),
-                reference.cols.to_string(),
-            ));
+            return Err(differs(attr::COLUMNS, s.cols.to_string(), reference.cols.to_string()));
         }
-        let spacing_differs = s
-            .pixel_spacing
-            .iter()
-            .zip(&reference.pixel_spacing)
-            .any(|(a, b)| (a - b).abs() > SAME_TOL * b.abs());
+        let spacing_differs =
+            s.pixel_spacing.iter().zip(&reference.pixel_spacing).any(|(a, b)| (a - b).abs() > SAME_TOL * b.abs());
         if spacing_differs {
-            return Err(differs(
-                attr::PIXEL_SPACING,
-                fmt_list(&s.pixel_spacing),
-                fmt_list(&reference.pixel_spacing),
-            ));
+            return Err(differs(attr::PIXEL_SPACING, fmt_list(&s.pixel_spacing), fmt_list(&reference.pixel_spacing)));
         }
-        let orientation_differs = s
-            .iop
-            .iter()
-            .zip(&reference.iop)
-            .any(|(a, b)| (a - b).abs() > SAME_TOL);
+        let orientation_differs = s.iop.iter().zip(&reference.iop).any(|(a, b)| (a - b).abs() > SAME_TOL);
         if orientation_differs {
-            return Err(differs(
-                attr::IMAGE_ORIENTATION_PATIENT,
-                fmt_list(&s.iop),
-                fmt_list(&reference.iop),
-            ));
+            return Err(differs(attr::IMAGE_ORIENTATION_PATIENT, fmt_list(&s.iop), fmt_list(&reference.iop)));
         }
     }
     Ok(())
@@ -1158,10 +932,7 @@ fn check_consistent(slices: &[CtSlice]) -> Result<(), DicomError> {
 
 /// Slices sorted by position along the normal (ascending), with those positions.
 fn sort_along_normal(slices: Vec<CtSlice>, axes: &Axes) -> (Vec<CtSlice>, Vec<f64>) {
-    let mut keyed: Vec<(f64, CtSlice)> = slices
-        .into_iter()
-        .map(|s| (dot(s.ipp, axes.normal), s))
-        .collect();
+    let mut keyed: Vec<(f64, CtSlice)> = slices.into_iter().map(|s| (dot(s.ipp, axes.normal), s)).collect();
     // Stable, so equal positions keep path order and the duplicate message is deterministic.
     keyed.sort_by(|a, b| a.0.total_cmp(&b.0));
     let positions = keyed.iter().map(|(p, _)| *p).collect();
@@ -1204,10 +975,7 @@ fn check_no_tilt(slices: &[CtSlice], axes: &Axes, gap_tolerance: f64) -> Result<
 fn slice_gap(slices: &[CtSlice], positions: &[f64], gap_tolerance: f64) -> Result<f64, DicomError> {
     if slices.len() == 1 {
         let s = &slices[0];
-        return Ok(s
-            .slice_thickness
-            .or(s.spacing_between_slices)
-            .unwrap_or(1.0));
+        return Ok(s.slice_thickness.or(s.spacing_between_slices).unwrap_or(1.0));
     }
     let gaps: Vec<f64> = positions.windows(2).map(|w| w[1] - w[0]).collect();
     let median = median(&gaps);
@@ -1255,10 +1023,7 @@ fn assemble(
     };
     let slice_thickness_mm = first.slice_thickness;
     let transfer_syntax = first.transfer_syntax.clone();
-    let hu_rounding_max_abs = slices
-        .iter()
-        .map(|s| s.rounding_max_abs)
-        .fold(0.0, f64::max);
+    let hu_rounding_max_abs = slices.iter().map(|s| s.rounding_max_abs).fold(0.0, f64::max);
     let mut data = Vec::with_capacity(geometry.len());
     for s in slices {
         data.extend_from_slice(&s.hu);
@@ -1307,23 +1072,14 @@ mod length_guard {
     /// and transfer syntaxes we do not know.
     pub fn encoding_of(ts: &str) -> Option<Encoding> {
         match ts {
-            "1.2.840.10008.1.2" => Some(Encoding {
-                explicit_vr: false,
-                big_endian: false,
-            }),
-            "1.2.840.10008.1.2.2" => Some(Encoding {
-                explicit_vr: true,
-                big_endian: true,
-            }),
+            "1.2.840.10008.1.2" => Some(Encoding { explicit_vr: false, big_endian: false }),
+            "1.2.840.10008.1.2.2" => Some(Encoding { explicit_vr: true, big_endian: true }),
             "1.2.840.10008.1.2.1.99" | "1.2.840.10008.1.2.4.95" | "1.2.840.10008.1.2.4.205" => None,
             // Explicit VR LE and every encapsulated syntax we can name use explicit VR LE.
             ts if ts == "1.2.840.10008.1.2.1"
                 || super::transfer_syntax_name(ts) != "unknown or private transfer syntax" =>
             {
-                Some(Encoding {
-                    explicit_vr: true,
-                    big_endian: false,
-                })
+                Some(Encoding { explicit_vr: true, big_endian: false })
             }
             _ => None,
         }
@@ -1333,18 +1089,12 @@ mod length_guard {
     /// (its encoding is fixed; the data set's is only known once the meta group is read).
     pub fn check(bytes: &[u8], encoding: Option<Encoding>) -> Result<(), String> {
         let meta_only = encoding.is_none();
-        let encoding = encoding.unwrap_or(Encoding {
-            explicit_vr: true,
-            big_endian: false,
-        });
+        let encoding = encoding.unwrap_or(Encoding { explicit_vr: true, big_endian: false });
         let mut walker = Walker {
             bytes,
             pos: 4,
             // The file meta group (0002,xxxx) is always explicit VR little endian.
-            encoding: Encoding {
-                explicit_vr: true,
-                big_endian: false,
-            },
+            encoding: Encoding { explicit_vr: true, big_endian: false },
             data_set_encoding: encoding,
             in_meta: true,
             meta_only,
@@ -1371,29 +1121,19 @@ mod length_guard {
                 .bytes
                 .get(self.pos..self.pos + N)
                 .and_then(|s| <[u8; N]>::try_from(s).ok())
-                .ok_or_else(|| {
-                    format!("file ends inside an element header at byte {}", self.pos)
-                })?;
+                .ok_or_else(|| format!("file ends inside an element header at byte {}", self.pos))?;
             self.pos += N;
             Ok(out)
         }
 
         fn u16(&mut self) -> Result<u16, String> {
             let b = self.take::<2>()?;
-            Ok(if self.encoding.big_endian {
-                u16::from_be_bytes(b)
-            } else {
-                u16::from_le_bytes(b)
-            })
+            Ok(if self.encoding.big_endian { u16::from_be_bytes(b) } else { u16::from_le_bytes(b) })
         }
 
         fn u32(&mut self) -> Result<u32, String> {
             let b = self.take::<4>()?;
-            Ok(if self.encoding.big_endian {
-                u32::from_be_bytes(b)
-            } else {
-                u32::from_le_bytes(b)
-            })
+            Ok(if self.encoding.big_endian { u32::from_be_bytes(b) } else { u32::from_le_bytes(b) })
         }
 
         fn skip(&mut self, tag: (u16, u16), len: u32) -> Result<(), String> {
@@ -1461,22 +1201,16 @@ mod length_guard {
         fn element_length(&mut self, tag: (u16, u16)) -> Result<(u32, bool), String> {
             if !self.encoding.explicit_vr || tag.0 == 0xFFFE {
                 let len = self.u32()?;
-                let is_sequence = StandardDataDictionary
-                    .by_tag(Tag(tag.0, tag.1))
-                    .is_some_and(|e| e.vr().relaxed() == VR::SQ);
+                let is_sequence =
+                    StandardDataDictionary.by_tag(Tag(tag.0, tag.1)).is_some_and(|e| e.vr().relaxed() == VR::SQ);
                 return Ok((len, is_sequence));
             }
             let vr = self.take::<2>()?;
             if !vr.iter().all(u8::is_ascii_uppercase) {
-                return Err(format!(
-                    "element ({:04X},{:04X}) has an invalid value representation",
-                    tag.0, tag.1
-                ));
+                return Err(format!("element ({:04X},{:04X}) has an invalid value representation", tag.0, tag.1));
             }
-            const LONG: [&[u8; 2]; 13] = [
-                b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT",
-                b"UV",
-            ];
+            const LONG: [&[u8; 2]; 13] =
+                [b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"];
             if LONG.contains(&&vr) {
                 self.take::<2>()?; // reserved
                 Ok((self.u32()?, &vr == b"SQ"))
@@ -1502,12 +1236,7 @@ mod length_guard {
                         }
                         self.elements(Some(self.pos + len as usize), depth)?;
                     }
-                    _ => {
-                        return Err(format!(
-                            "({:04X},{:04X}) where a sequence item was expected",
-                            tag.0, tag.1
-                        ))
-                    }
+                    _ => return Err(format!("({:04X},{:04X}) where a sequence item was expected", tag.0, tag.1)),
                 }
             }
         }
@@ -1523,12 +1252,7 @@ mod length_guard {
                 match tag {
                     SEQUENCE_END => return Ok(()),
                     ITEM => self.skip(tag, len)?,
-                    _ => {
-                        return Err(format!(
-                            "({:04X},{:04X}) where a pixel data fragment was expected",
-                            tag.0, tag.1
-                        ))
-                    }
+                    _ => return Err(format!("({:04X},{:04X}) where a pixel data fragment was expected", tag.0, tag.1)),
                 }
             }
         }

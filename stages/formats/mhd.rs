@@ -41,10 +41,7 @@ pub enum MhdError {
     #[error("MetaImage header is missing `{0}`")]
     Missing(&'static str),
     #[error("MetaImage element type is {found}, expected {expected}")]
-    ElementType {
-        found: String,
-        expected: &'static str,
-    },
+    ElementType { found: String, expected: &'static str },
     #[error("MetaImage data holds {found} bytes, the header's DimSize needs {expected}")]
     DataSize { found: usize, expected: usize },
 }
@@ -53,12 +50,7 @@ pub enum MhdError {
 pub fn header<T: MetaElement>(geometry: &Geometry, data_file_name: &str) -> String {
     let g = geometry;
     let mut s = String::new();
-    let nums = |v: &[f64]| {
-        v.iter()
-            .map(|x| format_num(*x))
-            .collect::<Vec<_>>()
-            .join(" ")
-    };
+    let nums = |v: &[f64]| v.iter().map(|x| format_num(*x)).collect::<Vec<_>>().join(" ");
     let _ = writeln!(s, "ObjectType = Image");
     let _ = writeln!(s, "NDims = 3");
     let _ = writeln!(s, "BinaryData = True");
@@ -68,11 +60,7 @@ pub fn header<T: MetaElement>(geometry: &Geometry, data_file_name: &str) -> Stri
     let _ = writeln!(s, "TransformMatrix = {}", nums(&flat));
     let _ = writeln!(s, "Offset = {}", nums(&g.origin_mm));
     let _ = writeln!(s, "CenterOfRotation = 0 0 0");
-    let _ = writeln!(
-        s,
-        "AnatomicalOrientation = {}",
-        anatomical_orientation(&g.direction)
-    );
+    let _ = writeln!(s, "AnatomicalOrientation = {}", anatomical_orientation(&g.direction));
     let _ = writeln!(s, "ElementSpacing = {}", nums(&g.spacing_mm));
     let _ = writeln!(s, "DimSize = {} {} {}", g.dims[0], g.dims[1], g.dims[2]);
     let _ = writeln!(s, "ElementType = {}", T::MET_TYPE);
@@ -101,30 +89,19 @@ pub fn decode<T: MetaElement>(header_text: &str, raw: &[u8]) -> Result<Volume<T>
             continue;
         };
         let (key, value) = (key.trim(), value.trim());
-        let err = |message: String| MhdError::Header {
-            line: n + 1,
-            message,
-        };
+        let err = |message: String| MhdError::Header { line: n + 1, message };
         let floats = || -> Result<Vec<f64>, MhdError> {
             value
                 .split_whitespace()
-                .map(|t| {
-                    t.parse::<f64>()
-                        .map_err(|_| err(format!("`{key}` has a non-number `{t}`")))
-                })
+                .map(|t| t.parse::<f64>().map_err(|_| err(format!("`{key}` has a non-number `{t}`"))))
                 .collect()
         };
         let three = |v: Vec<f64>| -> Result<[f64; 3], MhdError> {
-            v.try_into()
-                .map_err(|_| err(format!("`{key}` needs 3 numbers")))
+            v.try_into().map_err(|_| err(format!("`{key}` needs 3 numbers")))
         };
         match key {
-            "NDims" if value != "3" => {
-                return Err(err(format!("NDims = {value}, only 3 is supported")))
-            }
-            "BinaryDataByteOrderMSB" | "ElementByteOrderMSB"
-                if value.eq_ignore_ascii_case("true") =>
-            {
+            "NDims" if value != "3" => return Err(err(format!("NDims = {value}, only 3 is supported"))),
+            "BinaryDataByteOrderMSB" | "ElementByteOrderMSB" if value.eq_ignore_ascii_case("true") => {
                 return Err(err("big-endian data is not supported".into()))
             }
             "CompressedData" if value.eq_ignore_ascii_case("true") => {
@@ -152,23 +129,13 @@ pub fn decode<T: MetaElement>(header_text: &str, raw: &[u8]) -> Result<Volume<T>
     let dims = dims.ok_or(MhdError::Missing("DimSize"))?;
     let element_type = element_type.ok_or(MhdError::Missing("ElementType"))?;
     if element_type != T::MET_TYPE {
-        return Err(MhdError::ElementType {
-            found: element_type,
-            expected: T::MET_TYPE,
-        });
+        return Err(MhdError::ElementType { found: element_type, expected: T::MET_TYPE });
     }
-    let geometry = Geometry {
-        dims,
-        spacing_mm: spacing.unwrap_or([1.0; 3]),
-        origin_mm: origin.unwrap_or([0.0; 3]),
-        direction,
-    };
+    let geometry =
+        Geometry { dims, spacing_mm: spacing.unwrap_or([1.0; 3]), origin_mm: origin.unwrap_or([0.0; 3]), direction };
     let expected = geometry.len() * T::SIZE;
     if raw.len() != expected {
-        return Err(MhdError::DataSize {
-            found: raw.len(),
-            expected,
-        });
+        return Err(MhdError::DataSize { found: raw.len(), expected });
     }
     let data = raw.chunks_exact(T::SIZE).map(T::read_le).collect();
     Ok(Volume { geometry, data })
@@ -188,11 +155,7 @@ fn anatomical_orientation(direction: &[[f64; 3]; 3]) -> String {
     direction
         .iter()
         .map(|d| {
-            let (c, v) = d
-                .iter()
-                .enumerate()
-                .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
-                .expect("three components");
+            let (c, v) = d.iter().enumerate().max_by(|a, b| a.1.abs().total_cmp(&b.1.abs())).expect("three components");
             match (c, *v >= 0.0) {
                 (0, true) => 'R',
                 (0, false) => 'L',
@@ -217,21 +180,12 @@ mod tests {
             origin_mm: [-170.5, -160.25, -310.0],
             direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         };
-        let volume = Volume {
-            geometry,
-            data: (0..12).map(|v| v as i16 - 1000).collect::<Vec<i16>>(),
-        };
+        let volume = Volume { geometry, data: (0..12).map(|v| v as i16 - 1000).collect::<Vec<i16>>() };
         let (hdr, raw) = encode(&volume, "x.raw");
         assert!(hdr.contains("AnatomicalOrientation = RAI"));
         let back: Volume<i16> = decode(&hdr, &raw).unwrap();
         assert_eq!(back, volume);
-        assert!(matches!(
-            decode::<f32>(&hdr, &raw),
-            Err(MhdError::ElementType { .. })
-        ));
-        assert!(matches!(
-            decode::<i16>(&hdr, &raw[1..]),
-            Err(MhdError::DataSize { .. })
-        ));
+        assert!(matches!(decode::<f32>(&hdr, &raw), Err(MhdError::ElementType { .. })));
+        assert!(matches!(decode::<i16>(&hdr, &raw[1..]), Err(MhdError::DataSize { .. })));
     }
 }

@@ -22,21 +22,14 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        Params {
-            hu_min: -1000.0,
-            hu_max: 400.0,
-        }
+        Params { hu_min: -1000.0, hu_max: 400.0 }
     }
 }
 
 impl Params {
     pub fn check(&self) -> anyhow::Result<()> {
         if !(self.hu_min.is_finite() && self.hu_max.is_finite() && self.hu_min < self.hu_max) {
-            bail!(
-                "[hu] needs finite hu_min < hu_max (got hu_min = {}, hu_max = {})",
-                self.hu_min,
-                self.hu_max
-            );
+            bail!("[hu] needs finite hu_min < hu_max (got hu_min = {}, hu_max = {})", self.hu_min, self.hu_max);
         }
         Ok(())
     }
@@ -44,8 +37,7 @@ impl Params {
 
 /// `v = (clip(hu) − min) / (max − min)`.
 pub fn hu_to_unit(hu: f64, params: &Params) -> f32 {
-    ((hu.clamp(params.hu_min, params.hu_max) - params.hu_min) / (params.hu_max - params.hu_min))
-        as f32
+    ((hu.clamp(params.hu_min, params.hu_max) - params.hu_min) / (params.hu_max - params.hu_min)) as f32
 }
 
 /// The whole stage as a pure function of the HU volume.
@@ -71,14 +63,10 @@ impl Stage for Hu {
         super::params_json(&self.params)
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        let header =
-            String::from_utf8(ctx.read("ingest", "ct_hu.mhd")?).context("ct_hu.mhd is not text")?;
+        let header = String::from_utf8(ctx.read("ingest", "ct_hu.mhd")?).context("ct_hu.mhd is not text")?;
         let ct_hu: Volume<i16> = mhd::decode(&header, &ctx.read("ingest", "ct_hu.raw")?)?;
         let (header, raw) = mhd::encode(&normalise(&ct_hu, &self.params), "ct_unit.raw");
-        Ok(vec![
-            Output::new("ct_unit.mhd", header),
-            Output::new("ct_unit.raw", raw),
-        ])
+        Ok(vec![Output::new("ct_unit.mhd", header), Output::new("ct_unit.raw", raw)])
     }
 }
 
@@ -98,11 +86,6 @@ mod tests {
 
     #[test]
     fn bad_window_is_an_error() {
-        assert!(Params {
-            hu_min: 10.0,
-            hu_max: 10.0
-        }
-        .check()
-        .is_err());
+        assert!(Params { hu_min: 10.0, hu_max: 10.0 }.check().is_err());
     }
 }

@@ -21,20 +21,14 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        Params {
-            slice_gap_tolerance: dicom::DEFAULT_GAP_TOLERANCE,
-        }
+        Params { slice_gap_tolerance: dicom::DEFAULT_GAP_TOLERANCE }
     }
 }
 
 impl Params {
     pub fn check(&self) -> anyhow::Result<()> {
-        if !(self.slice_gap_tolerance.is_finite() && (0.0..0.5).contains(&self.slice_gap_tolerance))
-        {
-            bail!(
-                "[ingest] slice_gap_tolerance must be in [0, 0.5) (got {})",
-                self.slice_gap_tolerance
-            );
+        if !(self.slice_gap_tolerance.is_finite() && (0.0..0.5).contains(&self.slice_gap_tolerance)) {
+            bail!("[ingest] slice_gap_tolerance must be in [0, 0.5) (got {})", self.slice_gap_tolerance);
         }
         Ok(())
     }
@@ -78,11 +72,7 @@ impl Stage for Ingest {
         let paths: Vec<_> = files.iter().map(|f| f.path.clone()).collect();
         let series = dicom::read_ct_series(&paths, self.params.slice_gap_tolerance)?;
         let relative = |p: &std::path::Path| {
-            files
-                .iter()
-                .find(|f| f.path == p)
-                .map(|f| f.rel.clone())
-                .unwrap_or_else(|| p.display().to_string())
+            files.iter().find(|f| f.path == p).map(|f| f.rel.clone()).unwrap_or_else(|| p.display().to_string())
         };
         let info = SeriesInfo {
             patient: ctx.patient().to_string(),
@@ -94,11 +84,7 @@ impl Stage for Ingest {
             hu_rounding_max_abs: series.hu_rounding_max_abs,
             hu_min: series.hu.data.iter().copied().min().unwrap_or(0),
             hu_max: series.hu.data.iter().copied().max().unwrap_or(0),
-            skipped_files: series
-                .skipped
-                .iter()
-                .map(|(p, why)| (relative(p), why.clone()))
-                .collect(),
+            skipped_files: series.skipped.iter().map(|(p, why)| (relative(p), why.clone())).collect(),
         };
         let (header, raw) = mhd::encode(&series.hu, "ct_hu.raw");
         Ok(vec![

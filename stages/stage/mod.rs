@@ -10,19 +10,13 @@ use crate::config::Config;
 use crate::engine::{Stage, StageGraph};
 
 /// Every stage name, in pipeline order (later stages arrive in later releases).
-pub const STAGE_NAMES: &[&str] = &[
-    "ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics",
-];
+pub const STAGE_NAMES: &[&str] = &["ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics"];
 
 /// The per-patient and cohort stages this build runs, configured from `config`.
 pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
     let stages: Vec<Box<dyn Stage>> = vec![
-        Box::new(ingest::Ingest {
-            params: config.ingest.clone(),
-        }),
-        Box::new(hu::Hu {
-            params: config.hu.clone(),
-        }),
+        Box::new(ingest::Ingest { params: config.ingest.clone() }),
+        Box::new(hu::Hu { params: config.hu.clone() }),
     ];
     StageGraph::new(stages)
 }

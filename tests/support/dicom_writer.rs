@@ -65,9 +65,7 @@ impl SliceSpec {
     /// HU go negative).
     pub fn ct(k: usize) -> SliceSpec {
         let (rows, cols) = (6u16, 8u16);
-        let stored = (0..rows as i32 * cols as i32)
-            .map(|p| 900 + 37 * p + 100 * k as i32)
-            .collect();
+        let stored = (0..rows as i32 * cols as i32).map(|p| 900 + 37 * p + 100 * k as i32).collect();
         SliceSpec {
             rows,
             cols,
@@ -125,11 +123,7 @@ impl SliceSpec {
 
     /// The bits written for stored value `v`.
     fn word(&self, v: i32) -> u16 {
-        let width_mask: u32 = if self.bits_allocated == 8 {
-            0xFF
-        } else {
-            0xFFFF
-        };
+        let width_mask: u32 = if self.bits_allocated == 8 { 0xFF } else { 0xFFFF };
         let mut w = (v as u32) & width_mask;
         if self.mask_to_bits_stored {
             w &= (1u32 << self.bits_stored) - 1;
@@ -163,61 +157,21 @@ fn ds(values: &[f64]) -> String {
 fn build_object(spec: &SliceSpec) -> InMemDicomObject {
     let mut elements: Vec<DataElement<InMemDicomObject>> = vec![
         DataElement::new(tags::SOP_CLASS_UID, VR::UI, spec.sop_class_uid.as_str()),
-        DataElement::new(
-            tags::SOP_INSTANCE_UID,
-            VR::UI,
-            spec.sop_instance_uid.as_str(),
-        ),
+        DataElement::new(tags::SOP_INSTANCE_UID, VR::UI, spec.sop_instance_uid.as_str()),
         DataElement::new(tags::MODALITY, VR::CS, spec.modality.as_str()),
         DataElement::new(tags::SERIES_INSTANCE_UID, VR::UI, spec.series_uid.as_str()),
-        DataElement::new(
-            tags::INSTANCE_NUMBER,
-            VR::IS,
-            spec.instance_number.to_string().as_str(),
-        ),
+        DataElement::new(tags::INSTANCE_NUMBER, VR::IS, spec.instance_number.to_string().as_str()),
         DataElement::new(tags::IMAGE_POSITION_PATIENT, VR::DS, ds(&spec.ipp).as_str()),
-        DataElement::new(
-            tags::IMAGE_ORIENTATION_PATIENT,
-            VR::DS,
-            ds(&spec.iop).as_str(),
-        ),
-        DataElement::new(
-            tags::SAMPLES_PER_PIXEL,
-            VR::US,
-            PrimitiveValue::from(spec.samples_per_pixel),
-        ),
-        DataElement::new(
-            tags::PHOTOMETRIC_INTERPRETATION,
-            VR::CS,
-            spec.photometric.as_str(),
-        ),
+        DataElement::new(tags::IMAGE_ORIENTATION_PATIENT, VR::DS, ds(&spec.iop).as_str()),
+        DataElement::new(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(spec.samples_per_pixel)),
+        DataElement::new(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, spec.photometric.as_str()),
         DataElement::new(tags::ROWS, VR::US, PrimitiveValue::from(spec.rows)),
         DataElement::new(tags::COLUMNS, VR::US, PrimitiveValue::from(spec.cols)),
-        DataElement::new(
-            tags::PIXEL_SPACING,
-            VR::DS,
-            ds(&spec.pixel_spacing).as_str(),
-        ),
-        DataElement::new(
-            tags::BITS_ALLOCATED,
-            VR::US,
-            PrimitiveValue::from(spec.bits_allocated),
-        ),
-        DataElement::new(
-            tags::BITS_STORED,
-            VR::US,
-            PrimitiveValue::from(spec.bits_stored),
-        ),
-        DataElement::new(
-            tags::HIGH_BIT,
-            VR::US,
-            PrimitiveValue::from(spec.bits_stored - 1),
-        ),
-        DataElement::new(
-            tags::PIXEL_REPRESENTATION,
-            VR::US,
-            PrimitiveValue::from(u16::from(spec.signed)),
-        ),
+        DataElement::new(tags::PIXEL_SPACING, VR::DS, ds(&spec.pixel_spacing).as_str()),
+        DataElement::new(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(spec.bits_allocated)),
+        DataElement::new(tags::BITS_STORED, VR::US, PrimitiveValue::from(spec.bits_stored)),
+        DataElement::new(tags::HIGH_BIT, VR::US, PrimitiveValue::from(spec.bits_stored - 1)),
+        DataElement::new(tags::PIXEL_REPRESENTATION, VR::US, PrimitiveValue::from(u16::from(spec.signed))),
     ];
     let optional_ds = [
         (tags::RESCALE_SLOPE, spec.slope),
@@ -231,11 +185,7 @@ fn build_object(spec: &SliceSpec) -> InMemDicomObject {
         }
     }
     if let Some(frames) = spec.number_of_frames {
-        elements.push(DataElement::new(
-            tags::NUMBER_OF_FRAMES,
-            VR::IS,
-            frames.to_string().as_str(),
-        ));
+        elements.push(DataElement::new(tags::NUMBER_OF_FRAMES, VR::IS, frames.to_string().as_str()));
     }
     if let Some((name, id)) = &spec.patient {
         elements.push(DataElement::new(tags::PATIENT_NAME, VR::PN, name.as_str()));
@@ -274,17 +224,12 @@ pub fn write_slice(path: &Path, spec: &SliceSpec) {
         file.write_to_file(path).expect("write DICOM file");
     } else {
         let out = std::fs::File::create(path).expect("create DICOM file");
-        file.write_all(std::io::BufWriter::new(out))
-            .expect("write DICOM file");
+        file.write_all(std::io::BufWriter::new(out)).expect("write DICOM file");
     }
 }
 
 /// Write `specs` into `dir` as `name(k)` for slice `k`; returns the paths in spec order.
-pub fn write_series(
-    dir: &Path,
-    specs: &[SliceSpec],
-    name: impl Fn(usize) -> String,
-) -> Vec<PathBuf> {
+pub fn write_series(dir: &Path, specs: &[SliceSpec], name: impl Fn(usize) -> String) -> Vec<PathBuf> {
     specs
         .iter()
         .enumerate()
