@@ -1,7 +1,7 @@
 //! What a run shows while it works, and the table it ends with.
 //!
 //! On a terminal: one indicatif bar per stage (done/cached/failed of total). Not on a terminal:
-//! a plain line per computed or failed stage. In CI (`CI` set): nothing until the end table.
+//! a plain line per computed or failed stage. In CI (`CI` set): only failures until the end table.
 
 use super::run::{Outcome, RunSummary};
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
@@ -91,14 +91,14 @@ impl Progress {
                     }
                 }
             }
-            Mode::Lines => match outcome {
-                Outcome::Computed { seconds } => {
+            Mode::Lines | Mode::Quiet => match outcome {
+                Outcome::Computed { seconds } if matches!(self.mode, Mode::Lines) => {
                     eprintln!("{stage:>8} {unit}: computed in {seconds:.2} s")
                 }
+                // A failure is never noise: it reaches stderr in CI too.
                 Outcome::Failed { cause } => eprintln!("{stage:>8} {unit}: FAILED: {cause}"),
                 _ => {}
             },
-            Mode::Quiet => {}
         }
     }
 
