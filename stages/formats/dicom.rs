@@ -29,6 +29,7 @@
 //! pixel-format tags.
 
 use crate::volume::{Geometry, Volume};
+use rayon::prelude::*;
 use dicom_core::value::{PrimitiveValue, Value};
 use dicom_core::Tag;
 use dicom_dictionary_std::{tags, uids};
@@ -265,10 +266,13 @@ pub fn read_ct_series(files: &[PathBuf], gap_tolerance: f64) -> Result<CtSeries,
     let mut files = files.to_vec();
     files.sort();
 
+    // Files decode independently: read them in parallel, then keep path order (the first
+    // error in path order wins, so messages do not depend on thread timing).
+    let kinds: Vec<Result<FileKind, DicomError>> = files.par_iter().map(|path| read_file(path)).collect();
     let mut skipped = Vec::new();
     let mut slices = Vec::new();
-    for path in &files {
-        match read_file(path)? {
+    for (path, kind) in files.iter().zip(kinds) {
+        match kind? {
             FileKind::Skipped(reason) => skipped.push((path.clone(), reason)),
             FileKind::Ct(slice) => slices.push(*slice),
         }
