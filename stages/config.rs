@@ -73,13 +73,47 @@ pub enum DatasetKind {
     /// `root/<patient>/…`: one folder per patient holding a CT series (any nesting) and
     /// optionally its LIDC XML.
     Dicom,
+    /// The TCIA download layout: `root/LIDC-IDRI/LIDC-IDRI-XXXX/<study>/<series>/` with the
+    /// `*.dcm` files and the XML (`root` may also be the `LIDC-IDRI` folder itself).
+    Lidc,
+    /// A synthetic-CT cohort built around real LIDC annotations: `cohort/<patient>.xml` +
+    /// `<patient>.scan.json`, generated into the cache on first run.
+    Phantom,
 }
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DatasetSection {
     pub kind: DatasetKind,
-    pub root: PathBuf,
+    /// `dicom`, `lidc`: the dataset folder.
+    pub root: Option<PathBuf>,
+    /// `phantom`: the cohort folder of annotations and scan geometry.
+    pub cohort: Option<PathBuf>,
+}
+
+impl DatasetSection {
+    fn check(&self) -> anyhow::Result<()> {
+        let kind = serde_json::to_string(&self.kind).expect("kind serialises");
+        match self.kind {
+            DatasetKind::Dicom | DatasetKind::Lidc => {
+                if self.root.is_none() {
+                    bail!("[dataset] kind = {kind} needs `root`, the dataset folder");
+                }
+                if self.cohort.is_some() {
+                    bail!("[dataset] `cohort` is for kind = \"phantom\"; kind = {kind} reads `root`");
+                }
+            }
+            DatasetKind::Phantom => {
+                if self.cohort.is_none() {
+                    bail!("[dataset] kind = \"phantom\" needs `cohort`, e.g. \"tools/cohorts/paper19\"");
+                }
+                if self.root.is_some() {
+                    bail!("[dataset] `root` is for kinds \"dicom\" and \"lidc\"; kind = \"phantom\" reads `cohort`");
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 impl Config {
@@ -115,6 +149,7 @@ impl Config {
                 bail!("[pipeline.stage_workers] {name} must be at least 1");
             }
         }
+        self.dataset.check()?;
         self.hu.check()?;
         self.ingest.check()?;
         Ok(())
@@ -136,8 +171,10 @@ impl Config {
         self.resolve(&self.pipeline.out_dir)
     }
 
+    /// The dataset's folder: `root`, or `cohort` for a phantom dataset.
     pub fn dataset_root(&self) -> PathBuf {
-        self.resolve(&self.dataset.root)
+        let dir = self.dataset.root.as_ref().or(self.dataset.cohort.as_ref()).expect("checked by Config::parse");
+        self.resolve(dir)
     }
 }
 
@@ -172,6 +209,18 @@ mod tests {
     fn keys_in_future_stage_tables_are_rejected() {
         let e = Config::parse(&format!("{MINIMAL}[train]\niters = 3\n")).unwrap_err().to_string();
         assert!(e.contains("iters"), "{e}");
+    }
+
+    #[test]
+    fn dataset_kinds_need_their_own_keys() {
+        let phantom = MINIMAL.replace("kind = \"dicom\"\nroot = \"data\"", "kind = \"phantom\"\ncohort = \"c\"");
+        assert!(Config::parse(&phantom).is_ok());
+        let e = Config::parse(&MINIMAL.replace("root = \"data\"", "cohort = \"c\"")).unwrap_err().to_string();
+        assert!(e.contains("needs `root`"), "{e}");
+        let e = Config::parse(&MINIMAL.replace("\"dicom\"", "\"phantom\"")).unwrap_err().to_string();
+        assert!(e.contains("needs `cohort`"), "{e}");
+        let e = Config::parse(&MINIMAL.replace("\"dicom\"", "\"nifti\"")).unwrap_err().to_string();
+        assert!(e.contains("nifti") && e.contains("line 4"), "{e}");
     }
 
     #[test]

@@ -5,7 +5,7 @@
 //! direction) and `ct_series.json` (geometry and provenance, no patient-identifying tags: the
 //! patient is named only by the ID the dataset gives it).
 
-use crate::engine::{Context, Output, Stage, SOURCE};
+use crate::engine::{Context, Output, Stage};
 use crate::formats::{dicom, mhd};
 use anyhow::bail;
 use serde::{Deserialize, Serialize};
@@ -52,6 +52,8 @@ pub struct SeriesInfo {
 
 pub struct Ingest {
     pub params: Params,
+    /// Where the patient's files come from: `[SOURCE]` (a DICOM dataset), or a generator stage.
+    pub input: &'static [&'static str],
 }
 
 impl Stage for Ingest {
@@ -62,17 +64,17 @@ impl Stage for Ingest {
         VERSION
     }
     fn inputs(&self) -> &'static [&'static str] {
-        &[SOURCE]
+        self.input
     }
     fn params(&self) -> serde_json::Value {
         super::params_json(&self.params)
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        let files = ctx.source_files();
+        let files = ctx.input_files(self.input[0])?;
         let paths: Vec<_> = files.iter().map(|f| f.path.clone()).collect();
         let series = dicom::read_ct_series(&paths, self.params.slice_gap_tolerance)?;
         let relative = |p: &std::path::Path| {
-            files.iter().find(|f| f.path == p).map(|f| f.rel.clone()).unwrap_or_else(|| p.display().to_string())
+            files.iter().find(|f| f.path == p).map(|f| f.name.clone()).unwrap_or_else(|| p.display().to_string())
         };
         let info = SeriesInfo {
             patient: ctx.patient().to_string(),

@@ -7,7 +7,7 @@ pub mod hu;
 pub mod ingest;
 
 use crate::config::Config;
-use crate::engine::{Stage, StageGraph};
+use crate::engine::{Stage, StageGraph, SOURCE};
 
 /// Every stage name, in pipeline order (later stages arrive in later releases).
 pub const STAGE_NAMES: &[&str] = &["ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics"];
@@ -15,7 +15,7 @@ pub const STAGE_NAMES: &[&str] = &["ingest", "hu", "drr", "train", "grid", "swee
 /// The per-patient and cohort stages this build runs, configured from `config`.
 pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
     let stages: Vec<Box<dyn Stage>> = vec![
-        Box::new(ingest::Ingest { params: config.ingest.clone() }),
+        Box::new(ingest::Ingest { params: config.ingest.clone(), input: &[SOURCE] }),
         Box::new(hu::Hu { params: config.hu.clone() }),
     ];
     StageGraph::new(stages)
