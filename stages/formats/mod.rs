@@ -1,3 +1,4 @@
 //! File formats, one module each. No pipeline knowledge lives here.
 pub mod dicom;
+pub mod lidc_xml;
 pub mod mhd;
