@@ -1,0 +1,10 @@
+//! Pure numeric kernels: no I/O, no pipeline knowledge.
+//!
+//! [`consensus`] turns radiologist contours into pylidc-exact nodule ground truth (its public
+//! API, re-exporting what it needs from [`annotation`], [`cluster`] and [`mask`]); [`polygon`]
+//! is the matplotlib-exact point-in-polygon the annotation masks use.
+pub mod annotation;
+pub mod cluster;
+pub mod consensus;
+pub mod mask;
+pub mod polygon;
