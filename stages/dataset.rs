@@ -65,7 +65,10 @@ fn lidc_folders(root: &Path) -> anyhow::Result<Vec<Unit>> {
         .filter(|u| u.id.starts_with("LIDC-IDRI-"))
         .collect();
     if units.is_empty() {
-        bail!("[dataset] root {} has no LIDC-IDRI-XXXX patient folders (TCIA layout: LIDC-IDRI/LIDC-IDRI-XXXX/…)", dir.display());
+        bail!(
+            "[dataset] root {} has no LIDC-IDRI-XXXX patient folders (TCIA layout: LIDC-IDRI/LIDC-IDRI-XXXX/…)",
+            dir.display()
+        );
     }
     Ok(units)
 }
@@ -73,8 +76,8 @@ fn lidc_folders(root: &Path) -> anyhow::Result<Vec<Unit>> {
 /// A phantom cohort: each `<patient>.scan.json` (scan geometry) with its `<patient>.xml`
 /// (the radiologists' annotations) is one patient.
 fn phantom_cohort(cohort: &Path) -> anyhow::Result<Vec<Unit>> {
-    let entries = std::fs::read_dir(cohort)
-        .map_err(|e| anyhow!("[dataset] cohort {} cannot be read ({e})", cohort.display()))?;
+    let entries =
+        std::fs::read_dir(cohort).map_err(|e| anyhow!("[dataset] cohort {} cannot be read ({e})", cohort.display()))?;
     let mut units = Vec::new();
     for entry in entries {
         let name = entry.with_context(|| format!("listing {}", cohort.display()))?.file_name();

@@ -4,9 +4,7 @@
 //! annotation's own mask, bbox and diameter.
 
 use aret_pipe::formats::lidc_xml;
-use aret_pipe::kernels::consensus::{
-    nodule_truth, scan_truth, GroundTruthParams, ReadRef, ScanGeometry, ScanTruth,
-};
+use aret_pipe::kernels::consensus::{nodule_truth, scan_truth, GroundTruthParams, ReadRef, ScanGeometry, ScanTruth};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -31,31 +29,19 @@ struct Patient {
 fn load(name: &str) -> Patient {
     let dir = cohort_dir();
     let xml = std::fs::read_to_string(dir.join(format!("{name}.xml"))).unwrap();
-    let scan: Value = serde_json::from_str(
-        &std::fs::read_to_string(dir.join(format!("{name}.scan.json"))).unwrap(),
-    )
-    .unwrap();
+    let scan: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join(format!("{name}.scan.json"))).unwrap()).unwrap();
     let message = lidc_xml::parse(&xml).unwrap_or_else(|e| panic!("{name}: {e}"));
     let geometry = ScanGeometry::new(
-        scan["zvals_mm"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|z| z.as_f64().unwrap())
-            .collect(),
+        scan["zvals_mm"].as_array().unwrap().iter().map(|z| z.as_f64().unwrap()).collect(),
         scan["pixel_spacing_mm"].as_f64().unwrap(),
         scan["rows"].as_u64().unwrap() as usize,
         scan["cols"].as_u64().unwrap() as usize,
     )
     .unwrap();
     let thickness = scan["slice_thickness_mm"].as_f64().unwrap();
-    let truth = scan_truth(
-        &message,
-        &geometry,
-        thickness,
-        &GroundTruthParams::default(),
-    )
-    .unwrap_or_else(|e| panic!("{name}: {e}"));
+    let truth = scan_truth(&message, &geometry, thickness, &GroundTruthParams::default())
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
     let mut index_of_id = BTreeMap::new();
     for a in scan["annotations"].as_array().unwrap() {
         let source = ReadRef {
@@ -66,29 +52,15 @@ fn load(name: &str) -> Patient {
         let index = index.unwrap_or_else(|| panic!("{name}: no read for {source:?}"));
         index_of_id.insert(a["pylidc_annotation_id"].as_u64().unwrap(), index);
     }
-    Patient {
-        name: name.to_string(),
-        scan,
-        geometry,
-        truth,
-        index_of_id,
-    }
+    Patient { name: name.to_string(), scan, geometry, truth, index_of_id }
 }
 
 fn usizes(v: &Value) -> Vec<usize> {
-    v.as_array()
-        .unwrap()
-        .iter()
-        .map(|x| x.as_u64().unwrap() as usize)
-        .collect()
+    v.as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize).collect()
 }
 
 fn f64s(v: &Value) -> Vec<f64> {
-    v.as_array()
-        .unwrap()
-        .iter()
-        .map(|x| x.as_f64().unwrap())
-        .collect()
+    v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
 }
 
 /// `[[imin, imax], [jmin, jmax], [kmin, kmax]]`.
@@ -127,34 +99,16 @@ fn mismatches(p: &Patient) -> Vec<String> {
     };
     let ps = p.geometry.pixel_spacing_mm;
     let annotations = p.scan["annotations"].as_array().unwrap();
-    check(eq(
-        "annotation count",
-        p.truth.annotations.len(),
-        annotations.len(),
-    ));
+    check(eq("annotation count", p.truth.annotations.len(), annotations.len()));
     for a in annotations {
         let id = a["pylidc_annotation_id"].as_u64().unwrap();
         let ann = &p.truth.annotations[p.index_of_id[&id]];
         let bbox = ann.bbox();
-        check(eq(
-            &format!("annotation {id} bbox"),
-            rows_of(&bbox),
-            bbox_rows(&a["bbox_ijk"]),
-        ));
+        check(eq(&format!("annotation {id} bbox"), rows_of(&bbox), bbox_rows(&a["bbox_ijk"])));
         let voxels = ann.boolean_mask(&bbox).count();
-        check(eq(
-            &format!("annotation {id} mask voxels"),
-            voxels,
-            a["mask_voxels"].as_u64().unwrap() as usize,
-        ));
+        check(eq(&format!("annotation {id} mask voxels"), voxels, a["mask_voxels"].as_u64().unwrap() as usize));
         let want = a["diameter_mm"].as_f64().unwrap();
-        check(close(
-            &format!("annotation {id} diameter"),
-            ann.diameter_mm(ps),
-            want,
-            1e-6,
-            2e-6,
-        ));
+        check(close(&format!("annotation {id} diameter"), ann.diameter_mm(ps), want, 1e-6, 2e-6));
     }
 
     let reference = &p.scan["reference"];
@@ -172,33 +126,18 @@ fn mismatches(p: &Patient) -> Vec<String> {
         let what = |s: &str| format!("cluster {n} {s}");
         // pylidc lists members by annotation id; map them to our indices and sort like ours.
         let ids = usizes(&c["annotation_ids"]);
-        let mut by_index: Vec<(usize, usize)> = ids
-            .iter()
-            .enumerate()
-            .map(|(pos, &id)| (p.index_of_id[&(id as u64)], pos))
-            .collect();
+        let mut by_index: Vec<(usize, usize)> =
+            ids.iter().enumerate().map(|(pos, &id)| (p.index_of_id[&(id as u64)], pos)).collect();
         by_index.sort();
         let members: Vec<usize> = by_index.iter().map(|&(i, _)| i).collect();
-        check(eq(
-            &what("members"),
-            nodule.annotation_indices.clone(),
-            members,
-        ));
+        check(eq(&what("members"), nodule.annotation_indices.clone(), members));
         check(eq(
             &what("annotation count"),
             nodule.annotation_count(),
             c["num_annotations"].as_u64().unwrap() as usize,
         ));
-        check(eq(
-            &what("consensus voxels"),
-            nodule.consensus_voxels,
-            c["consensus_voxels"].as_u64().unwrap() as usize,
-        ));
-        check(eq(
-            &what("bbox"),
-            rows_of(&nodule.bbox),
-            bbox_rows(&c["consensus_bbox_ijk_inclusive"]),
-        ));
+        check(eq(&what("consensus voxels"), nodule.consensus_voxels, c["consensus_voxels"].as_u64().unwrap() as usize));
+        check(eq(&what("bbox"), rows_of(&nodule.bbox), bbox_rows(&c["consensus_bbox_ijk_inclusive"])));
         check(eq(
             &what("voxels per slice"),
             nodule.consensus.count_per_slice(),
@@ -206,19 +145,9 @@ fn mismatches(p: &Patient) -> Vec<String> {
         ));
         let masks_want = usizes(&c["annotation_mask_voxels_in_consensus_bbox"]);
         let masks_want: Vec<usize> = by_index.iter().map(|&(_, pos)| masks_want[pos]).collect();
-        check(eq(
-            &what("annotation mask voxels"),
-            nodule.annotation_mask_voxels.clone(),
-            masks_want,
-        ));
+        check(eq(&what("annotation mask voxels"), nodule.annotation_mask_voxels.clone(), masks_want));
         let volume = c["consensus_volume_mm3"].as_f64().unwrap();
-        check(close(
-            &what("volume"),
-            nodule.volume_mm3,
-            volume,
-            1e-4,
-            1e-5,
-        ));
+        check(close(&what("volume"), nodule.volume_mm3, volume, 1e-4, 1e-5));
         check(close(
             &what("equivalent diameter"),
             nodule.equivalent_diameter_mm,
@@ -235,35 +164,15 @@ fn mismatches(p: &Patient) -> Vec<String> {
         ));
         let centroid = nodule.centroid_ijk.unwrap_or([f64::NAN; 3]);
         let centroid_mm = nodule.centroid_mm_xyz.unwrap_or([f64::NAN; 3]);
-        for (a, (want_ijk, want_mm)) in f64s(&c["consensus_centroid_ijk"])
-            .into_iter()
-            .zip(f64s(&c["consensus_centroid_mm_xyz"]))
-            .enumerate()
+        for (a, (want_ijk, want_mm)) in
+            f64s(&c["consensus_centroid_ijk"]).into_iter().zip(f64s(&c["consensus_centroid_mm_xyz"])).enumerate()
         {
-            check(close(
-                &what(&format!("centroid ijk[{a}]")),
-                centroid[a],
-                want_ijk,
-                1e-5,
-                0.0,
-            ));
-            check(close(
-                &what(&format!("centroid mm[{a}]")),
-                centroid_mm[a],
-                want_mm,
-                1e-4,
-                1e-6,
-            ));
+            check(close(&what(&format!("centroid ijk[{a}]")), centroid[a], want_ijk, 1e-5, 0.0));
+            check(close(&what(&format!("centroid mm[{a}]")), centroid_mm[a], want_mm, 1e-4, 1e-6));
         }
         for (clevel, want) in c["consensus_voxels_by_clevel"].as_object().unwrap() {
             let clevel: f64 = clevel.parse().unwrap();
-            let at = nodule_truth(
-                &p.truth.annotations,
-                &nodule.annotation_indices,
-                &p.geometry,
-                clevel,
-            )
-            .unwrap();
+            let at = nodule_truth(&p.truth.annotations, &nodule.annotation_indices, &p.geometry, clevel).unwrap();
             check(eq(
                 &what(&format!("voxels at clevel {clevel}")),
                 at.consensus_voxels,
@@ -273,11 +182,7 @@ fn mismatches(p: &Patient) -> Vec<String> {
     }
     let largest = p.truth.largest().map(|l| l.annotation_indices.clone());
     let want = reference["largest_cluster_index"].as_u64().unwrap() as usize;
-    check(eq(
-        "largest nodule",
-        largest,
-        Some(p.truth.nodules[want].annotation_indices.clone()),
-    ));
+    check(eq("largest nodule", largest, Some(p.truth.nodules[want].annotation_indices.clone())));
     out
 }
 
@@ -292,11 +197,7 @@ fn all_19_patients_match_pylidc_exactly() {
         }
         all.extend(found);
     }
-    assert!(
-        all.is_empty(),
-        "{exact}/19 patients match; mismatches:\n{}",
-        all.join("\n")
-    );
+    assert!(all.is_empty(), "{exact}/19 patients match; mismatches:\n{}", all.join("\n"));
 }
 
 /// LIDC-IDRI-0019 is where a textbook even-odd point-in-polygon test (pnpoly: a division and a
@@ -321,31 +222,15 @@ fn lidc_idri_0019_edge_voxel_is_outside_as_in_matplotlib() {
 #[test]
 fn largest_nodule_per_patient_matches_index() {
     let index: Value =
-        serde_json::from_str(&std::fs::read_to_string(cohort_dir().join("index.json")).unwrap())
-            .unwrap();
+        serde_json::from_str(&std::fs::read_to_string(cohort_dir().join("index.json")).unwrap()).unwrap();
     for entry in index["scans"].as_array().unwrap() {
         let p = load(entry["name"].as_str().unwrap());
         let want = &entry["largest_cluster"];
         let got = p.truth.largest().unwrap();
-        assert_eq!(
-            got.consensus_voxels as u64,
-            want["consensus_voxels"].as_u64().unwrap(),
-            "{}",
-            p.name
-        );
-        assert_eq!(
-            got.annotation_count() as u64,
-            want["num_annotations"].as_u64().unwrap(),
-            "{}",
-            p.name
-        );
+        assert_eq!(got.consensus_voxels as u64, want["consensus_voxels"].as_u64().unwrap(), "{}", p.name);
+        assert_eq!(got.annotation_count() as u64, want["num_annotations"].as_u64().unwrap(), "{}", p.name);
         let volume = want["consensus_volume_mm3"].as_f64().unwrap();
-        assert!(
-            (got.volume_mm3 - volume).abs() <= 1e-5 * volume + 1e-4,
-            "{}: {} vs {volume}",
-            p.name,
-            got.volume_mm3
-        );
+        assert!((got.volume_mm3 - volume).abs() <= 1e-5 * volume + 1e-4, "{}: {} vs {volume}", p.name, got.volume_mm3);
         let diam = want["mean_annotated_diameter_mm"].as_f64().unwrap();
         assert!(
             (got.annotated_diameter_mm - diam).abs() <= 1e-4,

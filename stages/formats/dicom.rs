@@ -29,12 +29,12 @@
 //! pixel-format tags.
 
 use crate::volume::{Geometry, Volume};
-use rayon::prelude::*;
 use dicom_core::value::{PrimitiveValue, Value};
 use dicom_core::Tag;
 use dicom_dictionary_std::{tags, uids};
 use dicom_object::file::ReadPreamble;
 use dicom_object::{FileMetaTable, InMemDicomObject, OpenFileOptions, ReadError};
+use rayon::prelude::*;
 use std::borrow::Cow;
 use std::fmt;
 use std::path::{Path, PathBuf};

@@ -89,18 +89,9 @@ pub enum LidcError {
     #[error("LIDC XML line {line}: root element is <{found}>, expected <LidcReadMessage>")]
     WrongRoot { found: String, line: u32 },
     #[error("LIDC XML line {line}: <{parent}> has no <{child}>")]
-    Missing {
-        parent: String,
-        child: &'static str,
-        line: u32,
-    },
+    Missing { parent: String, child: &'static str, line: u32 },
     #[error("LIDC XML line {line}: <{element}> holds {value:?}, expected {expected}")]
-    BadValue {
-        element: String,
-        value: String,
-        expected: &'static str,
-        line: u32,
-    },
+    BadValue { element: String, value: String, expected: &'static str, line: u32 },
 }
 
 /// Parse a `LidcReadMessage` document. Never panics; errors name the element and its line.
@@ -108,16 +99,11 @@ pub fn parse(xml: &str) -> Result<ReadMessage, LidcError> {
     let doc = Document::parse(xml)?;
     let root = doc.root_element();
     if root.tag_name().name() != "LidcReadMessage" {
-        return Err(LidcError::WrongRoot {
-            found: root.tag_name().name().to_string(),
-            line: line_of(root),
-        });
+        return Err(LidcError::WrongRoot { found: root.tag_name().name().to_string(), line: line_of(root) });
     }
     let header = child(root, "ResponseHeader");
     let header_text = |name| header.and_then(|h| child(h, name)).and_then(trimmed_text);
-    let sessions = children(root, "readingSession")
-        .map(parse_session)
-        .collect::<Result<_, _>>()?;
+    let sessions = children(root, "readingSession").map(parse_session).collect::<Result<_, _>>()?;
     Ok(ReadMessage {
         series_instance_uid: header_text("SeriesInstanceUid"),
         study_instance_uid: header_text("StudyInstanceUID"),
@@ -143,11 +129,7 @@ fn parse_session(session: Node) -> Result<ReadingSession, LidcError> {
             continue;
         }
         match parse_characteristics(read)? {
-            Some(characteristics) => out.reads.push(NoduleRead {
-                nodule_id,
-                characteristics,
-                rois,
-            }),
+            Some(characteristics) => out.reads.push(NoduleRead { nodule_id, characteristics, rois }),
             None => out.unrated_reads += 1,
         }
     }
@@ -172,10 +154,7 @@ fn parse_rois(read: Node) -> Result<(Vec<Roi>, usize), LidcError> {
 fn parse_roi(roi: Node) -> Result<Roi, LidcError> {
     let z_mm = parse_number::<f64>(required(roi, "imageZposition")?, "a number (mm)")?;
     if !z_mm.is_finite() {
-        return Err(bad_value(
-            required(roi, "imageZposition")?,
-            "a finite number (mm)",
-        ));
+        return Err(bad_value(required(roi, "imageZposition")?, "a finite number (mm)"));
     }
     let inclusion_node = required(roi, "inclusion")?;
     let inclusion = match trimmed_text(inclusion_node).as_deref() {
@@ -183,15 +162,8 @@ fn parse_roi(roi: Node) -> Result<Roi, LidcError> {
         Some(t) if t.eq_ignore_ascii_case("false") => false,
         _ => return Err(bad_value(inclusion_node, "TRUE or FALSE")),
     };
-    let points = children(roi, "edgeMap")
-        .map(parse_point)
-        .collect::<Result<_, _>>()?;
-    Ok(Roi {
-        z_mm,
-        sop_uid: child(roi, "imageSOP_UID").and_then(trimmed_text),
-        inclusion,
-        points,
-    })
+    let points = children(roi, "edgeMap").map(parse_point).collect::<Result<_, _>>()?;
+    Ok(Roi { z_mm, sop_uid: child(roi, "imageSOP_UID").and_then(trimmed_text), inclusion, points })
 }
 
 fn parse_point(edge_map: Node) -> Result<(i32, i32), LidcError> {
@@ -259,8 +231,7 @@ fn rating(block: Node, name: &'static str) -> Result<Option<u8>, LidcError> {
 // ---- small XML helpers: local-name matching, trimmed text, errors with lines ----
 
 fn children<'a, 'i>(node: Node<'a, 'i>, name: &'static str) -> impl Iterator<Item = Node<'a, 'i>> {
-    node.children()
-        .filter(move |c| c.is_element() && c.tag_name().name() == name)
+    node.children().filter(move |c| c.is_element() && c.tag_name().name() == name)
 }
 
 fn child<'a, 'i>(node: Node<'a, 'i>, name: &'static str) -> Option<Node<'a, 'i>> {
@@ -287,9 +258,7 @@ fn trimmed_text(node: Node) -> Option<String> {
 }
 
 fn parse_number<T: std::str::FromStr>(node: Node, expected: &'static str) -> Result<T, LidcError> {
-    trimmed_text(node)
-        .and_then(|t| t.parse().ok())
-        .ok_or_else(|| bad_value(node, expected))
+    trimmed_text(node).and_then(|t| t.parse().ok()).ok_or_else(|| bad_value(node, expected))
 }
 
 fn bad_value(node: Node, expected: &'static str) -> LidcError {
@@ -309,8 +278,7 @@ fn line_of(node: Node) -> u32 {
 mod tests {
     use super::*;
 
-    const RATINGS: &str =
-        "<characteristics><subtlety>5</subtlety><internalStructure>1</internalStructure>\
+    const RATINGS: &str = "<characteristics><subtlety>5</subtlety><internalStructure>1</internalStructure>\
         <calcification>6</calcification><sphericity>3</sphericity><margin>3</margin>\
         <lobulation>3</lobulation><spiculation>4</spiculation><texture>5</texture>\
         <malignancy>5</malignancy></characteristics>";
@@ -351,19 +319,10 @@ mod tests {
     fn reads_default_other_and_no_namespace_alike() {
         let body = one_nodule_session();
         let roots = [
-            (
-                "<LidcReadMessage xmlns=\"http://www.nih.gov\">",
-                "</LidcReadMessage>",
-            ),
-            (
-                "<LidcReadMessage xmlns=\"http://www.nih.gov/idri\">",
-                "</LidcReadMessage>",
-            ),
+            ("<LidcReadMessage xmlns=\"http://www.nih.gov\">", "</LidcReadMessage>"),
+            ("<LidcReadMessage xmlns=\"http://www.nih.gov/idri\">", "</LidcReadMessage>"),
             ("<LidcReadMessage>", "</LidcReadMessage>"),
-            (
-                "<l:LidcReadMessage xmlns:l=\"urn:x\">",
-                "</l:LidcReadMessage>",
-            ),
+            ("<l:LidcReadMessage xmlns:l=\"urn:x\">", "</l:LidcReadMessage>"),
         ];
         for (open, close) in roots {
             let parsed = parse(&message(open, close, &body)).unwrap();
@@ -404,12 +363,7 @@ mod tests {
             roi("1.0", "TRUE", &square()),
             roi("2.0", "TRUE", &[(11, 11)]),
         );
-        let parsed = parse(&message(
-            "<LidcReadMessage>",
-            "</LidcReadMessage>",
-            &session,
-        ))
-        .unwrap();
+        let parsed = parse(&message("<LidcReadMessage>", "</LidcReadMessage>", &session)).unwrap();
         let s = &parsed.sessions[0];
         assert_eq!(s.small_nodules, 1);
         assert_eq!(s.non_nodules, 1);
@@ -428,12 +382,7 @@ mod tests {
             roi("3.5", "TRUE", &[(0, 0), (20, 0), (20, 20), (0, 20)]),
             roi("3.5", " false ", &square()),
         );
-        let parsed = parse(&message(
-            "<LidcReadMessage>",
-            "</LidcReadMessage>",
-            &session,
-        ))
-        .unwrap();
+        let parsed = parse(&message("<LidcReadMessage>", "</LidcReadMessage>", &session)).unwrap();
         let rois = &parsed.sessions[0].reads[0].rois;
         assert_eq!(rois.len(), 2);
         assert!(rois[0].inclusion);
@@ -443,13 +392,9 @@ mod tests {
 
     #[test]
     fn malformed_xml_names_the_line() {
-        let xml =
-            "<LidcReadMessage>\n<readingSession>\n<oops>\n</readingSession>\n</LidcReadMessage>";
+        let xml = "<LidcReadMessage>\n<readingSession>\n<oops>\n</readingSession>\n</LidcReadMessage>";
         let err = parse(xml).unwrap_err().to_string();
-        assert!(
-            err.contains("not well-formed") && err.contains("4:"),
-            "{err}"
-        );
+        assert!(err.contains("not well-formed") && err.contains("4:"), "{err}");
     }
 
     #[test]
@@ -461,10 +406,7 @@ mod tests {
         );
         let xml = message("<LidcReadMessage>", "</LidcReadMessage>", &session);
         let err = parse(&xml).unwrap_err().to_string();
-        assert_eq!(
-            err,
-            "LIDC XML line 5: <xCoord> holds \"1.5e\", expected an integer pixel index"
-        );
+        assert_eq!(err, "LIDC XML line 5: <xCoord> holds \"1.5e\", expected an integer pixel index");
     }
 
     #[test]
@@ -475,27 +417,13 @@ mod tests {
             roi("1.0", "TRUE", &square()).replace("<imageZposition>1.0</imageZposition>", "")
         );
         let err = parse(&message("<LidcReadMessage>", "</LidcReadMessage>", &no_z)).unwrap_err();
-        assert_eq!(
-            err.to_string(),
-            "LIDC XML line 4: <roi> has no <imageZposition>"
-        );
+        assert_eq!(err.to_string(), "LIDC XML line 4: <roi> has no <imageZposition>");
 
         let bad_incl = one_nodule_session().replace(">TRUE<", ">maybe<");
-        let err = parse(&message(
-            "<LidcReadMessage>",
-            "</LidcReadMessage>",
-            &bad_incl,
-        ))
-        .unwrap_err();
-        assert!(
-            err.to_string().contains("<inclusion> holds \"maybe\""),
-            "{err}"
-        );
+        let err = parse(&message("<LidcReadMessage>", "</LidcReadMessage>", &bad_incl)).unwrap_err();
+        assert!(err.to_string().contains("<inclusion> holds \"maybe\""), "{err}");
 
         let err = parse("<IdriReadMessage/>").unwrap_err();
-        assert_eq!(
-            err.to_string(),
-            "LIDC XML line 1: root element is <IdriReadMessage>, expected <LidcReadMessage>"
-        );
+        assert_eq!(err.to_string(), "LIDC XML line 1: root element is <IdriReadMessage>, expected <LidcReadMessage>");
     }
 }

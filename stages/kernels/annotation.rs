@@ -31,15 +31,9 @@ impl ScanGeometry {
     ) -> Result<Self, GroundTruthError> {
         let geometry_error = |m: String| Err(GroundTruthError::Geometry(m));
         if z_positions_mm.len() < 2 {
-            return geometry_error(format!(
-                "{} slice(s); need at least 2",
-                z_positions_mm.len()
-            ));
+            return geometry_error(format!("{} slice(s); need at least 2", z_positions_mm.len()));
         }
-        if let Some(w) = z_positions_mm
-            .windows(2)
-            .find(|w| w[1].partial_cmp(&w[0]) != Some(Ordering::Greater))
-        {
+        if let Some(w) = z_positions_mm.windows(2).find(|w| w[1].partial_cmp(&w[0]) != Some(Ordering::Greater)) {
             return geometry_error(format!(
                 "slice z positions must be strictly ascending, found {} then {}",
                 w[0], w[1]
@@ -51,12 +45,7 @@ impl ScanGeometry {
         if rows == 0 || cols == 0 {
             return geometry_error(format!("image of {cols}×{rows} pixels"));
         }
-        Ok(Self {
-            z_positions_mm,
-            pixel_spacing_mm,
-            rows,
-            cols,
-        })
+        Ok(Self { z_positions_mm, pixel_spacing_mm, rows, cols })
     }
 
     pub fn slices(&self) -> usize {
@@ -66,11 +55,7 @@ impl ScanGeometry {
     /// pylidc's `Scan.slice_spacing`: the median gap between consecutive slice positions
     /// (numpy's median: the mean of the two middle gaps when their count is even).
     pub fn slice_spacing_mm(&self) -> f64 {
-        let mut gaps: Vec<f64> = self
-            .z_positions_mm
-            .windows(2)
-            .map(|w| w[1] - w[0])
-            .collect();
+        let mut gaps: Vec<f64> = self.z_positions_mm.windows(2).map(|w| w[1] - w[0]).collect();
         gaps.sort_by(f64::total_cmp);
         let n = gaps.len();
         if n % 2 == 1 {
@@ -97,11 +82,7 @@ impl ScanGeometry {
         let nearest_mm = self.z_positions_mm[best];
         let tolerance_mm = self.z_tolerance_mm();
         if (nearest_mm - z_mm).abs() > tolerance_mm {
-            return Err(GroundTruthError::ZOffGrid {
-                z_mm,
-                nearest_mm,
-                tolerance_mm,
-            });
+            return Err(GroundTruthError::ZOffGrid { z_mm, nearest_mm, tolerance_mm });
         }
         Ok(best)
     }
@@ -136,26 +117,16 @@ impl Annotation {
     /// Maps each ROI's z to its slice and its `(x, y)` points to `(i = y, j = x)`.
     pub fn from_read(read: &NoduleRead, geometry: &ScanGeometry) -> Result<Self, GroundTruthError> {
         if read.rois.is_empty() {
-            return Err(GroundTruthError::EmptyAnnotation(format!(
-                "`{}`",
-                read.nodule_id
-            )));
+            return Err(GroundTruthError::EmptyAnnotation(format!("`{}`", read.nodule_id)));
         }
         let contours = read
             .rois
             .iter()
             .map(|roi| {
                 let k = geometry.slice_index(roi.z_mm)?;
-                let points_ij = roi
-                    .points
-                    .iter()
-                    .map(|&(x, y)| point_ij(x, y, roi.z_mm, geometry))
-                    .collect::<Result<_, _>>()?;
-                Ok(Contour {
-                    k,
-                    inclusion: roi.inclusion,
-                    points_ij,
-                })
+                let points_ij =
+                    roi.points.iter().map(|&(x, y)| point_ij(x, y, roi.z_mm, geometry)).collect::<Result<_, _>>()?;
+                Ok(Contour { k, inclusion: roi.inclusion, points_ij })
             })
             .collect::<Result<_, GroundTruthError>>()?;
         Ok(Self { contours })
@@ -163,9 +134,7 @@ impl Annotation {
 
     /// Every contour point as `(i, j, k)` (pylidc's `contours_matrix`, up to row order).
     pub fn points_ijk(&self) -> impl Iterator<Item = [i64; 3]> + '_ {
-        self.contours
-            .iter()
-            .flat_map(|c| c.points_ij.iter().map(move |&[i, j]| [i, j, c.k as i64]))
+        self.contours.iter().flat_map(|c| c.points_ij.iter().map(move |&[i, j]| [i, j, c.k as i64]))
     }
 
     /// pylidc's `Annotation.bbox_matrix()` with `pad=None`: min and max of all contour points,
@@ -180,10 +149,7 @@ impl Annotation {
             }
         }
         // Points were checked to lie in the image, so they are non-negative.
-        BBox {
-            min_ijk: min.map(|v| v as usize),
-            max_ijk: max.map(|v| v as usize),
-        }
+        BBox { min_ijk: min.map(|v| v as usize), max_ijk: max.map(|v| v as usize) }
     }
 
     /// pylidc's `Annotation.centroid`: the mean `(i, j, k)` of all contour points.
@@ -231,21 +197,10 @@ impl Annotation {
     }
 }
 
-fn point_ij(
-    x: i32,
-    y: i32,
-    z_mm: f64,
-    geometry: &ScanGeometry,
-) -> Result<[i64; 2], GroundTruthError> {
+fn point_ij(x: i32, y: i32, z_mm: f64, geometry: &ScanGeometry) -> Result<[i64; 2], GroundTruthError> {
     let inside = |v: i32, n: usize| v >= 0 && (v as usize) < n;
     if !(inside(x, geometry.cols) && inside(y, geometry.rows)) {
-        return Err(GroundTruthError::PointOutsideImage {
-            x,
-            y,
-            z_mm,
-            cols: geometry.cols,
-            rows: geometry.rows,
-        });
+        return Err(GroundTruthError::PointOutsideImage { x, y, z_mm, cols: geometry.cols, rows: geometry.rows });
     }
     Ok([i64::from(y), i64::from(x)])
 }
@@ -253,10 +208,7 @@ fn point_ij(
 /// Largest pairwise distance, scaling each coordinate to mm before subtracting as
 /// `scipy.spatial.distance.pdist(points * pixel_spacing)` does (same rounding).
 fn contour_diameter_mm(points_ij: &[[i64; 2]], pixel_spacing_mm: f64) -> f64 {
-    let mm: Vec<[f64; 2]> = points_ij
-        .iter()
-        .map(|p| p.map(|v| v as f64 * pixel_spacing_mm))
-        .collect();
+    let mm: Vec<[f64; 2]> = points_ij.iter().map(|p| p.map(|v| v as f64 * pixel_spacing_mm)).collect();
     let mut largest = 0.0f64;
     for (n, a) in mm.iter().enumerate() {
         for b in &mm[n + 1..] {
@@ -297,34 +249,14 @@ pub(crate) mod tests {
         ScanGeometry::new(vec![0.0, 2.5, 5.0, 7.5, 10.0], 0.5, 32, 32).unwrap()
     }
 
-    pub(crate) fn square_contour(
-        k: usize,
-        i0: i64,
-        j0: i64,
-        side: i64,
-        inclusion: bool,
-    ) -> Contour {
-        let points_ij = vec![
-            [i0, j0],
-            [i0, j0 + side],
-            [i0 + side, j0 + side],
-            [i0 + side, j0],
-        ];
-        Contour {
-            k,
-            inclusion,
-            points_ij,
-        }
+    pub(crate) fn square_contour(k: usize, i0: i64, j0: i64, side: i64, inclusion: bool) -> Contour {
+        let points_ij = vec![[i0, j0], [i0, j0 + side], [i0 + side, j0 + side], [i0 + side, j0]];
+        Contour { k, inclusion, points_ij }
     }
 
     /// One square inclusion contour, corners (i0, j0) → (i0, j0 + side) → …, on each slice `ks`.
     pub(crate) fn square_annotation(ks: &[usize], i0: i64, j0: i64, side: i64) -> Annotation {
-        Annotation {
-            contours: ks
-                .iter()
-                .map(|&k| square_contour(k, i0, j0, side, true))
-                .collect(),
-        }
+        Annotation { contours: ks.iter().map(|&k| square_contour(k, i0, j0, side, true)).collect() }
     }
 
     #[test]
@@ -359,10 +291,7 @@ pub(crate) mod tests {
         assert_eq!(mask.count(), 12);
         assert!(mask.get(4, 6, 1), "edge j = jmax is inside");
         assert!(!mask.get(4, 2, 1), "edge j = jmin is outside");
-        assert!(
-            !mask.get(2, 4, 1) && !mask.get(6, 4, 1),
-            "edges i = imin, imax are outside"
-        );
+        assert!(!mask.get(2, 4, 1) && !mask.get(6, 4, 1), "edges i = imin, imax are outside");
         assert!(!mask.get(6, 6, 1), "vertices are off");
         assert_eq!(mask.count_per_slice(), vec![12]);
     }

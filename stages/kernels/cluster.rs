@@ -21,12 +21,7 @@ pub struct ClusterParams {
 
 impl Default for ClusterParams {
     fn default() -> Self {
-        Self {
-            tol: None,
-            factor: 0.9,
-            min_tol: 0.1,
-            max_annotations: 4,
-        }
+        Self { tol: None, factor: 0.9, min_tol: 0.1, max_annotations: 4 }
     }
 }
 
@@ -65,9 +60,7 @@ pub fn cluster_annotations(
     check_not_empty(annotations)?;
     let tol_initial = params.tol.unwrap_or(slice_thickness_mm);
     if !(tol_initial.is_finite() && tol_initial >= 0.0) {
-        return Err(GroundTruthError::ClusterParams(format!(
-            "tol {tol_initial} must be a finite number >= 0"
-        )));
+        return Err(GroundTruthError::ClusterParams(format!("tol {tol_initial} must be a finite number >= 0")));
     }
     let distances = distance_matrix(annotations, tol_initial);
     let mut tol = tol_initial;
@@ -89,19 +82,12 @@ pub fn cluster_annotations(
     let centroid_k: Vec<f64> = annotations.iter().map(|a| a.centroid_ijk()[2]).collect();
     let mean_k = |c: &Vec<usize>| c.iter().map(|&a| centroid_k[a]).sum::<f64>() / c.len() as f64;
     clusters.sort_by(|a, b| mean_k(a).total_cmp(&mean_k(b)));
-    Ok(Clustering {
-        clusters,
-        tol_initial,
-        tol_final: tol,
-    })
+    Ok(Clustering { clusters, tol_initial, tol_final: tol })
 }
 
 fn check_cluster_params(params: &ClusterParams) -> Result<(), GroundTruthError> {
     if !(params.factor > 0.0 && params.factor < 1.0) {
-        return Err(GroundTruthError::ClusterParams(format!(
-            "factor {} must lie in (0, 1)",
-            params.factor
-        )));
+        return Err(GroundTruthError::ClusterParams(format!("factor {} must lie in (0, 1)", params.factor)));
     }
     if params.min_tol.partial_cmp(&0.0) != Some(Ordering::Greater) || params.max_annotations == 0 {
         return Err(GroundTruthError::ClusterParams(format!(
@@ -117,10 +103,7 @@ fn check_cluster_params(params: &ClusterParams) -> Result<(), GroundTruthError> 
 /// from `cutoff`, so they can never link.
 fn distance_matrix(annotations: &[Annotation], cutoff: f64) -> Vec<Vec<f64>> {
     let n = annotations.len();
-    let points: Vec<Vec<[i64; 3]>> = annotations
-        .iter()
-        .map(|a| a.points_ijk().collect())
-        .collect();
+    let points: Vec<Vec<[i64; 3]>> = annotations.iter().map(|a| a.points_ijk().collect()).collect();
     let boxes: Vec<BBox> = annotations.iter().map(Annotation::bbox).collect();
     let mut d = vec![vec![0.0; n]; n];
     for a in 0..n {
@@ -215,10 +198,7 @@ mod tests {
         // clustering must give up below min_tol.
         let near: Vec<Annotation> = (0..5).map(|_| square_annotation(&[1], 2, 2, 4)).collect();
         let err = cluster_annotations(&near, 2.5, &ClusterParams::default()).unwrap_err();
-        assert!(matches!(
-            err,
-            GroundTruthError::ClusterTolerance { largest: 5, .. }
-        ));
+        assert!(matches!(err, GroundTruthError::ClusterTolerance { largest: 5, .. }));
 
         // Squares 2 apart in j (index units), one on another slice 1 away in k.
         let anns = vec![
@@ -230,10 +210,7 @@ mod tests {
         let c = cluster_annotations(&anns, 2.5, &ClusterParams::default()).unwrap();
         assert_eq!(c.clusters, vec![vec![1, 2, 3], vec![0]]);
         assert_eq!((c.tol_initial, c.tol_final), (2.5, 2.5));
-        let tight = ClusterParams {
-            tol: Some(1.5),
-            ..ClusterParams::default()
-        };
+        let tight = ClusterParams { tol: Some(1.5), ..ClusterParams::default() };
         let c = cluster_annotations(&anns, 2.5, &tight).unwrap();
         assert_eq!(c.clusters, vec![vec![2], vec![1, 3], vec![0]]);
     }

@@ -28,19 +28,9 @@ pub enum GroundTruthError {
         "ROI at z = {z_mm} mm matches no slice: the nearest slice is at {nearest_mm} mm, \
          more than {tolerance_mm} mm away"
     )]
-    ZOffGrid {
-        z_mm: f64,
-        nearest_mm: f64,
-        tolerance_mm: f64,
-    },
+    ZOffGrid { z_mm: f64, nearest_mm: f64, tolerance_mm: f64 },
     #[error("ROI point (x = {x}, y = {y}) at z = {z_mm} mm lies outside the {cols}×{rows} image")]
-    PointOutsideImage {
-        x: i32,
-        y: i32,
-        z_mm: f64,
-        cols: usize,
-        rows: usize,
-    },
+    PointOutsideImage { x: i32, y: i32, z_mm: f64, cols: usize, rows: usize },
     /// Names the read's `noduleID`, or `#n` for the n-th annotation passed to a kernel.
     #[error("annotation {0} has no contour")]
     EmptyAnnotation(String),
@@ -49,12 +39,7 @@ pub enum GroundTruthError {
          tolerance fell to {tol} (< min_tol {min_tol}) with a cluster of {largest} (pylidc's \
          ClusterError)"
     )]
-    ClusterTolerance {
-        max_annotations: usize,
-        tol: f64,
-        min_tol: f64,
-        largest: usize,
-    },
+    ClusterTolerance { max_annotations: usize, tol: f64, min_tol: f64, largest: usize },
     #[error("clustering parameter {0}")]
     ClusterParams(String),
     #[error("clevel {0} is outside (0, 1]")]
@@ -63,14 +48,8 @@ pub enum GroundTruthError {
     NoAnnotations,
     #[error("annotation index {index} is out of range ({count} annotations)")]
     AnnotationIndex { index: usize, count: usize },
-    #[error(
-        "cannot paint a mask with bbox {bbox:?} into a volume of dims {dims:?} ({len} values)"
-    )]
-    PaintDims {
-        bbox: BBox,
-        dims: [usize; 3],
-        len: usize,
-    },
+    #[error("cannot paint a mask with bbox {bbox:?} into a volume of dims {dims:?} ({len} values)")]
+    PaintDims { bbox: BBox, dims: [usize; 3], len: usize },
 }
 
 /// The consensus of a set of annotations.
@@ -92,9 +71,7 @@ pub fn consensus(annotations: &[&Annotation], clevel: f64) -> Result<Consensus, 
     }
     let first = annotations.first().ok_or(GroundTruthError::NoAnnotations)?;
     check_not_empty(annotations.iter().copied())?;
-    let bbox = annotations
-        .iter()
-        .fold(first.bbox(), |b, a| b.union(&a.bbox()));
+    let bbox = annotations.iter().fold(first.bbox(), |b, a| b.union(&a.bbox()));
     let masks: Vec<BoxMask> = annotations.iter().map(|a| a.boolean_mask(&bbox)).collect();
     let mask = threshold_votes(&masks, bbox, clevel);
     Ok(Consensus { bbox, mask, masks })
@@ -165,20 +142,14 @@ pub fn nodule_truth(
 ) -> Result<NoduleTruth, GroundTruthError> {
     let chosen = members
         .iter()
-        .map(|&m| {
-            annotations.get(m).ok_or(GroundTruthError::AnnotationIndex {
-                index: m,
-                count: annotations.len(),
-            })
-        })
+        .map(|&m| annotations.get(m).ok_or(GroundTruthError::AnnotationIndex { index: m, count: annotations.len() }))
         .collect::<Result<Vec<&Annotation>, _>>()?;
     let Consensus { bbox, mask, masks } = consensus(&chosen, clevel)?;
     let consensus_voxels = mask.count();
     let ps = geometry.pixel_spacing_mm;
     let volume_mm3 = consensus_voxels as f64 * ps * ps * geometry.slice_spacing_mm();
     let annotation_diameters_mm: Vec<f64> = chosen.iter().map(|a| a.diameter_mm(ps)).collect();
-    let annotated_diameter_mm =
-        annotation_diameters_mm.iter().sum::<f64>() / annotation_diameters_mm.len() as f64;
+    let annotated_diameter_mm = annotation_diameters_mm.iter().sum::<f64>() / annotation_diameters_mm.len() as f64;
     let centroid_ijk = centroid_of(&mask);
     let centroid_mm_xyz = centroid_ijk.map(|[i, j, k]| [j * ps, i * ps, geometry.z_at_index_mm(k)]);
     Ok(NoduleTruth {
@@ -211,9 +182,7 @@ fn centroid_of(mask: &BoxMask) -> Option<[f64; 3]> {
 }
 
 fn union_of(masks: &[BoxMask], bbox: BBox) -> BoxMask {
-    let data = (0..bbox.len())
-        .map(|v| masks.iter().any(|m| m.data[v]))
-        .collect();
+    let data = (0..bbox.len()).map(|v| masks.iter().any(|m| m.data[v])).collect();
     BoxMask { bbox, data }
 }
 
@@ -226,10 +195,7 @@ pub struct GroundTruthParams {
 
 impl Default for GroundTruthParams {
     fn default() -> Self {
-        Self {
-            clevel: DEFAULT_CLEVEL,
-            cluster: ClusterParams::default(),
-        }
+        Self { clevel: DEFAULT_CLEVEL, cluster: ClusterParams::default() }
     }
 }
 
@@ -255,13 +221,7 @@ pub struct ScanTruth {
 impl ScanTruth {
     /// The evaluation target: the nodule with the largest consensus volume (the first on ties).
     pub fn largest(&self) -> Option<&NoduleTruth> {
-        self.nodules.iter().reduce(|best, n| {
-            if n.consensus_voxels > best.consensus_voxels {
-                n
-            } else {
-                best
-            }
-        })
+        self.nodules.iter().reduce(|best, n| if n.consensus_voxels > best.consensus_voxels { n } else { best })
     }
 }
 
@@ -287,12 +247,7 @@ pub fn scan_truth(
         .iter()
         .map(|members| nodule_truth(&annotations, members, geometry, params.clevel))
         .collect::<Result<_, _>>()?;
-    Ok(ScanTruth {
-        annotations,
-        sources,
-        clustering,
-        nodules,
-    })
+    Ok(ScanTruth { annotations, sources, clustering, nodules })
 }
 
 #[cfg(test)]
@@ -305,22 +260,11 @@ mod tests {
         let a = square_annotation(&[1], 2, 2, 4);
         let b = square_annotation(&[1, 2], 4, 4, 4);
         let c = consensus(&[&a, &b], 0.5).unwrap();
-        let union = c.masks[0]
-            .data
-            .iter()
-            .zip(&c.masks[1].data)
-            .filter(|(x, y)| **x || **y)
-            .count();
+        let union = c.masks[0].data.iter().zip(&c.masks[1].data).filter(|(x, y)| **x || **y).count();
         assert_eq!(c.mask.count(), union);
         let both = consensus(&[&a, &b], 1.0).unwrap();
         assert!(both.mask.count() < union);
-        assert_eq!(
-            c.bbox,
-            BBox {
-                min_ijk: [2, 2, 1],
-                max_ijk: [8, 8, 2]
-            }
-        );
+        assert_eq!(c.bbox, BBox { min_ijk: [2, 2, 1], max_ijk: [8, 8, 2] });
         assert!(consensus(&[&a], 0.0).is_err());
     }
 

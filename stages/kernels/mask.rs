@@ -54,10 +54,7 @@ pub struct BoxMask {
 
 impl BoxMask {
     pub fn empty(bbox: BBox) -> Self {
-        Self {
-            bbox,
-            data: vec![false; bbox.len()],
-        }
+        Self { bbox, data: vec![false; bbox.len()] }
     }
 
     /// The value at global voxel `(i, j, k)`; false outside the box.
@@ -82,10 +79,7 @@ impl BoxMask {
     /// Voxels on per slice of the box, from `bbox.min_ijk[2]` up.
     pub fn count_per_slice(&self) -> Vec<usize> {
         let [ni, nj, _] = self.bbox.dims();
-        self.data
-            .chunks(ni * nj)
-            .map(|slice| slice.iter().filter(|&&on| on).count())
-            .collect()
+        self.data.chunks(ni * nj).map(|slice| slice.iter().filter(|&&on| on).count()).collect()
     }
 
     /// Global `(i, j, k)` of every voxel on, in storage order.
@@ -102,20 +96,11 @@ impl BoxMask {
     /// Writes `value` at every voxel on into a full volume buffer laid out like
     /// [`crate::volume::Volume`]: `dims = [cols, rows, slices]`, column fastest. Voxels off are
     /// left as they are.
-    pub fn paint(
-        &self,
-        data: &mut [u8],
-        dims: [usize; 3],
-        value: u8,
-    ) -> Result<(), GroundTruthError> {
+    pub fn paint(&self, data: &mut [u8], dims: [usize; 3], value: u8) -> Result<(), GroundTruthError> {
         let [cols, rows, slices] = dims;
         let [i_max, j_max, k_max] = self.bbox.max_ijk;
         if data.len() != cols * rows * slices || i_max >= rows || j_max >= cols || k_max >= slices {
-            return Err(GroundTruthError::PaintDims {
-                bbox: self.bbox,
-                dims,
-                len: data.len(),
-            });
+            return Err(GroundTruthError::PaintDims { bbox: self.bbox, dims, len: data.len() });
         }
         for [i, j, k] in self.voxels_on() {
             data[j + cols * (i + rows * k)] = value;

@@ -23,9 +23,7 @@ impl MplPolygon {
     /// vertices contains nothing (matplotlib's `points_in_path` returns all false).
     pub fn from_contour(points: &[[i64; 2]]) -> Self {
         let (Some(first), Some(last)) = (points.first(), points.last()) else {
-            return Self {
-                vertices: Vec::new(),
-            };
+            return Self { vertices: Vec::new() };
         };
         let already_closed = first == last;
         let path_len = points.len() + usize::from(!already_closed);
@@ -55,10 +53,7 @@ impl MplPolygon {
     pub fn bounds(&self) -> Option<([i64; 2], [i64; 2])> {
         let first = *self.vertices.first()?;
         Some(self.vertices.iter().fold((first, first), |(lo, hi), v| {
-            (
-                [lo[0].min(v[0]), lo[1].min(v[1])],
-                [hi[0].max(v[0]), hi[1].max(v[1])],
-            )
+            ([lo[0].min(v[0]), lo[1].min(v[1])], [hi[0].max(v[0]), hi[1].max(v[1])])
         }))
     }
 }
@@ -125,26 +120,15 @@ mod tests {
         // points on it with y in (0, 4] inside (one edge is crossed "at or right of" tx, its
         // return is not): a two-point LIDC contour paints a line, as in pylidc.
         let seg = MplPolygon::from_contour(&[[0, 0], [0, 4]]);
-        let inside: Vec<(i64, i64)> = (-1..3)
-            .flat_map(|x| (-1..6).map(move |y| (x, y)))
-            .filter(|&(x, y)| seg.contains(x, y))
-            .collect();
+        let inside: Vec<(i64, i64)> =
+            (-1..3).flat_map(|x| (-1..6).map(move |y| (x, y))).filter(|&(x, y)| seg.contains(x, y)).collect();
         assert_eq!(inside, vec![(0, 1), (0, 2), (0, 3), (0, 4)]);
     }
 
     #[test]
     fn concave_polygon() {
         // A "U": the notch (2, 3) is outside.
-        let u = MplPolygon::from_contour(&[
-            [0, 0],
-            [5, 0],
-            [5, 5],
-            [3, 5],
-            [3, 2],
-            [2, 2],
-            [2, 5],
-            [0, 5],
-        ]);
+        let u = MplPolygon::from_contour(&[[0, 0], [5, 0], [5, 5], [3, 5], [3, 2], [2, 2], [2, 5], [0, 5]]);
         assert!(u.contains(1, 3));
         assert!(u.contains(4, 3));
         assert!(!u.contains(6, 3));
