@@ -305,3 +305,89 @@ fn gc_deletes_orphan_blobs_and_reports_what_it_frees() {
     let r = p.run(&[]);
     assert_eq!(count(&r, "hu", "cached"), 1, "gc keeps what manifests reference");
 }
+
+/// A one-reader LIDC XML with one nodule: a square contour on the slice at `z_mm`.
+fn lidc_xml(z_mm: f64) -> String {
+    let points: String = [
+        (1, 1),
+        (2, 1),
+        (3, 1),
+        (4, 1),
+        (5, 1),
+        (5, 2),
+        (5, 3),
+        (5, 4),
+        (4, 4),
+        (3, 4),
+        (2, 4),
+        (1, 4),
+        (1, 3),
+        (1, 2),
+    ]
+    .iter()
+    .map(|(x, y)| format!("<edgeMap><xCoord>{x}</xCoord><yCoord>{y}</yCoord></edgeMap>"))
+    .collect();
+    let ratings = "<subtlety>5</subtlety><internalStructure>1</internalStructure><calcification>6</calcification>\
+        <sphericity>4</sphericity><margin>4</margin><lobulation>1</lobulation><spiculation>1</spiculation>\
+        <texture>5</texture><malignancy>3</malignancy>";
+    format!(
+        r#"<?xml version="1.0" encoding="UTF-8"?>
+<LidcReadMessage xmlns="http://www.nih.gov" uid="1.2.3">
+  <ResponseHeader><SeriesInstanceUid>{series}</SeriesInstanceUid></ResponseHeader>
+  <readingSession>
+    <servicingRadiologistID>anon1</servicingRadiologistID>
+    <unblindedReadNodule>
+      <noduleID>Nodule 001</noduleID>
+      <characteristics>{ratings}</characteristics>
+      <roi><imageZposition>{z_mm}</imageZposition><imageSOP_UID>1.2.3.4</imageSOP_UID><inclusion>TRUE</inclusion>{points}</roi>
+    </unblindedReadNodule>
+    <nonNodule><nonNoduleID>n1</nonNoduleID><imageZposition>{z_mm}</imageZposition><locus><xCoord>7</xCoord><yCoord>5</yCoord></locus></nonNodule>
+  </readingSession>
+</LidcReadMessage>
+"#,
+        series = support::dicom_writer::SERIES_UID
+    )
+}
+
+#[test]
+fn lidc_layout_reads_series_and_annotations_into_ground_truth() {
+    let p = Project::new(&[], 0);
+    // TCIA layout: LIDC-IDRI/LIDC-IDRI-XXXX/<study>/<series>/*.dcm + the XML beside them.
+    let series = p.path("data/LIDC-IDRI/LIDC-IDRI-0042/1.2.840.1/1.2.840.1.7");
+    std::fs::create_dir_all(&series).unwrap();
+    let specs = series_of(4);
+    write_series(&series, &specs, default_name);
+    std::fs::write(series.join("069.xml"), lidc_xml(specs[2].ipp[2])).unwrap();
+    std::fs::write(p.path("data/LIDC-IDRI/metadata.csv"), "not a patient\n").unwrap();
+    std::fs::create_dir_all(p.path("data/LIDC-IDRI/notes")).unwrap();
+    p.write_config("pipeline.toml", "cache", "out", "");
+    let text = std::fs::read_to_string(p.path("pipeline.toml")).unwrap().replace("kind = \"dicom\"", "kind = \"lidc\"");
+    std::fs::write(p.path("pipeline.toml"), text).unwrap();
+    let r = p.run(&[]);
+    assert_eq!(count(&r, "ingest", "computed"), 1, "one patient: LIDC-IDRI-0042");
+
+    let truth: Value =
+        serde_json::from_slice(&std::fs::read(p.path("out/LIDC-IDRI-0042/ground_truth.json")).unwrap()).unwrap();
+    assert_eq!(truth["annotations_file"], "1.2.840.1/1.2.840.1.7/069.xml");
+    assert_eq!(truth["non_nodule_marks"], 1);
+    assert_eq!(truth["target"], 0);
+    let nodule = &truth["nodules"][0];
+    // matplotlib's test on pixel centres, contour points removed: the 3 × 2 interior (x 2..4, y 2..3).
+    assert_eq!(nodule["consensus_voxels"], 6);
+    assert!((nodule["volume_mm3"].as_f64().unwrap() - 6.0 * 0.7 * 0.7 * 2.5).abs() < 1e-9);
+    let mask = std::fs::read(p.path("out/LIDC-IDRI-0042/gt_mask.raw")).unwrap();
+    let on: Vec<usize> = mask.iter().enumerate().filter(|(_, &v)| v == 1).map(|(i, _)| i).collect();
+    let (cols, rows) = (8, 6);
+    let expected: Vec<usize> = (2..4).flat_map(|y| (2..5).map(move |x| x + cols * (y + rows * 2))).collect();
+    assert_eq!(on, expected);
+    assert!(p.path("out/LIDC-IDRI-0042/gt_mask.mhd").exists());
+}
+
+/// `n` slices with square pixels (LIDC annotations assume them).
+fn series_of(n: usize) -> Vec<SliceSpec> {
+    let mut specs = series(n);
+    for s in &mut specs {
+        s.pixel_spacing = [0.7, 0.7];
+    }
+    specs
+}

@@ -1,9 +1,12 @@
 //! `ingest`: a patient's DICOM CT series to an int16 HU volume in patient space (SPEC §3 ingest).
 //!
-//! Input: the patient's own files (any nesting; files that are not CT DICOM are skipped and
-//! listed). Outputs: `ct_hu.mhd` + `ct_hu.raw` (int16 HU, MetaImage with spacing, origin and
-//! direction) and `ct_series.json` (geometry and provenance, no patient-identifying tags: the
-//! patient is named only by the ID the dataset gives it).
+//! Input: the patient's files (any nesting; files that are not CT DICOM are skipped and listed),
+//! optionally with its LIDC XML. Outputs: `ct_hu.mhd` + `ct_hu.raw` (int16 HU, MetaImage with
+//! spacing, origin and direction), `ct_series.json` (geometry and provenance), and from the
+//! annotations `ground_truth.json` + `gt_mask.mhd`/`.raw` (see [`truth`]). No patient-identifying
+//! tag reaches any of them: the patient is named only by the ID the dataset gives it.
+
+pub mod truth;
 
 use crate::engine::{Context, Output, Stage};
 use crate::formats::{dicom, mhd};
@@ -17,11 +20,14 @@ pub const VERSION: u32 = 1;
 pub struct Params {
     /// Largest allowed deviation of any slice gap from the median gap, as a fraction of it.
     pub slice_gap_tolerance: f64,
+    /// Consensus level: a voxel is in a nodule's ground truth when at least this fraction of
+    /// its annotations contain it (pylidc `consensus(clevel)`).
+    pub clevel: f64,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { slice_gap_tolerance: dicom::DEFAULT_GAP_TOLERANCE }
+        Params { slice_gap_tolerance: dicom::DEFAULT_GAP_TOLERANCE, clevel: 0.5 }
     }
 }
 
@@ -29,6 +35,9 @@ impl Params {
     pub fn check(&self) -> anyhow::Result<()> {
         if !(self.slice_gap_tolerance.is_finite() && (0.0..0.5).contains(&self.slice_gap_tolerance)) {
             bail!("[ingest] slice_gap_tolerance must be in [0, 0.5) (got {})", self.slice_gap_tolerance);
+        }
+        if !(self.clevel > 0.0 && self.clevel <= 1.0) {
+            bail!("[ingest] clevel must be in (0, 1] (got {})", self.clevel);
         }
         Ok(())
     }
@@ -88,11 +97,20 @@ impl Stage for Ingest {
             hu_max: series.hu.data.iter().copied().max().unwrap_or(0),
             skipped_files: series.skipped.iter().map(|(p, why)| (relative(p), why.clone())).collect(),
         };
+        let annotations = truth::find_annotations(&files)?;
+        let (ground_truth, gt_mask) = truth::ground_truth(ctx.patient(), &series, annotations, self.params.clevel)?;
         let (header, raw) = mhd::encode(&series.hu, "ct_hu.raw");
-        Ok(vec![
+        let mut outputs = vec![
             Output::new("ct_hu.mhd", header),
             Output::new("ct_hu.raw", raw),
             Output::new("ct_series.json", serde_json::to_vec_pretty(&info)?),
-        ])
+            Output::new("ground_truth.json", serde_json::to_vec_pretty(&ground_truth)?),
+        ];
+        if let Some(mask) = gt_mask {
+            let (header, raw) = mhd::encode(&mask, "gt_mask.raw");
+            outputs.push(Output::new("gt_mask.mhd", header));
+            outputs.push(Output::new("gt_mask.raw", raw));
+        }
+        Ok(outputs)
     }
 }
