@@ -9,7 +9,7 @@ use crate::engine::run::{self, RunOptions, RunSummary, Unit};
 use crate::engine::store::{write_atomic, Store};
 use crate::engine::StageGraph;
 use crate::{dataset, stage};
-use anyhow::bail;
+use anyhow::{bail, Context as _};
 use std::path::Path;
 
 #[derive(Debug, Default, Clone)]
@@ -115,4 +115,44 @@ pub fn gc(config_path: &Path) -> anyhow::Result<String> {
         bytes as f64 / (1024.0 * 1024.0),
         store.root().display()
     ))
+}
+
+/// `aret-pipe phantom`: writes each cohort patient's synthetic CT series, its LIDC XML and PNG
+/// previews to `out/<patient>/`. Returns one line per patient with its generation time.
+pub fn phantom(
+    cohort: &Path,
+    out: &Path,
+    patients: Option<&[String]>,
+    params: &crate::phantom::PhantomParams,
+) -> anyhow::Result<String> {
+    let units = dataset::phantom_cohort(cohort)?;
+    let units = dataset::narrow(units, patients, cohort)?;
+    let mut report = String::new();
+    for unit in &units {
+        let started = std::time::Instant::now();
+        let files = unit.source_files.as_ref().expect("cohort units list their files");
+        let (scan, xml) = (unit.source_dir.join(&files[0]), unit.source_dir.join(&files[1]));
+        let generated = crate::phantom::patient::generate_from_files(&scan, &xml, params)?;
+        let seconds = started.elapsed().as_secs_f64();
+        let dir = out.join(&unit.id);
+        let series_dir = dir.join("series");
+        std::fs::create_dir_all(&series_dir).with_context(|| format!("creating {}", series_dir.display()))?;
+        for (name, bytes) in &generated.series {
+            write_atomic(&series_dir.join(name), bytes, false)?;
+        }
+        write_atomic(&dir.join(&generated.annotations.0), generated.annotations.1.as_bytes(), false)?;
+        for (name, bytes) in &generated.previews {
+            write_atomic(&dir.join(name), bytes, false)?;
+        }
+        let dims = generated.ct.geometry.dims;
+        report.push_str(&format!(
+            "{}: {}×{}×{} generated in {seconds:.2} s → {}\n",
+            unit.id,
+            dims[0],
+            dims[1],
+            dims[2],
+            dir.display()
+        ));
+    }
+    Ok(report)
 }

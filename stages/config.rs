@@ -89,6 +89,8 @@ pub struct DatasetSection {
     pub root: Option<PathBuf>,
     /// `phantom`: the cohort folder of annotations and scan geometry.
     pub cohort: Option<PathBuf>,
+    /// `phantom`: the generator's parameters (`[dataset.phantom]`; defaults when absent).
+    pub phantom: Option<crate::phantom::PhantomParams>,
 }
 
 impl DatasetSection {
@@ -99,8 +101,8 @@ impl DatasetSection {
                 if self.root.is_none() {
                     bail!("[dataset] kind = {kind} needs `root`, the dataset folder");
                 }
-                if self.cohort.is_some() {
-                    bail!("[dataset] `cohort` is for kind = \"phantom\"; kind = {kind} reads `root`");
+                if self.cohort.is_some() || self.phantom.is_some() {
+                    bail!("[dataset] `cohort` and [dataset.phantom] are for kind = \"phantom\"; kind = {kind} reads `root`");
                 }
             }
             DatasetKind::Phantom => {

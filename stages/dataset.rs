@@ -8,11 +8,16 @@ use std::path::Path;
 /// The patients of `[dataset]`, sorted by ID, optionally narrowed to `only`.
 pub fn units(config: &Config, only: Option<&[String]>) -> anyhow::Result<Vec<Unit>> {
     let root = config.dataset_root();
-    let mut units = match config.dataset.kind {
+    let units = match config.dataset.kind {
         DatasetKind::Dicom => dicom_folders(&root)?,
         DatasetKind::Lidc => lidc_folders(&root)?,
         DatasetKind::Phantom => phantom_cohort(&root)?,
     };
+    narrow(units, only, &root)
+}
+
+/// `units` sorted by ID and narrowed to `only` (every ID in it must exist).
+pub fn narrow(mut units: Vec<Unit>, only: Option<&[String]>, root: &Path) -> anyhow::Result<Vec<Unit>> {
     units.sort_by(|a, b| a.id.cmp(&b.id));
     if let Some(only) = only {
         let unknown: Vec<&String> = only.iter().filter(|id| !units.iter().any(|u| &u.id == *id)).collect();
@@ -75,7 +80,7 @@ fn lidc_folders(root: &Path) -> anyhow::Result<Vec<Unit>> {
 
 /// A phantom cohort: each `<patient>.scan.json` (scan geometry) with its `<patient>.xml`
 /// (the radiologists' annotations) is one patient.
-fn phantom_cohort(cohort: &Path) -> anyhow::Result<Vec<Unit>> {
+pub fn phantom_cohort(cohort: &Path) -> anyhow::Result<Vec<Unit>> {
     let entries =
         std::fs::read_dir(cohort).map_err(|e| anyhow!("[dataset] cohort {} cannot be read ({e})", cohort.display()))?;
     let mut units = Vec::new();

@@ -45,6 +45,21 @@ enum Command {
     },
     /// Delete cache blobs that no manifest references; report the bytes freed.
     Gc { config: PathBuf },
+    /// Write synthetic CT series around a cohort's real LIDC annotations (DICOM + XML + previews).
+    Phantom {
+        /// The cohort folder: <patient>.scan.json + <patient>.xml per patient.
+        #[arg(long, default_value = "tools/cohorts/paper19")]
+        cohort: PathBuf,
+        /// Where to write <patient>/series/*.dcm, <patient>/<patient>.xml and previews.
+        #[arg(long)]
+        out: PathBuf,
+        /// Only these patients (comma-separated IDs).
+        #[arg(long, value_delimiter = ',')]
+        patients: Option<Vec<String>>,
+        /// Seed of the anatomy and noise (the pipeline's [dataset.phantom] seed; default 1).
+        #[arg(long)]
+        seed: Option<u64>,
+    },
 }
 
 fn main() -> ExitCode {
@@ -63,6 +78,14 @@ fn main() -> ExitCode {
             println!("{line}");
             0
         }),
+        Command::Phantom { cohort, out, patients, seed } => {
+            let defaults = aret_pipe::phantom::PhantomParams::default();
+            let params = aret_pipe::phantom::PhantomParams { seed: seed.unwrap_or(defaults.seed), ..defaults };
+            commands::phantom(&cohort, &out, patients.as_deref(), &params).map(|report| {
+                print!("{report}");
+                0
+            })
+        }
     };
     match result {
         Ok(code) => ExitCode::from(code as u8),

@@ -5,19 +5,27 @@
 
 pub mod hu;
 pub mod ingest;
+pub mod phantom;
 
-use crate::config::Config;
+use crate::config::{Config, DatasetKind};
 use crate::engine::{Stage, StageGraph, SOURCE};
 
-/// Every stage name, in pipeline order (later stages arrive in later releases).
-pub const STAGE_NAMES: &[&str] = &["ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics"];
+/// Every stage name, in pipeline order (`phantom` only for phantom datasets; later stages
+/// arrive in later releases).
+pub const STAGE_NAMES: &[&str] = &["phantom", "ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics"];
 
 /// The per-patient and cohort stages this build runs, configured from `config`.
 pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
-    let stages: Vec<Box<dyn Stage>> = vec![
-        Box::new(ingest::Ingest { params: config.ingest.clone(), input: &[SOURCE] }),
-        Box::new(hu::Hu { params: config.hu.clone() }),
-    ];
+    let mut stages: Vec<Box<dyn Stage>> = Vec::new();
+    // A phantom dataset generates each patient's DICOM first; ingest then reads those files.
+    let ingest_input: &'static [&'static str] = if config.dataset.kind == DatasetKind::Phantom {
+        stages.push(Box::new(phantom::Phantom { params: config.dataset.phantom.clone().unwrap_or_default() }));
+        &["phantom"]
+    } else {
+        &[SOURCE]
+    };
+    stages.push(Box::new(ingest::Ingest { params: config.ingest.clone(), input: ingest_input }));
+    stages.push(Box::new(hu::Hu { params: config.hu.clone() }));
     StageGraph::new(stages)
 }
 

@@ -1,0 +1,166 @@
+//! One cohort patient's phantom: the real scan geometry (`<patient>.scan.json`), a synthetic
+//! thorax, and the real nodules drawn where the radiologists drew them — the union of the
+//! readers' contours (pylidc-exact masks) with partial-volume edges, at the HU of their texture
+//! rating — written as a CT DICOM series to be read back through the real ingest path beside
+//! the original LIDC XML. The ground truth is *not* taken from here: ingest recomputes it from
+//! the XML, exactly as for a real LIDC scan.
+
+use super::{nodule_hu_for_texture, occupancy_from_mask, phantom_ct, BoxGrid, NoduleInsert, PhantomParams};
+use crate::formats::dicom_writer::{write_ct_series, SeriesMeta};
+use crate::formats::lidc_xml::{self, ReadMessage};
+use crate::formats::png;
+use crate::kernels::consensus::{scan_truth, GroundTruthParams, NoduleTruth, ScanGeometry};
+use crate::volume::{Geometry, Volume};
+use anyhow::{anyhow, bail, Context as _};
+use serde::Deserialize;
+use std::path::Path;
+
+/// What the generator reads of a `*.scan.json`: the scan's real geometry and UIDs.
+#[derive(Debug, Clone, Deserialize)]
+pub struct ScanInfo {
+    pub patient_id: String,
+    pub study_instance_uid: String,
+    pub series_instance_uid: String,
+    pub pixel_spacing_mm: f64,
+    pub slice_thickness_mm: f64,
+    pub rows: usize,
+    pub cols: usize,
+    /// Slice z positions, ascending.
+    pub zvals_mm: Vec<f64>,
+    /// SOPInstanceUID of each slice, in `zvals_mm` order.
+    #[serde(default)]
+    pub sop_uids: Vec<String>,
+}
+
+impl ScanInfo {
+    pub fn parse(text: &str, name: &str) -> anyhow::Result<ScanInfo> {
+        let scan: ScanInfo = serde_json::from_str(text).with_context(|| format!("{name} is not a scan description"))?;
+        if scan.zvals_mm.len() < 2 || scan.zvals_mm.windows(2).any(|w| w[1] <= w[0]) {
+            bail!("{name}: zvals_mm must hold at least two ascending slice positions");
+        }
+        if !scan.sop_uids.is_empty() && scan.sop_uids.len() != scan.zvals_mm.len() {
+            bail!("{name}: {} sop_uids for {} slices", scan.sop_uids.len(), scan.zvals_mm.len());
+        }
+        Ok(scan)
+    }
+
+    /// The CT grid: `rows × cols` pixels centred on the scanner axis (LIDC scans put
+    /// ImagePositionPatient x, y near −FOV/2; the database has no exact origin), axial slices at
+    /// the real z positions, slice spacing their median gap.
+    pub fn geometry(&self) -> Geometry {
+        let ps = self.pixel_spacing_mm;
+        let mut gaps: Vec<f64> = self.zvals_mm.windows(2).map(|w| w[1] - w[0]).collect();
+        gaps.sort_by(f64::total_cmp);
+        Geometry {
+            dims: [self.cols, self.rows, self.zvals_mm.len()],
+            spacing_mm: [ps, ps, gaps[gaps.len() / 2]],
+            origin_mm: [-(self.cols as f64) / 2.0 * ps, -(self.rows as f64) / 2.0 * ps, self.zvals_mm[0]],
+            direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        }
+    }
+}
+
+/// A generated patient: the HU volume, its DICOM files, the annotations, and PNG previews.
+pub struct PatientPhantom {
+    pub ct: Volume<f32>,
+    /// `(file name, bytes)` per slice.
+    pub series: Vec<(String, Vec<u8>)>,
+    /// `(file name, text)` of the LIDC XML the nodules come from, to travel with the series.
+    pub annotations: (String, String),
+    /// `(file name, PNG bytes)`: axial and coronal slices through the largest nodule, and a
+    /// coronal projection.
+    pub previews: Vec<(String, Vec<u8>)>,
+}
+
+/// Builds the phantom of the patient described by `scan_path` (`<id>.scan.json`) and
+/// `xml_path` (its LIDC XML).
+pub fn generate_from_files(scan_path: &Path, xml_path: &Path, params: &PhantomParams) -> anyhow::Result<PatientPhantom> {
+    let name = |p: &Path| p.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+    let scan_text = std::fs::read_to_string(scan_path).with_context(|| format!("reading {}", scan_path.display()))?;
+    let scan = ScanInfo::parse(&scan_text, &name(scan_path))?;
+    let xml = std::fs::read_to_string(xml_path).with_context(|| format!("reading {}", xml_path.display()))?;
+    let annotations = lidc_xml::parse(&xml).map_err(|e| anyhow!("{}: {e}", xml_path.display()))?;
+    generate(&scan, &annotations, (name(xml_path), xml), params)
+}
+
+/// Builds the phantom of one patient. `params.seed` is combined with the patient ID, so every
+/// patient of a cohort gets its own anatomy while the whole cohort stays reproducible.
+pub fn generate(
+    scan: &ScanInfo,
+    annotations: &ReadMessage,
+    xml: (String, String),
+    params: &PhantomParams,
+) -> anyhow::Result<PatientPhantom> {
+    if scan.zvals_mm.windows(2).any(|w| ((w[1] - w[0]) - (scan.zvals_mm[1] - scan.zvals_mm[0])).abs() > 1e-3) {
+        bail!("{}: the phantom needs evenly spaced slices", scan.patient_id);
+    }
+    let geometry = scan.geometry();
+    let params = PhantomParams { seed: patient_seed(params.seed, &scan.patient_id), ..params.clone() };
+    let lidc = ScanGeometry::new(scan.zvals_mm.clone(), scan.pixel_spacing_mm, scan.rows, scan.cols)?;
+    let truth = scan_truth(annotations, &lidc, scan.slice_thickness_mm, &GroundTruthParams::default())
+        .map_err(|e| anyhow!("{}: {e}", scan.patient_id))?;
+    let inserts: Vec<NoduleInsert> = truth
+        .nodules
+        .iter()
+        .map(|n| {
+            let textures = n.annotation_indices.iter().map(|&a| {
+                let r = &truth.sources[a];
+                annotations.sessions[r.session].reads[r.read].characteristics.texture
+            });
+            nodule_insert(n, median_rating(textures.collect()), &geometry)
+        })
+        .collect();
+    let ct = phantom_ct(&geometry, &params, &inserts);
+    let meta = SeriesMeta {
+        patient_id: scan.patient_id.clone(),
+        study_instance_uid: scan.study_instance_uid.clone(),
+        series_instance_uid: scan.series_instance_uid.clone(),
+        sop_instance_uids: scan.sop_uids.clone(),
+        slice_thickness_mm: Some(scan.slice_thickness_mm),
+        series_description: "aret-pipe synthetic thorax around real LIDC-IDRI annotations".into(),
+    };
+    let series = write_ct_series(&ct, &meta)?;
+    let centre = truth.largest().and_then(|n| n.centroid_ijk);
+    let previews = previews(&ct, centre);
+    Ok(PatientPhantom { ct, series, annotations: xml, previews })
+}
+
+/// The drawn shape of a nodule: the union of all its readers' masks, softened at the edges.
+fn nodule_insert(nodule: &NoduleTruth, texture: Option<u8>, geometry: &Geometry) -> NoduleInsert {
+    let mask = &nodule.union_mask;
+    let [i0, j0, k0] = mask.bbox.min_ijk;
+    let [i1, j1, k1] = mask.bbox.max_ijk;
+    // BoxMask is [k][i][j] (slice, row, column), as BoxGrid: only the axis names differ.
+    let grid = BoxGrid {
+        origin: [j0 as i64, i0 as i64, k0 as i64],
+        dims: [j1 - j0 + 1, i1 - i0 + 1, k1 - k0 + 1],
+        data: mask.data.clone(),
+    };
+    NoduleInsert { occupancy: occupancy_from_mask(&grid, geometry.spacing_mm), hu: nodule_hu_for_texture(texture) }
+}
+
+/// The median of the readers' ratings (the lower middle one for an even count).
+fn median_rating(mut ratings: Vec<u8>) -> Option<u8> {
+    ratings.sort_unstable();
+    ratings.get(ratings.len().saturating_sub(1) / 2).copied()
+}
+
+fn patient_seed(seed: u64, patient: &str) -> u64 {
+    let hash = blake3::hash(format!("{seed}/{patient}").as_bytes());
+    u64::from_le_bytes(hash.as_bytes()[..8].try_into().expect("8 bytes"))
+}
+
+/// Axial (lung window) and coronal slices through `centre_ijk` (row, column, slice), or the
+/// volume's middle, and the coronal projection.
+fn previews(ct: &Volume<f32>, centre_ijk: Option<[f64; 3]>) -> Vec<(String, Vec<u8>)> {
+    let [cols, rows, slices] = ct.geometry.dims;
+    let [row, _col, k] = centre_ijk.unwrap_or([rows as f64 / 2.0, cols as f64 / 2.0, slices as f64 / 2.0]);
+    let axial = png::axial_slice(ct, (k.round() as usize).min(slices - 1));
+    let coronal = png::coronal_slice(ct, (row.round() as usize).min(rows - 1));
+    let projection = png::coronal_projection(ct);
+    vec![
+        ("phantom_axial.png".into(), png::image_png(&axial, png::LUNG_WINDOW)),
+        ("phantom_coronal.png".into(), png::image_png(&coronal, png::LUNG_WINDOW)),
+        ("phantom_projection.png".into(), png::image_png(&projection, png::Window::spanning(&projection))),
+    ]
+}
