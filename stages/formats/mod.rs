@@ -3,3 +3,4 @@ pub mod dicom;
 pub mod dicom_writer;
 pub mod lidc_xml;
 pub mod mhd;
+pub mod png;
