@@ -130,3 +130,23 @@ pub fn phantom_ct(
     add_scanner_noise(&mut ct, params);
     ct
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn params_default_missing_fields_and_refuse_unknown_ones() {
+        let p: PhantomParams = toml::from_str("seed = 7\nnoise_hu = 0.0").unwrap();
+        assert_eq!(
+            p,
+            PhantomParams {
+                seed: 7,
+                noise_hu: 0.0,
+                ..PhantomParams::default()
+            }
+        );
+        let err = toml::from_str::<PhantomParams>("sede = 7").unwrap_err();
+        assert!(err.to_string().contains("sede"), "{err}");
+    }
+}

@@ -119,6 +119,24 @@ fn cavity_sd(r: V3) -> f32 {
     oval_sd(x, dy, CAVITY_HALF_WIDTH.at(z), depth, CAVITY_SQUARENESS)
 }
 
+/// Whether `r` lies inside the ellipse with the cavity's half-axes, less `margin_mm`: a
+/// cheap (no square root) sufficient test for being inside the cavity, since the oval is
+/// at least as full as that ellipse.
+fn inside_cavity_ellipse(r: V3, margin_mm: f32) -> bool {
+    let [x, y, z] = r;
+    let dy = y - CAVITY_CENTRE_Y;
+    let depth = if dy < 0.0 {
+        CAVITY_HALF_DEPTH_ANTERIOR.at(z)
+    } else {
+        CAVITY_HALF_DEPTH_POSTERIOR.at(z)
+    };
+    let (u, v) = (
+        x / (CAVITY_HALF_WIDTH.at(z) - margin_mm),
+        dy / (depth - margin_mm),
+    );
+    u * u + v * v < 1.0
+}
+
 /// Angle around the cavity centre from the posterior midline (0) to the anterior one (π),
 /// the same on both sides.
 fn wall_angle(x: f32, y: f32) -> f32 {
@@ -127,12 +145,12 @@ fn wall_angle(x: f32, y: f32) -> f32 {
 
 /// Diaphragm domes `(x, y, top z)`: right higher (liver below), left lower (heart above).
 const DOMES: [(f32, f32, f32); 2] = [(-55.0, -5.0, 88.0), (55.0, 0.0, 75.0)];
-const DOME_RADIUS_X: f32 = 90.0;
+const DOME_RADIUS_X: f32 = 100.0;
 /// The domes fall faster toward the back: the posterior recesses are the lowest lung.
 const DOME_RADIUS_ANTERIOR: f32 = 100.0;
 const DOME_RADIUS_POSTERIOR: f32 = 70.0;
 /// Lowest point of the costophrenic recesses.
-const RECESS_Z: f32 = 6.0;
+const RECESS_Z: f32 = 12.0;
 
 /// Height of the diaphragm's upper surface above (x, y).
 fn diaphragm_z(x: f32, y: f32) -> f32 {
@@ -150,18 +168,29 @@ fn diaphragm_z(x: f32, y: f32) -> f32 {
         .fold(RECESS_Z, f32::max)
 }
 
-/// Lung apices: paraboloid caps over (±x, y), top at z.
+/// Lung apices: paraboloid caps over (±x, y), top at z. The caps fall slowly toward the
+/// front (the upper lobes reach the clavicles anteriorly) and faster sideways and backward.
 const APEX: (f32, f32, f32) = (48.0, 28.0, 320.0);
-const APEX_RADIUS: f32 = 40.0;
-
-/// The caps fall at most this far below the apex; lower down the narrowing cavity shapes
-/// the lungs' tops.
-const APEX_MAX_DROP_MM: f32 = 40.0;
+const APEX_RADIUS_X: f32 = 60.0;
+const APEX_RADIUS_ANTERIOR: f32 = 100.0;
+const APEX_RADIUS_POSTERIOR: f32 = 50.0;
 
 fn apex_z(x: f32, y: f32) -> f32 {
     let (dx, dy) = (x.abs() - APEX.0, y - APEX.1);
-    APEX.2 - ((dx * dx + dy * dy) / (2.0 * APEX_RADIUS)).min(APEX_MAX_DROP_MM)
+    let ry = if dy < 0.0 {
+        APEX_RADIUS_ANTERIOR
+    } else {
+        APEX_RADIUS_POSTERIOR
+    };
+    APEX.2 - dx * dx / (2.0 * APEX_RADIUS_X) - dy * dy / (2.0 * ry)
 }
+
+/// Beyond this (mm outside a surface) a voxel's occupancy is 0 at any pixel size used here,
+/// so signed distances may stop being refined.
+const CLEARLY_OUTSIDE_MM: f32 = 5.0;
+/// Structures farther than this cannot change any decision taken on signed distances (the
+/// deepest threshold is a vessel's radius plus 1 mm).
+const FAR_MM: f32 = 25.0;
 
 /// Lung parenchyma: denser toward the back (gravity), HU per mm of y.
 const LUNG_GRAVITY_HU_PER_MM: f32 = 0.25;
@@ -471,8 +500,7 @@ const VESSEL_TWIGS_PER_TREE: usize = 2500;
 enum Layer {
     Table,
     Body,
-    Scapulae,
-    Ribs,
+    ChestWallBones,
     Lungs,
     Abdomen,
     Mediastinum,
@@ -530,7 +558,7 @@ impl Thorax {
 
     fn lay_out(&mut self, params: &PhantomParams) {
         use Layer::*;
-        self.order = vec![Table, Body, Scapulae, Ribs, Lungs];
+        self.order = vec![Table, Body, ChestWallBones, Lungs];
         let trees = self.pulmonary_vessels(params);
         self.push_tubes(trees, hu::BLOOD, Tissue::PulmonaryVessel);
         self.order.extend([Abdomen, Mediastinum, Heart]);
@@ -677,8 +705,7 @@ impl Thorax {
         match layer {
             Layer::Table => canvas.paint_ref(&b, |r| a.table(r)),
             Layer::Body => canvas.paint_ref(&b, |r| a.body(r)),
-            Layer::Scapulae => canvas.paint_ref(&b, |r| a.scapulae(r)),
-            Layer::Ribs => canvas.paint_ref(&b, |r| a.ribs(r)),
+            Layer::ChestWallBones => canvas.paint_ref(&b, |r| a.chest_wall_bones(r)),
             Layer::Lungs => canvas.paint_ref(&b, |r| a.lungs(r)),
             Layer::Abdomen => canvas.paint_ref(&b, |r| a.abdomen(r)),
             Layer::Mediastinum => canvas.paint_ref(&b, |r| a.mediastinum(r)),
@@ -703,8 +730,7 @@ impl Thorax {
             let s = match layer {
                 Layer::Table => a.table(r),
                 Layer::Body => a.body(r),
-                Layer::Scapulae => a.scapulae(r),
-                Layer::Ribs => a.ribs(r),
+                Layer::ChestWallBones => a.chest_wall_bones(r),
                 Layer::Lungs => a.lungs(r),
                 Layer::Abdomen => a.abdomen(r),
                 Layer::Mediastinum => a.mediastinum(r),
@@ -733,8 +759,7 @@ fn layer_bounds(layer: Layer) -> Aabb {
     let all_z = (-50.0, 400.0);
     let (x, y, z): ((f64, f64), (f64, f64), (f64, f64)) = match layer {
         Layer::Table => ((-240.0, 240.0), (100.0, 200.0), all_z),
-        Layer::Body | Layer::Ribs => ((-175.0, 175.0), (-125.0, 150.0), all_z),
-        Layer::Scapulae => ((-175.0, 175.0), (-20.0, 150.0), (160.0, 310.0)),
+        Layer::Body | Layer::ChestWallBones => ((-175.0, 175.0), (-125.0, 150.0), all_z),
         Layer::Lungs => ((-150.0, 150.0), (-95.0, 120.0), (0.0, 325.0)),
         Layer::Abdomen => ((-150.0, 150.0), (-95.0, 120.0), (-50.0, 100.0)),
         Layer::Mediastinum => ((-30.0, 35.0), (-95.0, 120.0), (40.0, 400.0)),
@@ -768,18 +793,33 @@ impl Anatomy {
 
     /// Signed distance to either lung: the cavity less the mediastinum, spine, heart, below
     /// the apices and above the diaphragm.
+    ///
+    /// Speed: the cheap terms go first, and a point clearly outside (> [`CLEARLY_OUTSIDE_MM`])
+    /// returns early; the spine and the heart are skipped when they are too far to matter.
+    /// Either way, every value at or below `CLEARLY_OUTSIDE_MM`, and every comparison with
+    /// a threshold above −[`FAR_MM`], is the same as the full formula's.
     fn lung_sd(&self, r: V3) -> f32 {
         let [x, y, z] = r;
-        let mut d = cavity_sd(r);
-        if d > 20.0 {
+        let band = mediastinum_half_width(y, z) - (x - MEDIASTINUM_X).abs();
+        let mut d = (diaphragm_z(x, y) - z)
+            .max(z - apex_z(x, y))
+            .max(band.min(VERTEBRA_Y - y));
+        if d > CLEARLY_OUTSIDE_MM {
             return d;
         }
-        let band = mediastinum_half_width(y, z) - (x - MEDIASTINUM_X).abs();
-        d = d.max(band.min(VERTEBRA_Y - y));
-        d = d.max(diaphragm_z(x, y) - z);
-        d = d.max(z - apex_z(x, y));
-        d = d.max(-spine_envelope_sd(r));
-        d.max(PERICARDIAL_FAT_MM - self.heart_sd(r))
+        d = d.max(cavity_sd(r));
+        if d > CLEARLY_OUTSIDE_MM {
+            return d;
+        }
+        // The spine envelope lies within |x| < 40, 25 < y < 102.
+        if x.abs() < 40.0 + FAR_MM && y > 25.0 - FAR_MM && y < 102.0 + FAR_MM {
+            d = d.max(-spine_envelope_sd(r));
+        }
+        let reach = HEART_SCALE_RANGE.1 as f32 * HEART_SEMI_AXES[0] + FAR_MM;
+        if (0..3).all(|a| (r[a] - HEART_CENTRE[a]).abs() < reach) {
+            d = d.max(PERICARDIAL_FAT_MM - self.heart_sd(r));
+        }
+        d
     }
 
     fn occ(&self, sd: f32) -> f32 {
@@ -797,12 +837,25 @@ impl Anatomy {
     }
 
     fn body(&self, r: V3) -> Option<Sample> {
+        let muscle = Some(Sample {
+            occupancy: 1.0,
+            hu: hu::MUSCLE,
+            tissue: Tissue::Muscle,
+        });
+        // Inside the thoracic cavity the body wall is ≥ 20 mm away: all muscle (what the mix
+        // below gives there), quickly.
+        if inside_cavity_ellipse(r, 0.0) {
+            return muscle;
+        }
         let d = body_sd(r);
         let o = self.occ(d);
         if o <= 0.0 {
             return None;
         }
         let fat_mm = SUBCUTANEOUS_FAT_MM.at(r[2]);
+        if d < -(SKIN_MM + fat_mm + self.edge) {
+            return muscle;
+        }
         let mut m = Mix::new();
         m.paint(o, hu::SKIN, Tissue::Skin);
         m.paint(self.occ(d + SKIN_MM), hu::FAT, Tissue::Fat);
@@ -810,40 +863,46 @@ impl Anatomy {
         m.sample()
     }
 
-    fn scapulae(&self, r: V3) -> Option<Sample> {
-        let [x, y, z] = r;
-        let radial = cavity_sd(r) - SCAPULA_OFFSET_MM;
-        if radial.abs() > 6.0 {
+    /// Ribs (bone and costal cartilage) and scapulae: bones at set depths outside the
+    /// pleura, sharing one evaluation of the cavity's signed distance.
+    fn chest_wall_bones(&self, r: V3) -> Option<Sample> {
+        let [x, y, _] = r;
+        if inside_cavity_ellipse(r, 0.0) {
+            return None;
+        }
+        let outside_pleura = cavity_sd(r);
+        if !(RIB_OFFSET_MM - 7.0..=SCAPULA_OFFSET_MM + 6.0).contains(&outside_pleura) {
             return None;
         }
         let angle = wall_angle(x, y);
         let arc_mm = x.hypot(y - CAVITY_CENTRE_Y);
+        let mut m = Mix::new();
+        self.paint_scapula(&mut m, r, outside_pleura - SCAPULA_OFFSET_MM, angle, arc_mm);
+        self.paint_ribs(&mut m, r, outside_pleura - RIB_OFFSET_MM, angle, arc_mm);
+        m.sample()
+    }
+
+    /// The scapular blade, `radial` mm outside its mid-surface.
+    fn paint_scapula(&self, m: &mut Mix, r: V3, radial: f32, angle: f32, arc_mm: f32) {
+        let z = r[2];
+        if radial.abs() > 6.0 {
+            return;
+        }
         // The blade narrows toward its inferior angle.
         let low = (1.0 - (z - SCAPULA_Z.0) / 60.0).clamp(0.0, 1.0);
         let (a0, a1) = (0.6 + 0.3 * low, 1.2 - 0.25 * low);
         let sd = (radial.abs() - SCAPULA_HALF_THICKNESS_MM)
             .max(interval_sd(angle, a0, a1) * arc_mm)
             .max(interval_sd(z, SCAPULA_Z.0, SCAPULA_Z.1));
-        let o = self.occ(sd);
-        (o > 0.0).then_some(Sample {
-            occupancy: o,
-            hu: hu::THIN_BONE,
-            tissue: Tissue::Bone,
-        })
+        m.paint(self.occ(sd), hu::THIN_BONE, Tissue::Bone);
     }
 
-    fn ribs(&self, r: V3) -> Option<Sample> {
-        let [x, y, z] = r;
-        let radial = cavity_sd(r) - RIB_OFFSET_MM;
-        if radial.abs() > 7.0 {
-            return None;
+    /// The ribs, `radial` mm outside their axes' surface.
+    fn paint_ribs(&self, m: &mut Mix, r: V3, radial: f32, angle: f32, arc_mm: f32) {
+        let z = r[2];
+        if radial.abs() > 7.0 || angle < RIB_START_ANGLE - 0.05 {
+            return;
         }
-        let angle = wall_angle(x, y);
-        if angle < RIB_START_ANGLE - 0.05 {
-            return None;
-        }
-        let arc_mm = x.hypot(y - CAVITY_CENTRE_Y);
-        let mut m = Mix::new();
         for n in 0..RIB_PAIRS {
             let shape = rib_shape(n);
             let dz = z - rib_axis_z(n, angle);
@@ -869,7 +928,6 @@ impl Anatomy {
                 m.paint(self.occ(cross.max(along)), hu::CARTILAGE, Tissue::Cartilage);
             }
         }
-        m.sample()
     }
 
     fn lungs(&self, r: V3) -> Option<Sample> {
@@ -890,6 +948,9 @@ impl Anatomy {
     fn abdomen(&self, r: V3) -> Option<Sample> {
         let [x, y, z] = r;
         let dome = diaphragm_z(x, y);
+        if z - dome > CLEARLY_OUTSIDE_MM {
+            return None;
+        }
         let o = self.occ(cavity_sd(r).max(z - dome));
         if o <= 0.0 {
             return None;
@@ -918,11 +979,13 @@ impl Anatomy {
 
     fn mediastinum(&self, r: V3) -> Option<Sample> {
         let [x, y, z] = r;
-        let sd = cavity_sd(r)
-            .max((x - MEDIASTINUM_X).abs() - mediastinum_half_width(y, z))
+        let sd = ((x - MEDIASTINUM_X).abs() - mediastinum_half_width(y, z))
             .max(y - VERTEBRA_Y)
             .max(diaphragm_z(x, y) - z);
-        let o = self.occ(sd);
+        if sd > CLEARLY_OUTSIDE_MM {
+            return None;
+        }
+        let o = self.occ(sd.max(cavity_sd(r)));
         (o > 0.0).then_some(Sample {
             occupancy: o,
             hu: hu::FAT,
