@@ -4,9 +4,11 @@
 //! and upper abdomen, patient table), real nodules inserted from radiologists' masks with
 //! partial volume ([`nodule`]), and CT noise.
 //!
-//! The body is fitted to the scan it is generated for (see [`frame`]): its size follows the
-//! field of view and its lungs span the scanned z range, so a real scan's geometry (e.g. an
-//! LIDC-IDRI series) yields a thorax whose lung fields hold that patient's nodule positions.
+//! The body is fitted to the scan it is generated for: its size follows the field of view
+//! (340 mm wide in a 360-mm FOV), its centre is the scanner axis (the image centre) and its
+//! lungs span the scanned z range, so a real scan's geometry (e.g. an LIDC-IDRI series)
+//! yields a thorax whose lung fields hold that patient's nodule positions. Anatomy is never
+//! moved to fit nodules.
 //!
 //! Everything is a deterministic function of (geometry, [`PhantomParams`]): the same seed
 //! gives a bit-identical volume whatever the number of threads (random streams are keyed by

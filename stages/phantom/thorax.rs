@@ -1,17 +1,18 @@
 //! The anatomy of the synthetic thorax. Owns every organ's shape, position and HU, drawn in
-//! the reference frame of [`super::frame`] (X patient-left, Y posterior, Z superior, mm;
+//! the reference frame of `super::frame` (X patient-left, Y posterior, Z superior, mm;
 //! Z = 0…330 is the scanned range) and painted slice by slice, back to front, each layer
 //! replacing the fraction of a voxel it covers:
 //!
-//! table → body wall (skin, subcutaneous fat, muscle) → scapulae → ribs → lungs (textured
-//! parenchyma) → pulmonary vessel trees → upper abdomen under the diaphragm (liver, stomach,
-//! spleen) → mediastinal fat → heart → great vessels → oesophagus → airways → sternum →
-//! clavicles and rib necks → spine.
+//! table → body wall (skin, subcutaneous fat, muscle) → ribs, costal cartilages and
+//! scapulae → lungs (textured parenchyma) → pulmonary vessel trees → upper abdomen under the
+//! diaphragm (liver, stomach with an air–fluid level, spleen) → mediastinal fat → heart →
+//! great vessels in their fat → oesophagus → airways (walls, then air) → sternum →
+//! clavicles and rib necks → spine (discs, vertebral bodies, arches, processes, canal).
 //!
-//! Sizes follow an average adult chest CT: body ≈ 340 × 255 mm at mid-chest, lungs from the
-//! apices (≈ 12 mm below the top of the scan) to the posterior costophrenic recesses (≈ 8 mm
+//! Sizes follow an average adult chest CT: body ≈ 344 × 262 mm at mid-chest, lungs from the
+//! apices (10 mm below the top of the scan) to the posterior costophrenic recesses (12 mm
 //! above its bottom), the right diaphragm dome higher than the left, the heart left-anterior
-//! on the diaphragm, the carina at ≈ 62 % of the height.
+//! on the diaphragm, the carina at ≈ 64 % of the height.
 
 use super::canvas::SliceCanvas;
 use super::frame::{Aabb, BodyFrame, IndexMap};
