@@ -12,12 +12,11 @@
 //! mediastinal windows.
 
 use aret_pipe::formats::png::{
-    axial_slice, coronal_projection, coronal_slice, image_png, Window, LUNG_WINDOW,
-    MEDIASTINAL_WINDOW,
+    axial_slice, coronal_projection, coronal_slice, image_png, Window, LUNG_WINDOW, MEDIASTINAL_WINDOW,
 };
 use aret_pipe::phantom::{
-    add_scanner_noise, ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_mask,
-    NoduleInsert, PhantomParams, Thorax,
+    add_scanner_noise, ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_mask, NoduleInsert,
+    PhantomParams, Thorax,
 };
 use aret_pipe::volume::Geometry;
 use std::path::{Path, PathBuf};
@@ -38,15 +37,10 @@ fn main() -> anyhow::Result<()> {
     let scan: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(SCAN)?)?;
     let geometry = scan_geometry(&scan)?;
     let cluster = &scan["reference"]["clusters"][0];
-    let bbox: Vec<[f64; 2]> =
-        serde_json::from_value(cluster["consensus_bbox_ijk_inclusive"].clone())?;
+    let bbox: Vec<[f64; 2]> = serde_json::from_value(cluster["consensus_bbox_ijk_inclusive"].clone())?;
     let texture = cluster["context"]["texture_mode"].as_u64().map(|t| t as u8);
     // bbox is (i row, j column, k slice); volume indices are (column, row, slice).
-    let centre = [
-        (bbox[1][0] + bbox[1][1]) / 2.0,
-        (bbox[0][0] + bbox[0][1]) / 2.0,
-        (bbox[2][0] + bbox[2][1]) / 2.0,
-    ];
+    let centre = [(bbox[1][0] + bbox[1][1]) / 2.0, (bbox[0][0] + bbox[0][1]) / 2.0, (bbox[2][0] + bbox[2][1]) / 2.0];
     let s = geometry.spacing_mm;
     let semi_axes_mm = [
         (bbox[1][1] - bbox[1][0] + 1.0) * s[0] / 2.0,
@@ -83,50 +77,23 @@ fn main() -> anyhow::Result<()> {
         rayon::current_num_threads()
     );
     let centre_mm = geometry.voxel_to_patient_mm(centre);
-    println!(
-        "tissue at the nodule centre (without it): {:?}",
-        thorax.tissue_at_mm(centre_mm)
-    );
+    println!("tissue at the nodule centre (without it): {:?}", thorax.tissue_at_mm(centre_mm));
     report_lung_hu(&thorax, &geometry, centre[2].round() as usize + 8);
 
     let (k, row) = (centre[2].round() as usize, centre[1].round() as usize);
-    write(
-        &out,
-        "phantom_axial.png",
-        &image_png(&axial_slice(&ct, k), LUNG_WINDOW),
-    )?;
-    write(
-        &out,
-        "phantom_coronal.png",
-        &image_png(&coronal_slice(&ct, row), LUNG_WINDOW),
-    )?;
+    write(&out, "phantom_axial.png", &image_png(&axial_slice(&ct, k), LUNG_WINDOW))?;
+    write(&out, "phantom_coronal.png", &image_png(&coronal_slice(&ct, row), LUNG_WINDOW))?;
     let projection = coronal_projection(&ct);
-    write(
-        &out,
-        "phantom_projection.png",
-        &image_png(&projection, Window::spanning(&projection)),
-    )?;
+    write(&out, "phantom_projection.png", &image_png(&projection, Window::spanning(&projection)))?;
     if extra {
         let n = geometry.dims[2];
         for frac in [0.1, 0.25, 0.4, 0.55, 0.62, 0.7, 0.8, 0.9] {
             let k = ((n - 1) as f64 * frac).round() as usize;
             let img = axial_slice(&ct, k);
-            write(
-                &out,
-                &format!("axial_{k:03}_lung.png"),
-                &image_png(&img, LUNG_WINDOW),
-            )?;
-            write(
-                &out,
-                &format!("axial_{k:03}_mediastinal.png"),
-                &image_png(&img, MEDIASTINAL_WINDOW),
-            )?;
+            write(&out, &format!("axial_{k:03}_lung.png"), &image_png(&img, LUNG_WINDOW))?;
+            write(&out, &format!("axial_{k:03}_mediastinal.png"), &image_png(&img, MEDIASTINAL_WINDOW))?;
         }
-        write(
-            &out,
-            "coronal_mediastinal.png",
-            &image_png(&coronal_slice(&ct, row), MEDIASTINAL_WINDOW),
-        )?;
+        write(&out, "coronal_mediastinal.png", &image_png(&coronal_slice(&ct, row), MEDIASTINAL_WINDOW))?;
     }
     println!("previews in {}", out.display());
     Ok(())
@@ -159,9 +126,7 @@ fn write(dir: &Path, name: &str, bytes: &[u8]) -> anyhow::Result<()> {
 /// The scan's voxel grid: 512² pixels with the scanner axis at the image centre, slices at
 /// the listed z positions (their median spacing).
 fn scan_geometry(scan: &serde_json::Value) -> anyhow::Result<Geometry> {
-    let ps = scan["pixel_spacing_mm"]
-        .as_f64()
-        .ok_or_else(|| anyhow::anyhow!("pixel_spacing_mm"))?;
+    let ps = scan["pixel_spacing_mm"].as_f64().ok_or_else(|| anyhow::anyhow!("pixel_spacing_mm"))?;
     let rows = scan["rows"].as_u64().unwrap_or(512) as usize;
     let cols = scan["cols"].as_u64().unwrap_or(512) as usize;
     let z: Vec<f64> = serde_json::from_value(scan["zvals_mm"].clone())?;

@@ -4,12 +4,10 @@
 
 use aret_pipe::formats::dicom::{read_ct_series, DEFAULT_GAP_TOLERANCE};
 use aret_pipe::formats::dicom_writer::{write_ct_series, SeriesMeta};
-use aret_pipe::formats::png::{
-    axial_slice, coronal_projection, encode_gray8, image_png, LUNG_WINDOW,
-};
+use aret_pipe::formats::png::{axial_slice, coronal_projection, encode_gray8, image_png, LUNG_WINDOW};
 use aret_pipe::phantom::{
-    add_scanner_noise, ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_mask,
-    phantom_ct, thorax_hu, NoduleInsert, PhantomParams, Thorax, Tissue,
+    add_scanner_noise, ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_mask, phantom_ct,
+    thorax_hu, NoduleInsert, PhantomParams, Thorax, Tissue,
 };
 use aret_pipe::volume::{Geometry, Volume};
 use std::collections::HashMap;
@@ -36,38 +34,14 @@ fn bits(v: &Volume<f32>) -> Vec<u32> {
 fn same_seed_same_bytes_whatever_the_threads_and_other_seeds_differ() {
     let g = small_geometry();
     let params = PhantomParams::default();
-    let one_thread = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap()
-        .install(|| phantom_ct(&g, &params, &[]));
-    let many = rayon::ThreadPoolBuilder::new()
-        .num_threads(3)
-        .build()
-        .unwrap()
-        .install(|| phantom_ct(&g, &params, &[]));
+    let one_thread =
+        rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap().install(|| phantom_ct(&g, &params, &[]));
+    let many = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap().install(|| phantom_ct(&g, &params, &[]));
     assert_eq!(one_thread.geometry, g);
-    assert!(
-        bits(&one_thread) == bits(&many),
-        "thread count changed the volume"
-    );
-    let other = phantom_ct(
-        &g,
-        &PhantomParams {
-            seed: 2,
-            ..params.clone()
-        },
-        &[],
-    );
-    let differing = bits(&other)
-        .iter()
-        .zip(bits(&many))
-        .filter(|(a, b)| **a != *b)
-        .count();
-    assert!(
-        differing > g.len() / 2,
-        "only {differing} voxels differ with another seed"
-    );
+    assert!(bits(&one_thread) == bits(&many), "thread count changed the volume");
+    let other = phantom_ct(&g, &PhantomParams { seed: 2, ..params.clone() }, &[]);
+    let differing = bits(&other).iter().zip(bits(&many)).filter(|(a, b)| **a != *b).count();
+    assert!(differing > g.len() / 2, "only {differing} voxels differ with another seed");
 }
 
 /// Every third voxel (in each direction) of the small phantom: its label, its noiseless HU
@@ -123,97 +97,49 @@ fn tissues_have_their_hu_and_the_noise_its_standard_deviation() {
     let mut keys: Vec<_> = samples.keys().collect();
     keys.sort_by_key(|t| format!("{t:?}"));
     for t in keys {
-        println!(
-            "{t:?}: {} voxels, mean {:.0} HU",
-            samples[t].len(),
-            mean(&samples[t])
-        );
+        println!("{t:?}: {} voxels, mean {:.0} HU", samples[t].len(), mean(&samples[t]));
     }
     for (tissue, want, tol) in expected {
-        let v = samples
-            .get(&tissue)
-            .unwrap_or_else(|| panic!("no {tissue:?} voxels"));
+        let v = samples.get(&tissue).unwrap_or_else(|| panic!("no {tissue:?} voxels"));
         let m = mean(v);
-        assert!(
-            (m - want).abs() < tol,
-            "{tissue:?}: mean {m:.0} HU over {} voxels, want {want}",
-            v.len()
-        );
+        assert!((m - want).abs() < tol, "{tissue:?}: mean {m:.0} HU over {} voxels, want {want}", v.len());
     }
     let bone = mean(&samples[&Tissue::Bone]);
     assert!(bone > 200.0, "bone mean {bone:.0} HU");
     // The lungs are the biggest organ inside the body; the body fills much of the FOV.
     let total: usize = samples.values().map(Vec::len).sum();
     let lung_fraction = count(Tissue::Lung) as f64 / total as f64;
-    assert!(
-        (0.12..0.4).contains(&lung_fraction),
-        "lungs fill {lung_fraction:.2} of the volume"
-    );
-    for t in [
-        Tissue::Table,
-        Tissue::Skin,
-        Tissue::PulmonaryVessel,
-        Tissue::Airway,
-        Tissue::Spleen,
-        Tissue::Stomach,
-    ] {
+    assert!((0.12..0.4).contains(&lung_fraction), "lungs fill {lung_fraction:.2} of the volume");
+    for t in [Tissue::Table, Tissue::Skin, Tissue::PulmonaryVessel, Tissue::Airway, Tissue::Spleen, Tissue::Stomach] {
         assert!(count(t) > 0, "no {t:?} voxels");
     }
     // Lung texture (parenchyma, gravity gradient, small vessels): spatially correlated, not
     // white noise: neighbours 2.8 mm apart are alike.
     let (lung_sd, lung_correlation) = sd_and_neighbour_correlation(&samples[&Tissue::Lung]);
-    assert!(
-        (15.0..150.0).contains(&lung_sd),
-        "lung texture sd {lung_sd:.1} HU"
-    );
-    assert!(
-        lung_correlation > 0.3,
-        "lung texture neighbour correlation {lung_correlation:.2}"
-    );
+    assert!((15.0..150.0).contains(&lung_sd), "lung texture sd {lung_sd:.1} HU");
+    assert!(lung_correlation > 0.3, "lung texture neighbour correlation {lung_correlation:.2}");
     // The parenchyma HU follows the parameter.
-    let denser = thorax_hu(
-        &g,
-        &PhantomParams {
-            lung_hu: -800.0,
-            ..params.clone()
-        },
-    );
-    let lung_voxels: Vec<usize> = (0..g.len())
-        .step_by(7)
-        .filter(|&n| hu.data[n] < -700.0 && hu.data[n] > -950.0)
-        .collect();
-    let mean_at = |v: &Volume<f32>| {
-        lung_voxels.iter().map(|&n| v.data[n]).sum::<f32>() / lung_voxels.len() as f32
-    };
+    let denser = thorax_hu(&g, &PhantomParams { lung_hu: -800.0, ..params.clone() });
+    let lung_voxels: Vec<usize> =
+        (0..g.len()).step_by(7).filter(|&n| hu.data[n] < -700.0 && hu.data[n] > -950.0).collect();
+    let mean_at = |v: &Volume<f32>| lung_voxels.iter().map(|&n| v.data[n]).sum::<f32>() / lung_voxels.len() as f32;
     let moved = mean_at(&denser) - mean_at(&hu);
-    assert!(
-        (moved - 50.0).abs() < 5.0,
-        "lung_hu −850 → −800 moved the parenchyma by {moved:.1} HU"
-    );
+    assert!((moved - 50.0).abs() < 5.0, "lung_hu −850 → −800 moved the parenchyma by {moved:.1} HU");
 
     let mut noisy = hu.clone();
     add_scanner_noise(&mut noisy, &params);
     let n = noisy.data.len() as f64;
-    let diffs: Vec<f64> = noisy
-        .data
-        .iter()
-        .zip(&hu.data)
-        .map(|(a, b)| f64::from(a - b))
-        .collect();
+    let diffs: Vec<f64> = noisy.data.iter().zip(&hu.data).map(|(a, b)| f64::from(a - b)).collect();
     let m = diffs.iter().sum::<f64>() / n;
     let sd = (diffs.iter().map(|d| (d - m).powi(2)).sum::<f64>() / n).sqrt();
     assert!(m.abs() < 0.5, "noise mean {m:.2}");
-    assert!(
-        (sd - f64::from(params.noise_hu)).abs() < 0.05 * f64::from(params.noise_hu),
-        "noise sd {sd:.2}"
-    );
+    assert!((sd - f64::from(params.noise_hu)).abs() < 0.05 * f64::from(params.noise_hu), "noise sd {sd:.2}");
 }
 
 /// A paper patient's scan geometry (scanner axis at the image centre) and its reference
 /// nodules: (bbox centre in patient mm, equivalent diameter mm).
 fn paper_patient(path: &PathBuf) -> (String, Geometry, Vec<([f64; 3], f64)>) {
-    let scan: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    let scan: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
     let ps = scan["pixel_spacing_mm"].as_f64().unwrap();
     let rows = scan["rows"].as_u64().unwrap() as usize;
     let cols = scan["cols"].as_u64().unwrap() as usize;
@@ -231,8 +157,7 @@ fn paper_patient(path: &PathBuf) -> (String, Geometry, Vec<([f64; 3], f64)>) {
         .unwrap()
         .iter()
         .map(|c| {
-            let b: Vec<[f64; 2]> =
-                serde_json::from_value(c["consensus_bbox_ijk_inclusive"].clone()).unwrap();
+            let b: Vec<[f64; 2]> = serde_json::from_value(c["consensus_bbox_ijk_inclusive"].clone()).unwrap();
             let centre = |a: usize| (b[a][0] + b[a][1]) / 2.0;
             // i = row (y), j = column (x), k = index into zvals.
             let zc = (z[b[2][0] as usize] + z[b[2][1] as usize]) / 2.0;
@@ -240,11 +165,7 @@ fn paper_patient(path: &PathBuf) -> (String, Geometry, Vec<([f64; 3], f64)>) {
             (mm, c["equivalent_diameter_mm"].as_f64().unwrap())
         })
         .collect();
-    (
-        scan["patient_id"].as_str().unwrap().to_string(),
-        geometry,
-        nodules,
-    )
+    (scan["patient_id"].as_str().unwrap().to_string(), geometry, nodules)
 }
 
 fn paper_scans() -> Vec<PathBuf> {
@@ -313,22 +234,14 @@ fn the_paper_patients_nodules_lie_in_the_lungs() {
     // move anatomy to fit nodules.
     const KNOWN_OFF_LUNG: &str = "LIDC-IDRI-0010 nodule at [21, 88, -249] mm";
     outside.retain(|line| !line.starts_with(KNOWN_OFF_LUNG));
-    println!(
-        "{} of {total} nodule centres at a lung edge:\n{}",
-        at_edge.len(),
-        at_edge.join("\n")
-    );
+    println!("{} of {total} nodule centres at a lung edge:\n{}", at_edge.len(), at_edge.join("\n"));
     assert!(
         outside.is_empty(),
         "{} of {total} nodule centres away from the lungs:\n{}",
         outside.len(),
         outside.join("\n")
     );
-    assert!(
-        at_edge.len() <= 4,
-        "too many nodules at the lung edge: {}",
-        at_edge.len()
-    );
+    assert!(at_edge.len() <= 4, "too many nodules at the lung edge: {}", at_edge.len());
 }
 
 /// The binary mask of an ellipsoid of semi-axes `semi_mm` centred in a 0.7 × 0.7 × 2.5 mm grid.
@@ -348,10 +261,7 @@ fn occupancy_from_a_mask_keeps_its_volume_and_softens_its_edge() {
     let occ_voxels: f64 = occ.data.iter().map(|&o| f64::from(o)).sum();
     // Exactly the mask's volume (the reference volume convention), and the true ellipsoid's
     // within the voxelisation error.
-    assert!(
-        (occ_voxels - mask_voxels).abs() < 1e-3 * mask_voxels,
-        "{occ_voxels} vs {mask_voxels}"
-    );
+    assert!((occ_voxels - mask_voxels).abs() < 1e-3 * mask_voxels, "{occ_voxels} vs {mask_voxels}");
     let true_mm3 = 4.0 / 3.0 * std::f64::consts::PI * semi.iter().product::<f64>();
     let rel = occ_voxels * voxel_mm3 / true_mm3 - 1.0;
     assert!(rel.abs() < 0.05, "volume off by {:.1} %", 100.0 * rel);
@@ -359,10 +269,7 @@ fn occupancy_from_a_mask_keeps_its_volume_and_softens_its_edge() {
     // grew to hold the blur.
     assert!(occ.data.iter().all(|&o| (0.0..=1.0 + 1e-6).contains(&o)));
     let partial = occ.data.iter().filter(|&&o| o > 0.05 && o < 0.95).count();
-    assert!(
-        partial as f64 > 0.2 * mask_voxels,
-        "{partial} partial voxels"
-    );
+    assert!(partial as f64 > 0.2 * mask_voxels, "{partial} partial voxels");
     let centre = occ.index(
         (40.3 - occ.origin[0] as f64).round() as usize,
         (35.6 - occ.origin[1] as f64).round() as usize,
@@ -376,30 +283,16 @@ fn occupancy_from_a_mask_keeps_its_volume_and_softens_its_edge() {
 
 #[test]
 fn inserting_a_nodule_blends_its_hu_by_occupancy() {
-    let g = Geometry {
-        dims: [80, 70, 25],
-        spacing_mm: [0.7, 0.7, 2.5],
-        origin_mm: [0.0; 3],
-        direction: IDENTITY,
-    };
+    let g = Geometry { dims: [80, 70, 25], spacing_mm: [0.7, 0.7, 2.5], origin_mm: [0.0; 3], direction: IDENTITY };
     let background = -850.0f32;
-    let mut ct = Volume {
-        geometry: g.clone(),
-        data: vec![background; g.len()],
-    };
+    let mut ct = Volume { geometry: g.clone(), data: vec![background; g.len()] };
     let (spacing, mask) = ellipsoid_case([9.0, 7.0, 6.0]);
-    let nodule = NoduleInsert {
-        occupancy: occupancy_from_mask(&mask, spacing),
-        hu: nodule_hu_for_texture(Some(5)),
-    };
+    let nodule = NoduleInsert { occupancy: occupancy_from_mask(&mask, spacing), hu: nodule_hu_for_texture(Some(5)) };
     insert_nodule(&mut ct, &nodule);
     let excess: f64 = ct.data.iter().map(|&v| f64::from(v - background)).sum();
     let occupied: f64 = nodule.occupancy.data.iter().map(|&o| f64::from(o)).sum();
     let want = occupied * f64::from(nodule.hu - background);
-    assert!(
-        (excess - want).abs() < 1e-3 * want.abs(),
-        "{excess} vs {want}"
-    );
+    assert!((excess - want).abs() < 1e-3 * want.abs(), "{excess} vs {want}");
     assert_eq!(ct.data[g.index(40, 36, 12)], nodule.hu);
     // Texture ratings: solid brightest, ground glass darkest, unrated solid.
     let hu: Vec<f32> = (1..=5).map(|t| nodule_hu_for_texture(Some(t))).collect();
@@ -451,40 +344,20 @@ fn a_written_series_reads_back_to_the_same_hu_and_geometry() {
     }
     assert_eq!(series.hu.geometry.direction, IDENTITY);
     assert_eq!(series.slice_thickness_mm, Some(2.5));
-    let want: Vec<i16> = ct
-        .data
-        .iter()
-        .map(|&v| (f64::from(v).round()).clamp(-33792.0, 31743.0) as i16)
-        .collect();
+    let want: Vec<i16> = ct.data.iter().map(|&v| (f64::from(v).round()).clamp(-33792.0, 31743.0) as i16).collect();
     assert_eq!(series.hu.data[0], 31743);
     assert_eq!(&series.hu.data[1..], &want[1..]);
     // The pseudonymous ID is the only patient attribute.
     let obj = dicom_object::open_file(&paths[0]).unwrap();
-    let text = |tag| {
-        obj.element(tag)
-            .unwrap()
-            .to_str()
-            .unwrap()
-            .trim()
-            .to_string()
-    };
+    let text = |tag| obj.element(tag).unwrap().to_str().unwrap().trim().to_string();
     use dicom_dictionary_std::tags;
     assert_eq!(text(tags::PATIENT_ID), "LIDC-IDRI-0001");
     assert_eq!(text(tags::PATIENT_NAME), "LIDC-IDRI-0001");
     assert_eq!(text(tags::MODALITY), "CT");
     // Wrong UID counts and invalid UIDs are refused.
-    let bad = SeriesMeta {
-        sop_instance_uids: vec!["1.2.3".into()],
-        ..meta.clone()
-    };
-    assert!(write_ct_series(&ct, &bad)
-        .unwrap_err()
-        .to_string()
-        .contains("1 SOP instance UIDs for 6 slices"));
-    let bad = SeriesMeta {
-        series_instance_uid: "1.2.x".into(),
-        ..meta
-    };
+    let bad = SeriesMeta { sop_instance_uids: vec!["1.2.3".into()], ..meta.clone() };
+    assert!(write_ct_series(&ct, &bad).unwrap_err().to_string().contains("1 SOP instance UIDs for 6 slices"));
+    let bad = SeriesMeta { series_instance_uid: "1.2.x".into(), ..meta };
     assert!(write_ct_series(&ct, &bad).is_err());
 }
 
@@ -497,34 +370,16 @@ fn previews_are_pngs_with_square_pixels_superior_up() {
     let projection = coronal_projection(&ct);
     // 330 mm − one slice of height at 2.8125-mm pixels, rows ≈ extent / pixel + 1.
     let extent = 39.0 * g.spacing_mm[2];
-    assert_eq!(
-        projection.height,
-        (extent / g.spacing_mm[0]).round() as usize + 1
-    );
+    assert_eq!(projection.height, (extent / g.spacing_mm[0]).round() as usize + 1);
     // Superior at the top: the top row crosses the neck (no lungs), the projection of the
     // lungs is darker than that of the abdomen at the bottom.
-    let row_mean = |r: usize| {
-        projection.data[r * 128 + 40..r * 128 + 88]
-            .iter()
-            .sum::<f32>()
-            / 48.0
-    };
-    let (top, middle, bottom) = (
-        row_mean(2),
-        row_mean(projection.height / 2),
-        row_mean(projection.height - 3),
-    );
-    assert!(
-        middle < top && middle < bottom,
-        "top {top} middle {middle} bottom {bottom}"
-    );
+    let row_mean = |r: usize| projection.data[r * 128 + 40..r * 128 + 88].iter().sum::<f32>() / 48.0;
+    let (top, middle, bottom) = (row_mean(2), row_mean(projection.height / 2), row_mean(projection.height - 3));
+    assert!(middle < top && middle < bottom, "top {top} middle {middle} bottom {bottom}");
     let png = image_png(&axial, LUNG_WINDOW);
     let decoder = png::Decoder::new(std::io::Cursor::new(png));
     let reader = decoder.read_info().unwrap();
     assert_eq!((reader.info().width, reader.info().height), (128, 128));
     assert_eq!(reader.info().color_type, png::ColorType::Grayscale);
-    assert_eq!(
-        encode_gray8(2, 1, &[0, 255])[..8],
-        [0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A]
-    );
+    assert_eq!(encode_gray8(2, 1, &[0, 255])[..8], [0x89, b'P', b'N', b'G', 0x0D, 0x0A, 0x1A, 0x0A]);
 }

@@ -43,9 +43,7 @@ pub struct SeriesMeta {
 /// Why a series could not be written.
 #[derive(Debug, thiserror::Error)]
 pub enum DicomWriteError {
-    #[error(
-        "{given} SOP instance UIDs for {slices} slices: give one per slice, or none to derive them"
-    )]
+    #[error("{given} SOP instance UIDs for {slices} slices: give one per slice, or none to derive them")]
     SopUidCount { given: usize, slices: usize },
     #[error("{what} {uid:?} is not a valid DICOM UID (digits and dots, at most 64 characters)")]
     InvalidUid { what: &'static str, uid: String },
@@ -92,9 +90,7 @@ pub fn write_ct_series<T: Copy + Into<f64>>(
         return Err(DicomWriteError::LeftHanded);
     }
     let sop_uids: Vec<String> = match meta.sop_instance_uids.len() {
-        0 => (0..slices)
-            .map(|k| derived_uid(&format!("{}/{k}", meta.series_instance_uid)))
-            .collect(),
+        0 => (0..slices).map(|k| derived_uid(&format!("{}/{k}", meta.series_instance_uid))).collect(),
         n if n == slices => meta.sop_instance_uids.clone(),
         given => return Err(DicomWriteError::SopUidCount { given, slices }),
     };
@@ -103,8 +99,7 @@ pub fn write_ct_series<T: Copy + Into<f64>>(
     for uid in &sop_uids {
         check_uid("SOPInstanceUID", uid)?;
     }
-    let frame_of_reference =
-        derived_uid(&format!("{}/frame of reference", meta.series_instance_uid));
+    let frame_of_reference = derived_uid(&format!("{}/frame of reference", meta.series_instance_uid));
     let thickness = meta.slice_thickness_mm.unwrap_or(g.spacing_mm[2]);
     let iop = [g.direction[0], g.direction[1]].concat();
 
@@ -112,10 +107,7 @@ pub fn write_ct_series<T: Copy + Into<f64>>(
     for (k, sop_uid) in sop_uids.iter().enumerate() {
         let ipp = g.voxel_to_patient_mm([0.0, 0.0, k as f64]);
         let slice = &hu.data[k * cols * rows..(k + 1) * cols * rows];
-        let words: Vec<u16> = slice
-            .iter()
-            .map(|&v| stored_value(v.into()) as u16)
-            .collect();
+        let words: Vec<u16> = slice.iter().map(|&v| stored_value(v.into()) as u16).collect();
         let text = |tag: Tag, vr: VR, value: &str| DataElement::new(tag, vr, value);
         let us = |tag: Tag, value: u16| DataElement::new(tag, VR::US, PrimitiveValue::from(value));
         let elements: Vec<DataElement<InMemDicomObject>> = vec![
@@ -149,11 +141,7 @@ pub fn write_ct_series<T: Copy + Into<f64>>(
             text(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2"),
             us(tags::ROWS, rows16),
             us(tags::COLUMNS, cols16),
-            text(
-                tags::PIXEL_SPACING,
-                VR::DS,
-                &ds(&[g.spacing_mm[1], g.spacing_mm[0]]),
-            ),
+            text(tags::PIXEL_SPACING, VR::DS, &ds(&[g.spacing_mm[1], g.spacing_mm[0]])),
             us(tags::BITS_ALLOCATED, 16),
             us(tags::BITS_STORED, 16),
             us(tags::HIGH_BIT, 15),
@@ -170,11 +158,7 @@ pub fn write_ct_series<T: Copy + Into<f64>>(
             .with_meta(FileMetaTableBuilder::new().transfer_syntax(uids::EXPLICIT_VR_LITTLE_ENDIAN))
             .map_err(|e| DicomWriteError::Meta(e.to_string()))?;
         let mut bytes = Vec::new();
-        file.write_all(&mut bytes)
-            .map_err(|e| DicomWriteError::Encode {
-                k,
-                message: e.to_string(),
-            })?;
+        file.write_all(&mut bytes).map_err(|e| DicomWriteError::Encode { k, message: e.to_string() })?;
         files.push((format!("{:06}.dcm", k + 1), bytes));
     }
     Ok(files)
@@ -184,27 +168,18 @@ fn check_uid(what: &'static str, uid: &str) -> Result<(), DicomWriteError> {
     let valid = !uid.is_empty()
         && uid.len() <= 64
         && uid.split('.').all(|part| {
-            !part.is_empty()
-                && part.bytes().all(|b| b.is_ascii_digit())
-                && (part == "0" || !part.starts_with('0'))
+            !part.is_empty() && part.bytes().all(|b| b.is_ascii_digit()) && (part == "0" || !part.starts_with('0'))
         });
     if valid {
         Ok(())
     } else {
-        Err(DicomWriteError::InvalidUid {
-            what,
-            uid: uid.to_string(),
-        })
+        Err(DicomWriteError::InvalidUid { what, uid: uid.to_string() })
     }
 }
 
 /// Decimal String values: the shortest text within 16 characters each.
 fn ds(values: &[f64]) -> String {
-    values
-        .iter()
-        .map(|&v| ds_value(v))
-        .collect::<Vec<_>>()
-        .join("\\")
+    values.iter().map(|&v| ds_value(v)).collect::<Vec<_>>().join("\\")
 }
 
 fn ds_value(v: f64) -> String {
@@ -216,11 +191,7 @@ fn ds_value(v: f64) -> String {
     // Too many digits: round to the most decimals that fit.
     for decimals in (0..=15).rev() {
         let s = format!("{v:.decimals$}");
-        let s = if s.contains('.') {
-            s.trim_end_matches('0').trim_end_matches('.').to_string()
-        } else {
-            s
-        };
+        let s = if s.contains('.') { s.trim_end_matches('0').trim_end_matches('.').to_string() } else { s };
         if s.len() <= 16 {
             return s;
         }
@@ -229,11 +200,7 @@ fn ds_value(v: f64) -> String {
 }
 
 fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
 fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {

@@ -27,15 +27,9 @@ pub struct Window {
 }
 
 /// Lung window: level −600, width 1500 HU.
-pub const LUNG_WINDOW: Window = Window {
-    lo: -1350.0,
-    hi: 150.0,
-};
+pub const LUNG_WINDOW: Window = Window { lo: -1350.0, hi: 150.0 };
 /// Mediastinal (soft-tissue) window: level 40, width 400 HU.
-pub const MEDIASTINAL_WINDOW: Window = Window {
-    lo: -160.0,
-    hi: 240.0,
-};
+pub const MEDIASTINAL_WINDOW: Window = Window { lo: -160.0, hi: 240.0 };
 
 impl Window {
     /// Grey level of `v`, clamped to the window.
@@ -46,22 +40,14 @@ impl Window {
 
     /// The window spanning the 0.5th to 99.5th percentiles of `image` (projections).
     pub fn spanning(image: &Image) -> Window {
-        let mut v: Vec<f32> = image
-            .data
-            .iter()
-            .copied()
-            .filter(|v| v.is_finite())
-            .collect();
+        let mut v: Vec<f32> = image.data.iter().copied().filter(|v| v.is_finite()).collect();
         if v.is_empty() {
             return Window { lo: 0.0, hi: 1.0 };
         }
         v.sort_by(f32::total_cmp);
         let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
         let (lo, hi) = (at(0.005), at(0.995));
-        Window {
-            lo,
-            hi: if hi > lo { hi } else { lo + 1.0 },
-        }
+        Window { lo, hi: if hi > lo { hi } else { lo + 1.0 } }
     }
 }
 
@@ -101,11 +87,7 @@ pub fn axial_slice(ct: &Volume<f32>, k: usize) -> Image {
 /// to the in-plane pixel size.
 pub fn coronal_slice(ct: &Volume<f32>, row: usize) -> Image {
     let [cols, rows, _] = ct.geometry.dims;
-    coronal_image(
-        ct,
-        |k, i| ct.data[ct.geometry.index(i, row.min(rows - 1), k)],
-        cols,
-    )
+    coronal_image(ct, |k, i| ct.data[ct.geometry.index(i, row.min(rows - 1), k)], cols)
 }
 
 /// Coronal projection: the mean of (HU + 1000), i.e. attenuation relative to air, along y
@@ -114,9 +96,7 @@ pub fn coronal_slice(ct: &Volume<f32>, row: usize) -> Image {
 pub fn coronal_projection(ct: &Volume<f32>) -> Image {
     let [cols, rows, _] = ct.geometry.dims;
     let mean = |k: usize, i: usize| {
-        let sum: f32 = (0..rows)
-            .map(|j| ct.data[ct.geometry.index(i, j, k)] + 1000.0)
-            .sum();
+        let sum: f32 = (0..rows).map(|j| ct.data[ct.geometry.index(i, j, k)] + 1000.0).sum();
         sum / rows as f32
     };
     coronal_image(ct, mean, cols)
@@ -128,10 +108,7 @@ fn coronal_image(ct: &Volume<f32>, value: impl Fn(usize, usize) -> f32, cols: us
     let pixel_mm = ct.geometry.spacing_mm[0];
     let dz = ct.geometry.spacing_mm[2];
     // Slice values, computed once: slices × columns.
-    let plane: Vec<f32> = (0..slices)
-        .flat_map(|k| (0..cols).map(move |i| (k, i)))
-        .map(|(k, i)| value(k, i))
-        .collect();
+    let plane: Vec<f32> = (0..slices).flat_map(|k| (0..cols).map(move |i| (k, i))).map(|(k, i)| value(k, i)).collect();
     let extent_mm = (slices.saturating_sub(1)) as f64 * dz;
     let height = (extent_mm / pixel_mm).round() as usize + 1;
     let mut data = Vec::with_capacity(height * cols);
@@ -145,10 +122,5 @@ fn coronal_image(ct: &Volume<f32>, value: impl Fn(usize, usize) -> f32, cols: us
             data.push(plane[k0 * cols + i] * (1.0 - t) + plane[k1 * cols + i] * t);
         }
     }
-    Image {
-        width: cols,
-        height,
-        pixel_mm,
-        data,
-    }
+    Image { width: cols, height, pixel_mm, data }
 }

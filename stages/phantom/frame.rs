@@ -29,15 +29,7 @@ impl Aabb {
     }
 
     pub(crate) fn corners(&self) -> impl Iterator<Item = [f64; 3]> + '_ {
-        (0..8).map(move |c| {
-            [0, 1, 2].map(|a| {
-                if c >> a & 1 == 0 {
-                    self.lo[a]
-                } else {
-                    self.hi[a]
-                }
-            })
-        })
+        (0..8).map(move |c| [0, 1, 2].map(|a| if c >> a & 1 == 0 { self.lo[a] } else { self.hi[a] }))
     }
 }
 
@@ -54,20 +46,12 @@ pub(crate) struct IndexMap {
 
 impl IndexMap {
     pub(crate) fn new(geometry: &Geometry) -> IndexMap {
-        let step: [[f64; 3]; 3] =
-            std::array::from_fn(|a| geometry.direction[a].map(|c| c * geometry.spacing_mm[a]));
-        IndexMap {
-            dims: geometry.dims,
-            origin: geometry.origin_mm,
-            step,
-            inverse: invert_columns(&step),
-        }
+        let step: [[f64; 3]; 3] = std::array::from_fn(|a| geometry.direction[a].map(|c| c * geometry.spacing_mm[a]));
+        IndexMap { dims: geometry.dims, origin: geometry.origin_mm, step, inverse: invert_columns(&step) }
     }
 
     pub(crate) fn to_patient(&self, ijk: [f64; 3]) -> [f64; 3] {
-        std::array::from_fn(|c| {
-            self.origin[c] + (0..3).map(|a| self.step[a][c] * ijk[a]).sum::<f64>()
-        })
+        std::array::from_fn(|c| self.origin[c] + (0..3).map(|a| self.step[a][c] * ijk[a]).sum::<f64>())
     }
 
     pub(crate) fn to_index(&self, p: [f64; 3]) -> [f64; 3] {
@@ -91,11 +75,7 @@ impl IndexMap {
     /// Patient-space box holding every voxel centre.
     pub(crate) fn patient_bounds(&self) -> Aabb {
         let last = self.dims.map(|n| n.saturating_sub(1) as f64);
-        bounds_of(
-            Aabb::new([0.0; 3], last)
-                .corners()
-                .map(|c| self.to_patient(c)),
-        )
+        bounds_of(Aabb::new([0.0; 3], last).corners().map(|c| self.to_patient(c)))
     }
 
     /// Inclusive index ranges `[lo, hi]` per axis of the voxels whose centres may lie in the
@@ -130,8 +110,7 @@ fn bounds_of(points: impl Iterator<Item = [f64; 3]>) -> Aabb {
 fn invert_columns(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     // Rows of the matrix M (M[r][a] = m[a][r]).
     let e = |r: usize, a: usize| m[a][r];
-    let det = e(0, 0) * (e(1, 1) * e(2, 2) - e(1, 2) * e(2, 1))
-        - e(0, 1) * (e(1, 0) * e(2, 2) - e(1, 2) * e(2, 0))
+    let det = e(0, 0) * (e(1, 1) * e(2, 2) - e(1, 2) * e(2, 1)) - e(0, 1) * (e(1, 0) * e(2, 2) - e(1, 2) * e(2, 0))
         + e(0, 2) * (e(1, 0) * e(2, 1) - e(1, 1) * e(2, 0));
     let det = if det.abs() < 1e-12 { 1e-12 } else { det };
     // inv = adj(M) / det; inv[a][c] is row a, column c of M⁻¹.
@@ -217,10 +196,7 @@ mod tests {
         let ijk = [3.0, 5.5, 2.0];
         let p = m.to_patient(ijk);
         let want = g.voxel_to_patient_mm(ijk);
-        assert!(
-            (0..3).all(|a| (p[a] - want[a]).abs() < 1e-9),
-            "{p:?} vs {want:?}"
-        );
+        assert!((0..3).all(|a| (p[a] - want[a]).abs() < 1e-9), "{p:?} vs {want:?}");
         let back = m.to_index(p);
         for a in 0..3 {
             assert!((back[a] - ijk[a]).abs() < 1e-9, "{back:?}");

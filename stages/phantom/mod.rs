@@ -22,15 +22,13 @@ mod canvas;
 mod frame;
 pub mod nodule;
 mod noise;
+pub mod patient;
 mod shapes;
 mod thorax;
 mod tubes;
 mod vessels;
 
-pub use nodule::{
-    ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_mask, BoxGrid,
-    NoduleInsert,
-};
+pub use nodule::{ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_mask, BoxGrid, NoduleInsert};
 pub use thorax::Thorax;
 
 use crate::volume::{Geometry, Volume};
@@ -59,13 +57,7 @@ pub struct PhantomParams {
 
 impl Default for PhantomParams {
     fn default() -> Self {
-        PhantomParams {
-            seed: 1,
-            noise_hu: 18.0,
-            lung_hu: -850.0,
-            lung_texture_hu: 25.0,
-            min_vessel_radius_mm: 0.3,
-        }
+        PhantomParams { seed: 1, noise_hu: 18.0, lung_hu: -850.0, lung_texture_hu: 25.0, min_vessel_radius_mm: 0.3 }
     }
 }
 
@@ -112,19 +104,11 @@ pub fn thorax_hu(geometry: &Geometry, params: &PhantomParams) -> Volume<f32> {
 
 /// Add the scanner noise of `params` (`noise_hu`, seeded by `params.seed`) to `ct`.
 pub fn add_scanner_noise(ct: &mut Volume<f32>, params: &PhantomParams) {
-    noise::add_scanner_noise(
-        ct,
-        noise::stream_seed(params.seed, "scanner", 0),
-        params.noise_hu,
-    );
+    noise::add_scanner_noise(ct, noise::stream_seed(params.seed, "scanner", 0), params.noise_hu);
 }
 
 /// A complete phantom CT: anatomy, then `nodules` blended in, then noise over everything.
-pub fn phantom_ct(
-    geometry: &Geometry,
-    params: &PhantomParams,
-    nodules: &[NoduleInsert],
-) -> Volume<f32> {
+pub fn phantom_ct(geometry: &Geometry, params: &PhantomParams, nodules: &[NoduleInsert]) -> Volume<f32> {
     let mut ct = thorax_hu(geometry, params);
     for n in nodules {
         insert_nodule(&mut ct, n);
@@ -140,14 +124,7 @@ mod tests {
     #[test]
     fn params_default_missing_fields_and_refuse_unknown_ones() {
         let p: PhantomParams = toml::from_str("seed = 7\nnoise_hu = 0.0").unwrap();
-        assert_eq!(
-            p,
-            PhantomParams {
-                seed: 7,
-                noise_hu: 0.0,
-                ..PhantomParams::default()
-            }
-        );
+        assert_eq!(p, PhantomParams { seed: 7, noise_hu: 0.0, ..PhantomParams::default() });
         let err = toml::from_str::<PhantomParams>("sede = 7").unwrap_err();
         assert!(err.to_string().contains("sede"), "{err}");
     }

@@ -80,9 +80,7 @@ pub fn occupancy_from_mask(mask: &BoxGrid<bool>, spacing_mm: [f64; 3]) -> BoxGri
 /// single weight 1 when σ is a small fraction of a voxel: the tails would be < e⁻¹⁸).
 fn gaussian_kernel(sigma: f64) -> Vec<f32> {
     let radius = (3.0 * sigma).round().max(0.0) as i64;
-    let w: Vec<f64> = (-radius..=radius)
-        .map(|d| (-(d * d) as f64 / (2.0 * sigma * sigma)).exp())
-        .collect();
+    let w: Vec<f64> = (-radius..=radius).map(|d| (-(d * d) as f64 / (2.0 * sigma * sigma)).exp()).collect();
     let sum: f64 = w.iter().sum();
     w.iter().map(|v| (v / sum) as f32).collect()
 }
@@ -124,19 +122,13 @@ pub fn insert_nodule(ct: &mut Volume<f32>, nodule: &NoduleInsert) {
     for k in 0..occ.dims[2] {
         for j in 0..occ.dims[1] {
             for i in 0..occ.dims[0] {
-                let at: [i64; 3] = [
-                    occ.origin[0] + i as i64,
-                    occ.origin[1] + j as i64,
-                    occ.origin[2] + k as i64,
-                ];
+                let at: [i64; 3] = [occ.origin[0] + i as i64, occ.origin[1] + j as i64, occ.origin[2] + k as i64];
                 if (0..3).any(|a| at[a] < 0 || at[a] >= vol_dims[a] as i64) {
                     continue;
                 }
                 let o = occ.data[occ.index(i, j, k)].clamp(0.0, 1.0);
                 if o > 0.0 {
-                    let n = ct
-                        .geometry
-                        .index(at[0] as usize, at[1] as usize, at[2] as usize);
+                    let n = ct.geometry.index(at[0] as usize, at[1] as usize, at[2] as usize);
                     let v = &mut ct.data[n];
                     *v += o * (nodule.hu - *v);
                 }
@@ -162,15 +154,10 @@ pub fn nodule_hu_for_texture(texture: Option<u8>) -> f32 {
 /// A binary ellipsoid mask (test objects, previews): semi-axes `semi_axes_mm` (x, y, z),
 /// centred at fractional volume index `centre` (column, row, slice), on voxels of
 /// `spacing_mm`; a voxel is in if its centre is.
-pub fn ellipsoid_mask(
-    centre: [f64; 3],
-    semi_axes_mm: [f64; 3],
-    spacing_mm: [f64; 3],
-) -> BoxGrid<bool> {
+pub fn ellipsoid_mask(centre: [f64; 3], semi_axes_mm: [f64; 3], spacing_mm: [f64; 3]) -> BoxGrid<bool> {
     let half: [f64; 3] = std::array::from_fn(|a| semi_axes_mm[a] / spacing_mm[a]);
     let origin: [i64; 3] = std::array::from_fn(|a| (centre[a] - half[a]).floor() as i64);
-    let dims: [usize; 3] =
-        std::array::from_fn(|a| ((centre[a] + half[a]).ceil() as i64 - origin[a] + 1) as usize);
+    let dims: [usize; 3] = std::array::from_fn(|a| ((centre[a] + half[a]).ceil() as i64 - origin[a] + 1) as usize);
     let mut data = Vec::with_capacity(dims.iter().product());
     for k in 0..dims[2] {
         for j in 0..dims[1] {

@@ -71,8 +71,7 @@ pub(crate) fn fbm(seed: u64, p_mm: [f32; 3], period_mm: f32, octaves: u32) -> f3
     let mut amplitude = 1.0;
     let mut freq = 1.0 / period_mm;
     for octave in 0..octaves {
-        sum +=
-            amplitude * value_noise(seed.wrapping_add(u64::from(octave)), p_mm.map(|c| c * freq));
+        sum += amplitude * value_noise(seed.wrapping_add(u64::from(octave)), p_mm.map(|c| c * freq));
         norm += amplitude * amplitude;
         amplitude *= 0.5;
         freq *= 2.0;
@@ -118,33 +117,28 @@ pub(crate) fn add_scanner_noise(ct: &mut Volume<f32>, seed: u64, sd_hu: f32) {
     }
     // The binomial kernel's weights have sum of squares (6/16)², so it scales sd by 6/16.
     let gain = f64::from(sd_hu) * 16.0 / 6.0;
-    ct.data
-        .par_chunks_mut(cols * rows)
-        .enumerate()
-        .for_each(|(k, slice)| {
-            let mut rng = stream(seed, "scanner noise", k as u64);
-            let mut gauss = Gaussian { spare: None };
-            // One voxel of margin so every output voxel sees a full kernel.
-            let (w, h) = (cols + 2, rows + 2);
-            let white: Vec<f32> = (0..w * h).map(|_| gauss.sample(&mut rng) as f32).collect();
-            // Horizontal pass [1 2 1], then vertical.
-            let mut horiz = vec![0.0f32; cols * h];
-            for y in 0..h {
-                let row = &white[y * w..(y + 1) * w];
-                for x in 0..cols {
-                    horiz[y * cols + x] = row[x] + 2.0 * row[x + 1] + row[x + 2];
-                }
+    ct.data.par_chunks_mut(cols * rows).enumerate().for_each(|(k, slice)| {
+        let mut rng = stream(seed, "scanner noise", k as u64);
+        let mut gauss = Gaussian { spare: None };
+        // One voxel of margin so every output voxel sees a full kernel.
+        let (w, h) = (cols + 2, rows + 2);
+        let white: Vec<f32> = (0..w * h).map(|_| gauss.sample(&mut rng) as f32).collect();
+        // Horizontal pass [1 2 1], then vertical.
+        let mut horiz = vec![0.0f32; cols * h];
+        for y in 0..h {
+            let row = &white[y * w..(y + 1) * w];
+            for x in 0..cols {
+                horiz[y * cols + x] = row[x] + 2.0 * row[x + 1] + row[x + 2];
             }
-            let scale = (gain / 16.0) as f32;
-            for y in 0..rows {
-                for x in 0..cols {
-                    let v = horiz[y * cols + x]
-                        + 2.0 * horiz[(y + 1) * cols + x]
-                        + horiz[(y + 2) * cols + x];
-                    slice[y * cols + x] += v * scale;
-                }
+        }
+        let scale = (gain / 16.0) as f32;
+        for y in 0..rows {
+            for x in 0..cols {
+                let v = horiz[y * cols + x] + 2.0 * horiz[(y + 1) * cols + x] + horiz[(y + 2) * cols + x];
+                slice[y * cols + x] += v * scale;
             }
-        });
+        }
+    });
 }
 
 #[cfg(test)]
@@ -158,11 +152,7 @@ mod tests {
         let mut sum2 = 0.0;
         let n = 20_000;
         for s in 0..n {
-            let p = [
-                s as f32 * 0.37,
-                (s % 97) as f32 * 0.53,
-                (s % 13) as f32 * 1.1,
-            ];
+            let p = [s as f32 * 0.37, (s % 97) as f32 * 0.53, (s % 13) as f32 * 1.1];
             let v = value_noise(seed, p);
             assert!((-1.0..=1.0).contains(&v));
             assert_eq!(v, value_noise(seed, p));

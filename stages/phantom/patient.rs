@@ -74,7 +74,11 @@ pub struct PatientPhantom {
 
 /// Builds the phantom of the patient described by `scan_path` (`<id>.scan.json`) and
 /// `xml_path` (its LIDC XML).
-pub fn generate_from_files(scan_path: &Path, xml_path: &Path, params: &PhantomParams) -> anyhow::Result<PatientPhantom> {
+pub fn generate_from_files(
+    scan_path: &Path,
+    xml_path: &Path,
+    params: &PhantomParams,
+) -> anyhow::Result<PatientPhantom> {
     let name = |p: &Path| p.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
     let scan_text = std::fs::read_to_string(scan_path).with_context(|| format!("reading {}", scan_path.display()))?;
     let scan = ScanInfo::parse(&scan_text, &name(scan_path))?;

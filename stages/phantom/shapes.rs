@@ -71,11 +71,7 @@ pub(crate) fn ellipsoid_sd(d: V3, semi: V3) -> f32 {
     if r < 1e-6 {
         return -semi[0].min(semi[1]).min(semi[2]);
     }
-    let g = [
-        q[0] / (semi[0] * r),
-        q[1] / (semi[1] * r),
-        q[2] / (semi[2] * r),
-    ];
+    let g = [q[0] / (semi[0] * r), q[1] / (semi[1] * r), q[2] / (semi[2] * r)];
     (r - 1.0) / norm(g).max(1e-6)
 }
 
@@ -84,11 +80,7 @@ pub(crate) fn ellipsoid_sd(d: V3, semi: V3) -> f32 {
 pub(crate) fn capsule_sd(p: V3, a: V3, b: V3, ra: f32, rb: f32) -> f32 {
     let ab = sub(b, a);
     let len2 = dot(ab, ab);
-    let t = if len2 > 0.0 {
-        (dot(sub(p, a), ab) / len2).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
+    let t = if len2 > 0.0 { (dot(sub(p, a), ab) / len2).clamp(0.0, 1.0) } else { 0.0 };
     norm(sub(p, add(a, scale(ab, t)))) - (ra + t * (rb - ra))
 }
 
@@ -141,11 +133,7 @@ pub(crate) struct Mix {
 
 impl Mix {
     pub(crate) fn new() -> Mix {
-        Mix {
-            keep: 1.0,
-            add: 0.0,
-            tissue: None,
-        }
+        Mix { keep: 1.0, add: 0.0, tissue: None }
     }
 
     /// Paint a part covering `occupancy` of the voxel with `hu`.
@@ -176,11 +164,7 @@ impl Mix {
     pub(crate) fn sample(&self) -> Option<Sample> {
         let occupancy = 1.0 - self.keep;
         let (tissue, _) = self.tissue?;
-        (occupancy > 0.0).then(|| Sample {
-            occupancy,
-            hu: self.add / occupancy,
-            tissue,
-        })
+        (occupancy > 0.0).then(|| Sample { occupancy, hu: self.add / occupancy, tissue })
     }
 
     pub(crate) fn tissue(&self) -> Option<Tissue> {
@@ -214,10 +198,7 @@ mod tests {
         }
         let s = mix.sample().unwrap();
         let composite = (1.0 - s.occupancy) * below + s.occupancy * s.hu;
-        assert!(
-            (composite - painted).abs() < 1e-3,
-            "{composite} vs {painted}"
-        );
+        assert!((composite - painted).abs() < 1e-3, "{composite} vs {painted}");
     }
 
     #[test]

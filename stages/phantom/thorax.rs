@@ -17,9 +17,7 @@
 use super::canvas::SliceCanvas;
 use super::frame::{Aabb, BodyFrame, IndexMap};
 use super::noise;
-use super::shapes::{
-    capsule_sd, ellipsoid_sd, interval_sd, occupancy, oval_sd, sub, Mix, Profile, Sample, V3,
-};
+use super::shapes::{capsule_sd, ellipsoid_sd, interval_sd, occupancy, oval_sd, sub, Mix, Profile, Sample, V3};
 use super::tubes::{capsules_from_polylines, Capsule, Polyline, TubeSet};
 use super::vessels::{grow_tree, TreeSpec};
 use super::{PhantomParams, Tissue};
@@ -53,21 +51,10 @@ mod hu {
 // ---- Body wall --------------------------------------------------------------------------
 
 const BODY_CENTRE_Y: f32 = 12.0;
-const BODY_HALF_WIDTH: Profile = Profile(&[
-    (0.0, 162.0),
-    (60.0, 167.0),
-    (150.0, 172.0),
-    (230.0, 170.0),
-    (285.0, 158.0),
-    (330.0, 142.0),
-]);
-const BODY_HALF_DEPTH_ANTERIOR: Profile = Profile(&[
-    (0.0, 126.0),
-    (80.0, 130.0),
-    (180.0, 130.0),
-    (260.0, 122.0),
-    (330.0, 106.0),
-]);
+const BODY_HALF_WIDTH: Profile =
+    Profile(&[(0.0, 162.0), (60.0, 167.0), (150.0, 172.0), (230.0, 170.0), (285.0, 158.0), (330.0, 142.0)]);
+const BODY_HALF_DEPTH_ANTERIOR: Profile =
+    Profile(&[(0.0, 126.0), (80.0, 130.0), (180.0, 130.0), (260.0, 122.0), (330.0, 106.0)]);
 /// The back lies flat on the table: constant depth, squarer outline.
 const BODY_HALF_DEPTH_POSTERIOR: f32 = 132.0;
 const SKIN_MM: f32 = 1.5;
@@ -76,11 +63,8 @@ const SUBCUTANEOUS_FAT_MM: Profile = Profile(&[(0.0, 18.0), (120.0, 11.0), (330.
 fn body_sd(r: V3) -> f32 {
     let [x, y, z] = r;
     let dy = y - BODY_CENTRE_Y;
-    let (depth, squareness) = if dy < 0.0 {
-        (BODY_HALF_DEPTH_ANTERIOR.at(z), 0.25)
-    } else {
-        (BODY_HALF_DEPTH_POSTERIOR, 0.6)
-    };
+    let (depth, squareness) =
+        if dy < 0.0 { (BODY_HALF_DEPTH_ANTERIOR.at(z), 0.25) } else { (BODY_HALF_DEPTH_POSTERIOR, 0.6) };
     oval_sd(x, dy, BODY_HALF_WIDTH.at(z), depth, squareness)
 }
 
@@ -98,25 +82,15 @@ const CAVITY_HALF_WIDTH: Profile = Profile(&[
     (310.0, 98.0),
     (330.0, 84.0),
 ]);
-const CAVITY_HALF_DEPTH_ANTERIOR: Profile = Profile(&[
-    (0.0, 98.0),
-    (120.0, 102.0),
-    (200.0, 99.0),
-    (260.0, 90.0),
-    (330.0, 64.0),
-]);
-const CAVITY_HALF_DEPTH_POSTERIOR: Profile =
-    Profile(&[(0.0, 108.0), (160.0, 108.0), (260.0, 102.0), (330.0, 88.0)]);
+const CAVITY_HALF_DEPTH_ANTERIOR: Profile =
+    Profile(&[(0.0, 98.0), (120.0, 102.0), (200.0, 99.0), (260.0, 90.0), (330.0, 64.0)]);
+const CAVITY_HALF_DEPTH_POSTERIOR: Profile = Profile(&[(0.0, 108.0), (160.0, 108.0), (260.0, 102.0), (330.0, 88.0)]);
 const CAVITY_SQUARENESS: f32 = 0.5;
 
 fn cavity_sd(r: V3) -> f32 {
     let [x, y, z] = r;
     let dy = y - CAVITY_CENTRE_Y;
-    let depth = if dy < 0.0 {
-        CAVITY_HALF_DEPTH_ANTERIOR.at(z)
-    } else {
-        CAVITY_HALF_DEPTH_POSTERIOR.at(z)
-    };
+    let depth = if dy < 0.0 { CAVITY_HALF_DEPTH_ANTERIOR.at(z) } else { CAVITY_HALF_DEPTH_POSTERIOR.at(z) };
     oval_sd(x, dy, CAVITY_HALF_WIDTH.at(z), depth, CAVITY_SQUARENESS)
 }
 
@@ -126,15 +100,8 @@ fn cavity_sd(r: V3) -> f32 {
 fn inside_cavity_ellipse(r: V3, margin_mm: f32) -> bool {
     let [x, y, z] = r;
     let dy = y - CAVITY_CENTRE_Y;
-    let depth = if dy < 0.0 {
-        CAVITY_HALF_DEPTH_ANTERIOR.at(z)
-    } else {
-        CAVITY_HALF_DEPTH_POSTERIOR.at(z)
-    };
-    let (u, v) = (
-        x / (CAVITY_HALF_WIDTH.at(z) - margin_mm),
-        dy / (depth - margin_mm),
-    );
+    let depth = if dy < 0.0 { CAVITY_HALF_DEPTH_ANTERIOR.at(z) } else { CAVITY_HALF_DEPTH_POSTERIOR.at(z) };
+    let (u, v) = (x / (CAVITY_HALF_WIDTH.at(z) - margin_mm), dy / (depth - margin_mm));
     u * u + v * v < 1.0
 }
 
@@ -159,11 +126,7 @@ fn diaphragm_z(x: f32, y: f32) -> f32 {
         .iter()
         .map(|&(cx, cy, top)| {
             let (dx, dy) = (x - cx, y - cy);
-            let ry = if dy > 0.0 {
-                DOME_RADIUS_POSTERIOR
-            } else {
-                DOME_RADIUS_ANTERIOR
-            };
+            let ry = if dy > 0.0 { DOME_RADIUS_POSTERIOR } else { DOME_RADIUS_ANTERIOR };
             top - dx * dx / (2.0 * DOME_RADIUS_X) - dy * dy / (2.0 * ry)
         })
         .fold(RECESS_Z, f32::max)
@@ -178,11 +141,7 @@ const APEX_RADIUS_POSTERIOR: f32 = 50.0;
 
 fn apex_z(x: f32, y: f32) -> f32 {
     let (dx, dy) = (x.abs() - APEX.0, y - APEX.1);
-    let ry = if dy < 0.0 {
-        APEX_RADIUS_ANTERIOR
-    } else {
-        APEX_RADIUS_POSTERIOR
-    };
+    let ry = if dy < 0.0 { APEX_RADIUS_ANTERIOR } else { APEX_RADIUS_POSTERIOR };
     APEX.2 - dx * dx / (2.0 * APEX_RADIUS_X) - dy * dy / (2.0 * ry)
 }
 
@@ -204,25 +163,13 @@ const MEDIASTINUM_X: f32 = 2.0;
 /// Half-width of the fat band between the lungs at its widest: narrow at the top (trachea,
 /// oesophagus), wider at the great vessels, narrow again behind the heart (which is painted
 /// on its own). The vessels' fat rims round it out.
-const MEDIASTINUM_HALF_WIDTH: Profile = Profile(&[
-    (0.0, 22.0),
-    (70.0, 18.0),
-    (185.0, 16.0),
-    (200.0, 24.0),
-    (240.0, 24.0),
-    (262.0, 15.0),
-    (330.0, 13.0),
-]);
+const MEDIASTINUM_HALF_WIDTH: Profile =
+    Profile(&[(0.0, 22.0), (70.0, 18.0), (185.0, 16.0), (200.0, 24.0), (240.0, 24.0), (262.0, 15.0), (330.0, 13.0)]);
 
 /// Fraction of that half-width by depth (y): the lungs nearly meet behind the sternum
 /// (anterior junction) and the band narrows again toward the spine.
-const MEDIASTINUM_DEPTH_PROFILE: Profile = Profile(&[
-    (-90.0, 0.3),
-    (-60.0, 0.55),
-    (-35.0, 1.0),
-    (15.0, 1.0),
-    (40.0, 0.75),
-]);
+const MEDIASTINUM_DEPTH_PROFILE: Profile =
+    Profile(&[(-90.0, 0.3), (-60.0, 0.55), (-35.0, 1.0), (15.0, 1.0), (40.0, 0.75)]);
 
 fn mediastinum_half_width(y: f32, z: f32) -> f32 {
     MEDIASTINUM_HALF_WIDTH.at(z) * MEDIASTINUM_DEPTH_PROFILE.at(y)
@@ -241,9 +188,7 @@ const PERICARDIAL_FAT_MM: f32 = 3.0;
 const HEART_SCALE_RANGE: (f64, f64) = (0.8, 1.2);
 
 fn heart_scale(body_scale: f64) -> f32 {
-    body_scale
-        .powf(-0.75)
-        .clamp(HEART_SCALE_RANGE.0, HEART_SCALE_RANGE.1) as f32
+    body_scale.powf(-0.75).clamp(HEART_SCALE_RANGE.0, HEART_SCALE_RANGE.1) as f32
 }
 
 // ---- Spine ------------------------------------------------------------------------------
@@ -300,9 +245,7 @@ struct RibShape {
 }
 
 fn rib_shape(n: usize) -> RibShape {
-    const BONE_END: [f32; RIB_PAIRS] = [
-        2.2, 2.35, 2.35, 2.35, 2.35, 2.35, 2.3, 2.25, 2.15, 2.05, 1.65, 1.25,
-    ];
+    const BONE_END: [f32; RIB_PAIRS] = [2.2, 2.35, 2.35, 2.35, 2.35, 2.35, 2.3, 2.25, 2.15, 2.05, 1.65, 1.25];
     let bone_end = BONE_END[n];
     let drop_mm = match n {
         0 => 45.0,
@@ -340,18 +283,11 @@ fn rib_axis_z(n: usize, angle: f32) -> f32 {
     let shape = rib_shape(n);
     let t = (angle - RIB_START_ANGLE) / (PI - RIB_START_ANGLE);
     let fall = 0.3 * (t / 0.72).clamp(0.0, 1.0) + 0.7 * smoothstep(0.1, 0.72, t);
-    RIB1_Z - n as f32 * RIB_PITCH_MM - shape.drop_mm * fall
-        + shape.rise_mm * smoothstep(0.72, 1.0, t)
+    RIB1_Z - n as f32 * RIB_PITCH_MM - shape.drop_mm * fall + shape.rise_mm * smoothstep(0.72, 1.0, t)
 }
 
 const STERNUM_Z: (f32, f32) = (95.0, 292.0);
-const STERNUM_HALF_WIDTH: Profile = Profile(&[
-    (95.0, 9.0),
-    (120.0, 12.0),
-    (250.0, 14.0),
-    (262.0, 24.0),
-    (292.0, 26.0),
-]);
+const STERNUM_HALF_WIDTH: Profile = Profile(&[(95.0, 9.0), (120.0, 12.0), (250.0, 14.0), (262.0, 24.0), (292.0, 26.0)]);
 const STERNUM_HALF_DEPTH: f32 = 6.5;
 /// Depth of the sternum's centre below the anterior skin.
 const STERNUM_DEPTH_MM: f32 = 19.0;
@@ -394,34 +330,18 @@ const AORTA: &Polyline = &[
     ([8.0, 34.0, -20.0], 10.0),
 ];
 const PULMONARY_TRUNK: &Polyline = &[([20.0, -36.0, 165.0], 14.0), ([12.0, -16.0, 190.0], 13.0)];
-const LEFT_PULMONARY_ARTERY: &Polyline = &[
-    ([12.0, -16.0, 190.0], 11.0),
-    ([30.0, -4.0, 196.0], 10.0),
-    ([46.0, 4.0, 194.0], 9.0),
-];
-const RIGHT_PULMONARY_ARTERY: &Polyline = &[
-    ([12.0, -16.0, 190.0], 11.0),
-    ([-14.0, -6.0, 192.0], 10.0),
-    ([-44.0, 0.0, 189.0], 9.0),
-];
-const SUPERIOR_VENA_CAVA: &Polyline =
-    &[([-30.0, -12.0, 255.0], 9.0), ([-28.0, -10.0, 172.0], 10.0)];
+const LEFT_PULMONARY_ARTERY: &Polyline =
+    &[([12.0, -16.0, 190.0], 11.0), ([30.0, -4.0, 196.0], 10.0), ([46.0, 4.0, 194.0], 9.0)];
+const RIGHT_PULMONARY_ARTERY: &Polyline =
+    &[([12.0, -16.0, 190.0], 11.0), ([-14.0, -6.0, 192.0], 10.0), ([-44.0, 0.0, 189.0], 9.0)];
+const SUPERIOR_VENA_CAVA: &Polyline = &[([-30.0, -12.0, 255.0], 9.0), ([-28.0, -10.0, 172.0], 10.0)];
 const INFERIOR_VENA_CAVA: &Polyline = &[([-22.0, 8.0, -20.0], 11.0), ([-20.0, 2.0, 78.0], 12.0)];
-const BRACHIOCEPHALIC_ARTERY: &Polyline =
-    &[([-2.0, -16.0, 236.0], 7.0), ([-12.0, -10.0, 345.0], 6.0)];
+const BRACHIOCEPHALIC_ARTERY: &Polyline = &[([-2.0, -16.0, 236.0], 7.0), ([-12.0, -10.0, 345.0], 6.0)];
 const LEFT_CAROTID: &Polyline = &[([8.0, -10.0, 238.0], 4.5), ([10.0, -4.0, 345.0], 4.0)];
-const LEFT_SUBCLAVIAN: &Polyline = &[
-    ([16.0, 2.0, 236.0], 5.0),
-    ([18.0, 14.0, 300.0], 5.0),
-    ([40.0, 16.0, 345.0], 5.0),
-];
-const LEFT_BRACHIOCEPHALIC_VEIN: &Polyline = &[
-    ([40.0, -22.0, 300.0], 6.0),
-    ([10.0, -26.0, 270.0], 6.5),
-    ([-30.0, -12.0, 255.0], 8.0),
-];
-const RIGHT_BRACHIOCEPHALIC_VEIN: &Polyline =
-    &[([-40.0, -20.0, 310.0], 6.0), ([-30.0, -12.0, 255.0], 8.0)];
+const LEFT_SUBCLAVIAN: &Polyline = &[([16.0, 2.0, 236.0], 5.0), ([18.0, 14.0, 300.0], 5.0), ([40.0, 16.0, 345.0], 5.0)];
+const LEFT_BRACHIOCEPHALIC_VEIN: &Polyline =
+    &[([40.0, -22.0, 300.0], 6.0), ([10.0, -26.0, 270.0], 6.5), ([-30.0, -12.0, 255.0], 8.0)];
+const RIGHT_BRACHIOCEPHALIC_VEIN: &Polyline = &[([-40.0, -20.0, 310.0], 6.0), ([-30.0, -12.0, 255.0], 8.0)];
 /// Fat around the great vessels, beyond their walls.
 const VESSEL_FAT_MM: f32 = 3.0;
 
@@ -435,21 +355,11 @@ const OESOPHAGUS: &Polyline = &[
 ];
 
 /// Airways as outer-wall polylines; the lumen is the wall radius less the wall thickness.
-const TRACHEA: &Polyline = &[
-    ([0.0, 2.0, 345.0], 10.5),
-    ([0.0, 4.0, 260.0], 10.5),
-    ([0.0, 8.0, 212.0], 10.5),
-];
-const RIGHT_MAIN_BRONCHUS: &Polyline = &[
-    ([0.0, 8.0, 212.0], 8.0),
-    ([-22.0, 8.0, 202.0], 7.5),
-    ([-40.0, 6.0, 192.0], 7.0),
-];
-const LEFT_MAIN_BRONCHUS: &Polyline = &[
-    ([0.0, 8.0, 212.0], 7.5),
-    ([24.0, 10.0, 204.0], 7.0),
-    ([44.0, 12.0, 190.0], 6.5),
-];
+const TRACHEA: &Polyline = &[([0.0, 2.0, 345.0], 10.5), ([0.0, 4.0, 260.0], 10.5), ([0.0, 8.0, 212.0], 10.5)];
+const RIGHT_MAIN_BRONCHUS: &Polyline =
+    &[([0.0, 8.0, 212.0], 8.0), ([-22.0, 8.0, 202.0], 7.5), ([-40.0, 6.0, 192.0], 7.0)];
+const LEFT_MAIN_BRONCHUS: &Polyline =
+    &[([0.0, 8.0, 212.0], 7.5), ([24.0, 10.0, 204.0], 7.0), ([44.0, 12.0, 190.0], 6.5)];
 const LOBAR_BRONCHI: [&Polyline; 4] = [
     &[([-30.0, 7.0, 198.0], 5.5), ([-50.0, 8.0, 214.0], 4.5)],
     &[([-40.0, 6.0, 192.0], 6.0), ([-47.0, 8.0, 168.0], 5.0)],
@@ -458,40 +368,16 @@ const LOBAR_BRONCHI: [&Polyline; 4] = [
 ];
 const AIRWAY_WALL_MM: f32 = 1.8;
 
-const CLAVICLE: &Polyline = &[
-    ([16.0, -86.0, 292.0], 7.0),
-    ([70.0, -84.0, 300.0], 6.5),
-    ([125.0, -62.0, 308.0], 6.0),
-];
+const CLAVICLE: &Polyline = &[([16.0, -86.0, 292.0], 7.0), ([70.0, -84.0, 300.0], 6.5), ([125.0, -62.0, 308.0], 6.0)];
 const RIB_NECK_RADIUS_MM: f32 = 3.5;
 
 /// Pulmonary vessel trees: arteries enter each lung at its hilum, veins leave it toward the
 /// left atrium, lower down. `(hilum, trunk direction, side: −1 right, +1 left, name)`.
 const VESSEL_TREES: [(V3, V3, f32, &str); 4] = [
-    (
-        [-44.0, 0.0, 189.0],
-        [-1.0, 0.2, -0.3],
-        -1.0,
-        "right pulmonary arteries",
-    ),
-    (
-        [46.0, 4.0, 194.0],
-        [1.0, 0.5, -0.3],
-        1.0,
-        "left pulmonary arteries",
-    ),
-    (
-        [-38.0, 10.0, 150.0],
-        [-1.0, 0.1, 0.0],
-        -1.0,
-        "right pulmonary veins",
-    ),
-    (
-        [44.0, 12.0, 152.0],
-        [1.0, 0.1, 0.0],
-        1.0,
-        "left pulmonary veins",
-    ),
+    ([-44.0, 0.0, 189.0], [-1.0, 0.2, -0.3], -1.0, "right pulmonary arteries"),
+    ([46.0, 4.0, 194.0], [1.0, 0.5, -0.3], 1.0, "left pulmonary arteries"),
+    ([-38.0, 10.0, 150.0], [-1.0, 0.1, 0.0], -1.0, "right pulmonary veins"),
+    ([44.0, 12.0, 152.0], [1.0, 0.1, 0.0], 1.0, "left pulmonary veins"),
 ];
 /// Attraction points per tree: about its number of twigs.
 const VESSEL_TWIGS_PER_TREE: usize = 2500;
@@ -545,14 +431,8 @@ impl Thorax {
             lung_texture_hu: params.lung_texture_hu,
             edge: (grid.pixel_mm() / frame.scale_xy) as f32,
         };
-        let mut thorax = Thorax {
-            geometry: geometry.clone(),
-            grid,
-            frame,
-            anatomy,
-            tubes: Vec::new(),
-            order: Vec::new(),
-        };
+        let mut thorax =
+            Thorax { geometry: geometry.clone(), grid, frame, anatomy, tubes: Vec::new(), order: Vec::new() };
         thorax.lay_out(params);
         thorax
     }
@@ -595,10 +475,7 @@ impl Thorax {
         self.push_tubes(lumens, hu::AIR, Tissue::Airway);
 
         self.order.push(Sternum);
-        let mirrored: Vec<(V3, f32)> = CLAVICLE
-            .iter()
-            .map(|&([x, y, z], r)| ([-x, y, z], r))
-            .collect();
+        let mirrored: Vec<(V3, f32)> = CLAVICLE.iter().map(|&([x, y, z], r)| ([-x, y, z], r)).collect();
         let mut bones = capsules_from_polylines(&self.frame, &[CLAVICLE, &mirrored]);
         bones.extend(self.rib_necks());
         self.push_tubes(bones, hu::THIN_BONE, Tissue::Bone);
@@ -606,8 +483,7 @@ impl Thorax {
     }
 
     fn push_tubes(&mut self, capsules: Vec<Capsule>, hu: f32, tissue: Tissue) {
-        self.tubes
-            .push(TubeSet::new(capsules, hu, tissue, &self.grid));
+        self.tubes.push(TubeSet::new(capsules, hu, tissue, &self.grid));
         self.order.push(Layer::Tubes(self.tubes.len() - 1));
     }
 
@@ -618,11 +494,7 @@ impl Thorax {
             .iter()
             .enumerate()
             .flat_map(|(n, &(hilum, trunk_dir, side, name))| {
-                let (x0, x1) = if side < 0.0 {
-                    (-150.0, 0.0)
-                } else {
-                    (0.0, 150.0)
-                };
+                let (x0, x1) = if side < 0.0 { (-150.0, 0.0) } else { (0.0, 150.0) };
                 let spec = TreeSpec {
                     hilum,
                     trunk_dir,
@@ -653,15 +525,7 @@ impl Thorax {
                 let head = [side * 14.0, canal_centre_y(z) - 6.0, z + 4.0];
                 let start = [side * t * sin, CAVITY_CENTRE_Y + t * cos, z];
                 let r = RIB_NECK_RADIUS_MM;
-                necks.push(
-                    Capsule {
-                        a: head,
-                        b: start,
-                        radius_a_mm: r,
-                        radius_b_mm: r,
-                    }
-                    .to_patient(&self.frame),
-                );
+                necks.push(Capsule { a: head, b: start, radius_a_mm: r, radius_b_mm: r }.to_patient(&self.frame));
             }
         }
         necks
@@ -677,24 +541,14 @@ impl Thorax {
         let [cols, rows, slices] = self.grid.dims;
         let mut data = vec![hu::AIR; cols * rows * slices];
         if cols * rows > 0 {
-            data.par_chunks_mut(cols * rows)
-                .enumerate()
-                .for_each(|(k, slice)| {
-                    let mut canvas = SliceCanvas {
-                        hu: slice,
-                        k,
-                        grid: &self.grid,
-                        frame: &self.frame,
-                    };
-                    for &layer in &self.order {
-                        self.paint(layer, &mut canvas);
-                    }
-                });
+            data.par_chunks_mut(cols * rows).enumerate().for_each(|(k, slice)| {
+                let mut canvas = SliceCanvas { hu: slice, k, grid: &self.grid, frame: &self.frame };
+                for &layer in &self.order {
+                    self.paint(layer, &mut canvas);
+                }
+            });
         }
-        Volume {
-            geometry: self.geometry.clone(),
-            data,
-        }
+        Volume { geometry: self.geometry.clone(), data }
     }
 
     fn paint(&self, layer: Layer, canvas: &mut SliceCanvas) {
@@ -748,11 +602,7 @@ impl Thorax {
 
 /// A capsule with both radii changed by `delta_mm`.
 fn widened(c: &Capsule, delta_mm: f32) -> Capsule {
-    Capsule {
-        radius_a_mm: (c.radius_a_mm + delta_mm).max(0.0),
-        radius_b_mm: (c.radius_b_mm + delta_mm).max(0.0),
-        ..*c
-    }
+    Capsule { radius_a_mm: (c.radius_a_mm + delta_mm).max(0.0), radius_b_mm: (c.radius_b_mm + delta_mm).max(0.0), ..*c }
 }
 
 /// Reference-frame box each analytic layer lives in (whole height where it spans it).
@@ -767,11 +617,7 @@ fn layer_bounds(layer: Layer) -> Aabb {
         Layer::Heart => {
             let m = HEART_SCALE_RANGE.1 * f64::from(HEART_SEMI_AXES[0]) + 5.0;
             let c = HEART_CENTRE.map(f64::from);
-            (
-                (c[0] - m, c[0] + m),
-                (c[1] - m, c[1] + m),
-                (c[2] - m, c[2] + m),
-            )
+            ((c[0] - m, c[0] + m), (c[1] - m, c[1] + m), (c[2] - m, c[2] + m))
         }
         Layer::Sternum => ((-32.0, 32.0), (-125.0, -60.0), (90.0, 297.0)),
         Layer::Spine => ((-65.0, 65.0), (15.0, 140.0), all_z),
@@ -786,10 +632,7 @@ impl Anatomy {
         let (s, c) = HEART_AXIS_ANGLE.sin_cos();
         let along = d[0] * c - d[1] * s;
         let across = d[0] * s + d[1] * c;
-        ellipsoid_sd(
-            [along, across, d[2]],
-            HEART_SEMI_AXES.map(|a| a * self.heart_scale),
-        )
+        ellipsoid_sd([along, across, d[2]], HEART_SEMI_AXES.map(|a| a * self.heart_scale))
     }
 
     /// Signed distance to either lung: the cavity less the mediastinum, spine, heart, below
@@ -802,9 +645,7 @@ impl Anatomy {
     fn lung_sd(&self, r: V3) -> f32 {
         let [x, y, z] = r;
         let band = mediastinum_half_width(y, z) - (x - MEDIASTINUM_X).abs();
-        let mut d = (diaphragm_z(x, y) - z)
-            .max(z - apex_z(x, y))
-            .max(band.min(VERTEBRA_Y - y));
+        let mut d = (diaphragm_z(x, y) - z).max(z - apex_z(x, y)).max(band.min(VERTEBRA_Y - y));
         if d > CLEARLY_OUTSIDE_MM {
             return d;
         }
@@ -838,11 +679,7 @@ impl Anatomy {
     }
 
     fn body(&self, r: V3) -> Option<Sample> {
-        let muscle = Some(Sample {
-            occupancy: 1.0,
-            hu: hu::MUSCLE,
-            tissue: Tissue::Muscle,
-        });
+        let muscle = Some(Sample { occupancy: 1.0, hu: hu::MUSCLE, tissue: Tissue::Muscle });
         // Inside the thoracic cavity the body wall is ≥ 20 mm away: all muscle (what the mix
         // below gives there), quickly.
         if inside_cavity_ellipse(r, 0.0) {
@@ -892,9 +729,11 @@ impl Anatomy {
         // The blade narrows toward its inferior angle.
         let low = (1.0 - (z - SCAPULA_Z.0) / 60.0).clamp(0.0, 1.0);
         let (a0, a1) = (0.6 + 0.3 * low, 1.2 - 0.25 * low);
-        let sd = (radial.abs() - SCAPULA_HALF_THICKNESS_MM)
-            .max(interval_sd(angle, a0, a1) * arc_mm)
-            .max(interval_sd(z, SCAPULA_Z.0, SCAPULA_Z.1));
+        let sd = (radial.abs() - SCAPULA_HALF_THICKNESS_MM).max(interval_sd(angle, a0, a1) * arc_mm).max(interval_sd(
+            z,
+            SCAPULA_Z.0,
+            SCAPULA_Z.1,
+        ));
         m.paint(self.occ(sd), hu::THIN_BONE, Tissue::Bone);
     }
 
@@ -910,20 +749,10 @@ impl Anatomy {
             if dz.abs() > shape.half_height_mm + 3.0 {
                 continue;
             }
-            let cross = oval_sd(
-                radial,
-                dz,
-                shape.half_thickness_mm,
-                shape.half_height_mm,
-                0.0,
-            );
+            let cross = oval_sd(radial, dz, shape.half_thickness_mm, shape.half_height_mm, 0.0);
             let bone = cross.max(interval_sd(angle, RIB_START_ANGLE, shape.bone_end) * arc_mm);
             m.paint(self.occ(bone), hu::CORTICAL_BONE, Tissue::Bone);
-            m.paint(
-                self.occ(bone + RIB_CORTEX_MM),
-                hu::CANCELLOUS_BONE,
-                Tissue::Bone,
-            );
+            m.paint(self.occ(bone + RIB_CORTEX_MM), hu::CANCELLOUS_BONE, Tissue::Bone);
             if shape.cartilage_end > shape.bone_end {
                 let along = interval_sd(angle, shape.bone_end, shape.cartilage_end) * arc_mm;
                 m.paint(self.occ(cross.max(along)), hu::CARTILAGE, Tissue::Cartilage);
@@ -937,13 +766,8 @@ impl Anatomy {
             return None;
         }
         let texture = noise::fbm(self.texture_seed, r, LUNG_TEXTURE_PERIOD_MM, 2);
-        let hu =
-            self.lung_hu + LUNG_GRAVITY_HU_PER_MM * (r[1] - 10.0) + self.lung_texture_hu * texture;
-        Some(Sample {
-            occupancy: o,
-            hu,
-            tissue: Tissue::Lung,
-        })
+        let hu = self.lung_hu + LUNG_GRAVITY_HU_PER_MM * (r[1] - 10.0) + self.lung_texture_hu * texture;
+        Some(Sample { occupancy: o, hu, tissue: Tissue::Lung })
     }
 
     fn abdomen(&self, r: V3) -> Option<Sample> {
@@ -970,38 +794,25 @@ impl Anatomy {
         m.paint(contents * gas, hu::AIR, Tissue::Stomach);
         let spleen = ellipsoid_sd(sub(r, SPLEEN_CENTRE), SPLEEN_SEMI_AXES);
         m.paint(o * self.occ(spleen), hu::SPLEEN, Tissue::Spleen);
-        m.paint(
-            o * self.occ(dome - DIAPHRAGM_MM - z),
-            hu::MUSCLE,
-            Tissue::Diaphragm,
-        );
+        m.paint(o * self.occ(dome - DIAPHRAGM_MM - z), hu::MUSCLE, Tissue::Diaphragm);
         m.sample()
     }
 
     fn mediastinum(&self, r: V3) -> Option<Sample> {
         let [x, y, z] = r;
-        let sd = ((x - MEDIASTINUM_X).abs() - mediastinum_half_width(y, z))
-            .max(y - VERTEBRA_Y)
-            .max(diaphragm_z(x, y) - z);
+        let sd =
+            ((x - MEDIASTINUM_X).abs() - mediastinum_half_width(y, z)).max(y - VERTEBRA_Y).max(diaphragm_z(x, y) - z);
         if sd > CLEARLY_OUTSIDE_MM {
             return None;
         }
         let o = self.occ(sd.max(cavity_sd(r)));
-        (o > 0.0).then_some(Sample {
-            occupancy: o,
-            hu: hu::FAT,
-            tissue: Tissue::Mediastinum,
-        })
+        (o > 0.0).then_some(Sample { occupancy: o, hu: hu::FAT, tissue: Tissue::Mediastinum })
     }
 
     fn heart(&self, r: V3) -> Option<Sample> {
         let d = self.heart_sd(r);
         let mut m = Mix::new();
-        m.paint(
-            self.occ(d - PERICARDIAL_FAT_MM),
-            hu::FAT,
-            Tissue::Mediastinum,
-        );
+        m.paint(self.occ(d - PERICARDIAL_FAT_MM), hu::FAT, Tissue::Mediastinum);
         m.paint(self.occ(d), hu::BLOOD, Tissue::Heart);
         m.sample()
     }
@@ -1009,14 +820,11 @@ impl Anatomy {
     fn sternum(&self, r: V3) -> Option<Sample> {
         let [x, y, z] = r;
         let centre_y = BODY_CENTRE_Y - BODY_HALF_DEPTH_ANTERIOR.at(z) + STERNUM_DEPTH_MM;
-        let sd = oval_sd(
-            x,
-            y - centre_y,
-            STERNUM_HALF_WIDTH.at(z),
-            STERNUM_HALF_DEPTH,
-            0.5,
-        )
-        .max(interval_sd(z, STERNUM_Z.0, STERNUM_Z.1));
+        let sd = oval_sd(x, y - centre_y, STERNUM_HALF_WIDTH.at(z), STERNUM_HALF_DEPTH, 0.5).max(interval_sd(
+            z,
+            STERNUM_Z.0,
+            STERNUM_Z.1,
+        ));
         let mut m = Mix::new();
         m.paint(self.occ(sd), hu::CORTICAL_BONE, Tissue::Bone);
         m.paint(self.occ(sd + 1.5), hu::CANCELLOUS_BONE, Tissue::Bone);
@@ -1036,32 +844,14 @@ impl Anatomy {
         for n in [nearest.floor(), nearest.floor() + 1.0] {
             let zc = VERTEBRA_TOP_Z - n * VERTEBRA_PITCH_MM;
             let dz = z - zc;
-            let body =
-                oval_sd(x, y - VERTEBRA_Y, a, b, 0.25).max(dz.abs() - VERTEBRAL_BODY_HALF_HEIGHT);
+            let body = oval_sd(x, y - VERTEBRA_Y, a, b, 0.25).max(dz.abs() - VERTEBRAL_BODY_HALF_HEIGHT);
             m.paint(self.occ(body), hu::CORTICAL_BONE, Tissue::Bone);
-            m.paint(
-                self.occ(body + VERTEBRAL_CORTEX_MM),
-                hu::CANCELLOUS_BONE,
-                Tissue::Bone,
-            );
+            m.paint(self.occ(body + VERTEBRAL_CORTEX_MM), hu::CANCELLOUS_BONE, Tissue::Bone);
             // Pedicles and laminae ring the canal behind the body.
-            let arch = (canal - 5.5)
-                .max(VERTEBRA_Y + b - 3.0 - y)
-                .max((dz + 1.0).abs() - 9.0);
-            let spinous = capsule_sd(
-                r,
-                [0.0, canal_y + 10.0, zc - 2.0],
-                [0.0, canal_y + 38.0, zc - 20.0],
-                5.0,
-                3.5,
-            );
-            let transverse = capsule_sd(
-                [x.abs(), y, z],
-                [8.0, canal_y - 4.0, zc + 3.0],
-                [34.0, canal_y + 10.0, zc + 5.0],
-                4.5,
-                4.0,
-            );
+            let arch = (canal - 5.5).max(VERTEBRA_Y + b - 3.0 - y).max((dz + 1.0).abs() - 9.0);
+            let spinous = capsule_sd(r, [0.0, canal_y + 10.0, zc - 2.0], [0.0, canal_y + 38.0, zc - 20.0], 5.0, 3.5);
+            let transverse =
+                capsule_sd([x.abs(), y, z], [8.0, canal_y - 4.0, zc + 3.0], [34.0, canal_y + 10.0, zc + 5.0], 4.5, 4.0);
             let processes = arch.min(spinous).min(transverse);
             m.paint(self.occ(processes), hu::THIN_BONE, Tissue::Bone);
         }

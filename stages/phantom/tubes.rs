@@ -55,15 +55,7 @@ pub(crate) fn capsules_from_polylines(frame: &BodyFrame, lines: &[&Polyline]) ->
     lines
         .iter()
         .flat_map(|line| line.windows(2))
-        .map(|w| {
-            Capsule {
-                a: w[0].0,
-                b: w[1].0,
-                radius_a_mm: w[0].1,
-                radius_b_mm: w[1].1,
-            }
-            .to_patient(frame)
-        })
+        .map(|w| Capsule { a: w[0].0, b: w[1].0, radius_a_mm: w[0].1, radius_b_mm: w[1].1 }.to_patient(frame))
         .collect()
 }
 
@@ -125,17 +117,10 @@ impl TubeSet {
     pub(crate) fn sample(&self, p: V3, slice: Option<usize>) -> Option<Sample> {
         let occupancy = |c: &Capsule| self.occupancy_of(c, p);
         let o = match slice {
-            Some(k) => self.by_slice[k]
-                .iter()
-                .map(|&n| occupancy(&self.capsules[n as usize]))
-                .fold(0.0f32, f32::max),
+            Some(k) => self.by_slice[k].iter().map(|&n| occupancy(&self.capsules[n as usize])).fold(0.0f32, f32::max),
             None => self.capsules.iter().map(occupancy).fold(0.0f32, f32::max),
         };
-        (o > 0.0).then_some(Sample {
-            occupancy: o,
-            hu: self.hu,
-            tissue: self.tissue,
-        })
+        (o > 0.0).then_some(Sample { occupancy: o, hu: self.hu, tissue: self.tissue })
     }
 
     pub(crate) fn paint(&self, canvas: &mut SliceCanvas) {
@@ -151,12 +136,11 @@ impl TubeSet {
                 canvas.rect(&c.bounds(margin)).map(|r| (c, r))
             })
             .collect();
-        let Some(((i0, i1), (j0, j1))) = rects.iter().map(|&(_, r)| r).reduce(|a, b| {
-            (
-                (a.0 .0.min(b.0 .0), a.0 .1.max(b.0 .1)),
-                (a.1 .0.min(b.1 .0), a.1 .1.max(b.1 .1)),
-            )
-        }) else {
+        let Some(((i0, i1), (j0, j1))) = rects
+            .iter()
+            .map(|&(_, r)| r)
+            .reduce(|a, b| ((a.0 .0.min(b.0 .0), a.0 .1.max(b.0 .1)), (a.1 .0.min(b.1 .0), a.1 .1.max(b.1 .1))))
+        else {
             return;
         };
         // Union of the set: the largest occupancy over capsules, then one blend.

@@ -45,17 +45,10 @@ struct Node {
 
 /// Grow one tree inside the lung whose signed distance is `lung_sd` (mm, negative inside).
 /// Returns its segments, reference frame.
-pub(crate) fn grow_tree(
-    spec: &TreeSpec,
-    lung_sd: &dyn Fn(V3) -> f32,
-    rng: &mut ChaCha8Rng,
-) -> Vec<Capsule> {
+pub(crate) fn grow_tree(spec: &TreeSpec, lung_sd: &dyn Fn(V3) -> f32, rng: &mut ChaCha8Rng) -> Vec<Capsule> {
     let points = attraction_points(spec, lung_sd, rng);
     let root = trunk_end(spec, lung_sd);
-    let mut nodes = vec![Node {
-        pos: root,
-        parent: None,
-    }];
+    let mut nodes = vec![Node { pos: root, parent: None }];
     let mut colony = Colony::new(points, &spec.lung_box);
     colony.node_added(0, root);
     for _ in 0..MAX_ITERATIONS {
@@ -68,10 +61,7 @@ pub(crate) fn grow_tree(
             let dir = normalize(add(normalize(sum), jitter));
             let pos = add(nodes[n].pos, scale(dir, STEP_MM));
             if lung_sd(pos) < -0.5 {
-                nodes.push(Node {
-                    pos,
-                    parent: Some(n),
-                });
+                nodes.push(Node { pos, parent: Some(n) });
             }
         }
         if nodes.len() == before {
@@ -85,21 +75,12 @@ pub(crate) fn grow_tree(
         }
     }
     let (mut segments, root_radius) = murray_segments(&nodes, spec.min_radius_mm);
-    segments.push(Capsule {
-        a: spec.hilum,
-        b: root,
-        radius_a_mm: root_radius,
-        radius_b_mm: root_radius,
-    });
+    segments.push(Capsule { a: spec.hilum, b: root, radius_a_mm: root_radius, radius_b_mm: root_radius });
     segments
 }
 
 /// Points drawn uniformly in the lung, `POINT_MARGIN_MM` inside it.
-fn attraction_points(
-    spec: &TreeSpec,
-    lung_sd: &dyn Fn(V3) -> f32,
-    rng: &mut ChaCha8Rng,
-) -> Vec<V3> {
+fn attraction_points(spec: &TreeSpec, lung_sd: &dyn Fn(V3) -> f32, rng: &mut ChaCha8Rng) -> Vec<V3> {
     let b = &spec.lung_box;
     let mut points = Vec::with_capacity(spec.points);
     // Rejection sampling; the guard bounds the work if the box barely holds lung.
@@ -170,13 +151,7 @@ impl Colony {
     fn new(points: Vec<V3>, lung_box: &Aabb) -> Colony {
         let grid = Grid::new(&points, lung_box, INFLUENCE_MM);
         let n = points.len();
-        Colony {
-            points,
-            nearest: vec![None; n],
-            dead: vec![false; n],
-            alive: n,
-            grid,
-        }
+        Colony { points, nearest: vec![None; n], dead: vec![false; n], alive: n, grid }
     }
 
     /// A node appeared at `pos`: points near it may now pull on it, or be reached.
@@ -223,16 +198,9 @@ struct Grid {
 impl Grid {
     fn new(points: &[V3], b: &Aabb, cell_mm: f32) -> Grid {
         let lo = b.lo.map(|v| v as f32);
-        let dims: [usize; 3] = std::array::from_fn(|a| {
-            (((b.hi[a] - b.lo[a]) as f32 / cell_mm).ceil() as usize).max(1)
-        });
+        let dims: [usize; 3] = std::array::from_fn(|a| (((b.hi[a] - b.lo[a]) as f32 / cell_mm).ceil() as usize).max(1));
         let mut cells = vec![Vec::new(); dims.iter().product()];
-        let mut grid = Grid {
-            lo,
-            cell_mm,
-            dims,
-            cells: Vec::new(),
-        };
+        let mut grid = Grid { lo, cell_mm, dims, cells: Vec::new() };
         for (q, p) in points.iter().enumerate() {
             let c = grid.cell_of(*p);
             cells[grid.flat(c)].push(q);
@@ -242,9 +210,7 @@ impl Grid {
     }
 
     fn cell_of(&self, p: V3) -> [usize; 3] {
-        std::array::from_fn(|a| {
-            (((p[a] - self.lo[a]) / self.cell_mm).floor().max(0.0) as usize).min(self.dims[a] - 1)
-        })
+        std::array::from_fn(|a| (((p[a] - self.lo[a]) / self.cell_mm).floor().max(0.0) as usize).min(self.dims[a] - 1))
     }
 
     fn flat(&self, c: [usize; 3]) -> usize {
