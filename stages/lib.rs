@@ -11,6 +11,7 @@ pub mod config;
 pub mod dataset;
 pub mod engine;
 pub mod formats;
+pub mod geometry;
 pub mod kernels;
 pub mod phantom;
 pub mod stage;
