@@ -3,7 +3,7 @@
 //! Each stage's table deserialises straight into that stage's `Params`; unknown keys and wrong
 //! types are errors. Relative paths are taken relative to the configuration file's folder.
 
-use crate::stage::{hu, ingest};
+use crate::stage::{drr, hu, ingest};
 use anyhow::{anyhow, bail, Context as _};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -19,7 +19,7 @@ pub struct Config {
     #[serde(default)]
     pub hu: hu::Params,
     #[serde(default)]
-    pub drr: NotYet,
+    pub drr: drr::Params,
     #[serde(default)]
     pub train: NotYet,
     #[serde(default)]
@@ -153,6 +153,7 @@ impl Config {
         }
         self.dataset.check()?;
         self.hu.check()?;
+        self.drr.check()?;
         self.ingest.check()?;
         Ok(())
     }
@@ -211,6 +212,17 @@ mod tests {
     fn keys_in_future_stage_tables_are_rejected() {
         let e = Config::parse(&format!("{MINIMAL}[train]\niters = 3\n")).unwrap_err().to_string();
         assert!(e.contains("iters"), "{e}");
+    }
+
+    #[test]
+    fn drr_focal_and_roi_center_take_words_or_numbers() {
+        use crate::stage::drr::{Focal, RoiCenter, RoiMode};
+        let c = Config::parse(&format!("{MINIMAL}[drr]\nfocal_px = 1280\nroi_center = \"lungs\"\n")).unwrap();
+        assert_eq!((c.drr.focal_px, c.drr.roi_center), (Focal::Px(1280.0), RoiCenter::Mode(RoiMode::Lungs)));
+        let c = Config::parse(&format!("{MINIMAL}[drr]\nroi_center = [1.0, -2.5, 30]\n")).unwrap();
+        assert_eq!(c.drr.roi_center, RoiCenter::Mm([1.0, -2.5, 30.0]));
+        let e = Config::parse(&format!("{MINIMAL}[drr]\nfocal_px = \"wide\"\n")).unwrap_err().to_string();
+        assert!(e.contains("line 7") && e.contains("focal_px"), "{e}");
     }
 
     #[test]

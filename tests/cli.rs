@@ -39,7 +39,8 @@ impl Project {
     fn write_config(&self, name: &str, cache: &str, out: &str, extra: &str) {
         let text = format!(
             "[pipeline]\nname = \"test\"\ncache_dir = \"{cache}\"\nout_dir = \"{out}\"\nworkers = 2\n\
-             [dataset]\nkind = \"dicom\"\nroot = \"data\"\n{extra}"
+             [dataset]\nkind = \"dicom\"\nroot = \"data\"\n\
+             [drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n{extra}"
         );
         std::fs::write(self.path(name), text).unwrap();
     }
@@ -101,7 +102,7 @@ fn editing_hu_recomputes_hu_only_and_forced_runs_cut_off_early() {
     assert_eq!((count(&r, "ingest", "computed"), count(&r, "hu", "cached")), (2, 2));
 
     let status = text(&p.aret(&["status", "pipeline.toml"]).stdout);
-    assert!(status.lines().filter(|l| l.starts_with("P")).all(|l| l.matches("cached").count() == 2), "{status}");
+    assert!(status.lines().filter(|l| l.starts_with("P")).all(|l| l.matches("cached").count() == 3), "{status}");
 }
 
 #[test]
@@ -178,15 +179,15 @@ fn config_errors_name_key_and_line_and_bad_patients_are_listed() {
     let out = p.aret(&["run", "pipeline.toml"]);
     assert_eq!(out.status.code(), Some(2));
     let err = text(&out.stderr);
-    assert!(err.contains("pipeline.toml") && err.contains("line 10") && err.contains("hu_mx"), "{err}");
+    assert!(err.contains("pipeline.toml") && err.contains("line 14") && err.contains("hu_mx"), "{err}");
 
     p.write_config("pipeline.toml", "cache", "out", "");
     let err = text(&p.aret(&["run", "pipeline.toml", "--patients", "P1,P7"]).stderr);
     assert!(err.contains("`P7`") && err.contains("it has: P1"), "{err}");
     let err = text(&p.aret(&["run", "pipeline.toml", "--until", "hx"]).stderr);
     assert!(err.contains("--until hx"), "{err}");
-    let err = text(&p.aret(&["run", "pipeline.toml", "--force", "drr"]).stderr);
-    assert!(err.contains("--force drr"), "{err}");
+    let err = text(&p.aret(&["run", "pipeline.toml", "--force", "hux"]).stderr);
+    assert!(err.contains("--force hux"), "{err}");
 }
 
 #[test]

@@ -1,6 +1,7 @@
 //! File formats, one module each. No pipeline knowledge lives here.
 pub mod dicom;
 pub mod dicom_writer;
+pub mod exr_image;
 pub mod lidc_xml;
 pub mod mhd;
 pub mod png;

@@ -6,5 +6,7 @@
 pub mod annotation;
 pub mod cluster;
 pub mod consensus;
+pub mod lung_field;
 pub mod mask;
 pub mod polygon;
+pub mod raymarch;

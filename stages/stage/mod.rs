@@ -3,6 +3,7 @@
 //! Each module reads like the SPEC: its `Params`, its inputs and outputs, a `VERSION`, and one
 //! pure `run`. Stages know nothing about caching.
 
+pub mod drr;
 pub mod hu;
 pub mod ingest;
 pub mod phantom;
@@ -26,6 +27,7 @@ pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
     };
     stages.push(Box::new(ingest::Ingest { params: config.ingest.clone(), input: ingest_input }));
     stages.push(Box::new(hu::Hu { params: config.hu.clone() }));
+    stages.push(Box::new(drr::Drr { params: config.drr.clone() }));
     StageGraph::new(stages)
 }
 

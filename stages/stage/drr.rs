@@ -1,0 +1,343 @@
+//! `drr`: Beer–Lambert radiographs of three views of the CT (SPEC §3 drr).
+//!
+//! Inputs: `hu/ct_unit` (v ∈ [0, 1]), and from `ingest` the ground truth (for
+//! `roi_center = "nodule"`) or the HU volume (for `"lungs"`). Outputs: `drr_coronal.exr`,
+//! `drr_sagittal.exr`, `drr_axial.exr` (float32 `I/I0`, pose, focal, size and units in the
+//! header) with `.png` previews, and `cameras.json`: the scene frame, box and the *nominal*
+//! cameras the train stage must use — never recomputed downstream. Degradations (noise,
+//! pose error, non-orthogonal views) are off by default; a pose error moves only the cameras
+//! the images are rendered with, while `cameras.json` keeps the nominal poses.
+
+use crate::engine::{Context, Output, Stage};
+use crate::formats::exr_image::{self, DrrImage};
+use crate::formats::{mhd, png};
+use crate::geometry::{fit_focal_px, orbit, Aabb, Camera, SceneFrame, View};
+use crate::kernels::lung_field::lung_field_centroid_mm;
+use crate::kernels::raymarch::{render, VolumeField};
+use crate::stage::ingest::truth::GroundTruth;
+use crate::volume::Volume;
+use anyhow::{bail, Context as _};
+use glam::{DMat4, DVec3};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal, Poisson};
+use serde::{Deserialize, Serialize};
+
+pub const VERSION: u32 = 1;
+
+/// `focal_px`: a number of pixels, or `"fit"`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Focal {
+    Px(f64),
+    Mode(FocalMode),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FocalMode {
+    /// The largest focal length whose images cover the box's projection in every view.
+    Fit,
+}
+
+/// `roi_center`: the scene origin, in patient space.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum RoiCenter {
+    /// Explicit `[x, y, z]` in patient mm.
+    Mm([f64; 3]),
+    Mode(RoiMode),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RoiMode {
+    /// Centroid of the target nodule's consensus (semi-assisted: the paper's setting).
+    Nodule,
+    /// Centroid of the lung field found by thresholding the CT (blind).
+    Lungs,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    pub width_px: usize,
+    pub height_px: usize,
+    pub focal_px: Focal,
+    /// Eye distance from the scene origin, scene units.
+    pub distance: f64,
+    pub mm_per_unit: f64,
+    pub aabb_min: [f64; 3],
+    pub aabb_max: [f64; 3],
+    pub roi_center: RoiCenter,
+    /// Attenuation per scene unit of v = 1: `mu = v · attenuation_scale`.
+    pub attenuation_scale: f64,
+    /// Poisson quantum noise: photons per pixel of the unattenuated beam (0: off).
+    pub photons: f64,
+    /// Additive Gaussian detector noise, standard deviation in units of I0 (0: off).
+    pub detector_noise: f64,
+    /// Pose error of the rendering cameras: rotation (degrees, about a random axis through
+    /// the scene origin) and translation (mm, in a random direction). 0: off.
+    pub pose_error_deg: f64,
+    pub pose_error_mm: f64,
+    /// Non-orthogonal views: the coronal and sagittal cameras orbit the superior (z) axis, the
+    /// axial camera the x axis, by these angles (degrees). Part of the nominal geometry.
+    pub view_angle_offsets_deg: [f64; 3],
+    /// Seed of the noise and pose errors.
+    pub seed: u64,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            width_px: 128,
+            height_px: 128,
+            focal_px: Focal::Mode(FocalMode::Fit),
+            distance: 50.0,
+            mm_per_unit: 40.0,
+            aabb_min: [-2.5, -1.5, -2.0],
+            aabb_max: [3.5, 1.5, 1.5],
+            roi_center: RoiCenter::Mode(RoiMode::Nodule),
+            attenuation_scale: 1.0,
+            photons: 0.0,
+            detector_noise: 0.0,
+            pose_error_deg: 0.0,
+            pose_error_mm: 0.0,
+            view_angle_offsets_deg: [0.0; 3],
+            seed: 0,
+        }
+    }
+}
+
+impl Params {
+    pub fn check(&self) -> anyhow::Result<()> {
+        let positive = [
+            ("width_px", self.width_px as f64),
+            ("height_px", self.height_px as f64),
+            ("distance", self.distance),
+            ("mm_per_unit", self.mm_per_unit),
+        ];
+        for (key, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("[drr] {key} must be positive (got {v})");
+            }
+        }
+        if let Focal::Px(f) = self.focal_px {
+            if !(f.is_finite() && f > 0.0) {
+                bail!("[drr] focal_px must be \"fit\" or a positive number of pixels (got {f})");
+            }
+        }
+        if (0..3).any(|a| self.aabb_min[a] >= self.aabb_max[a]) {
+            bail!("[drr] aabb_min must be below aabb_max on every axis");
+        }
+        let non_negative = [
+            ("attenuation_scale", self.attenuation_scale),
+            ("photons", self.photons),
+            ("detector_noise", self.detector_noise),
+            ("pose_error_deg", self.pose_error_deg),
+            ("pose_error_mm", self.pose_error_mm),
+        ];
+        for (key, v) in non_negative {
+            if !(v.is_finite() && v >= 0.0) {
+                bail!("[drr] {key} must be ≥ 0 (got {v})");
+            }
+        }
+        if self.aabb_min.iter().chain(&self.aabb_max).any(|&c| c.abs() >= self.distance) {
+            bail!("[drr] the cameras (distance {}) must stay outside the box", self.distance);
+        }
+        Ok(())
+    }
+
+    pub fn aabb(&self) -> Aabb {
+        Aabb { min: self.aabb_min, max: self.aabb_max }
+    }
+}
+
+/// What `cameras.json` holds: everything the train stage needs to cast the same rays.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CameraSet {
+    pub frame: SceneFrame,
+    /// How `frame.roi_center_mm` was chosen: "nodule", "lungs" or "explicit".
+    pub roi_center_mode: String,
+    pub aabb: Aabb,
+    /// The nominal cameras, in the order coronal, sagittal, axial.
+    pub cameras: Vec<Camera>,
+    /// The cameras the images were actually rendered with, when a pose error was applied.
+    pub rendered_with: Option<Vec<Camera>>,
+    pub attenuation_scale: f64,
+}
+
+pub struct Drr {
+    pub params: Params,
+}
+
+impl Stage for Drr {
+    fn name(&self) -> &'static str {
+        "drr"
+    }
+    fn version(&self) -> u32 {
+        VERSION
+    }
+    fn inputs(&self) -> &'static [&'static str] {
+        &["ingest", "hu"]
+    }
+    fn params(&self) -> serde_json::Value {
+        super::params_json(&self.params)
+    }
+    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
+        let ct_unit: Volume<f32> = read_volume(ctx, "hu", "ct_unit")?;
+        let (roi_center_mm, mode) = self.roi_center(ctx)?;
+        let (set, images) = render_views(&self.params, &ct_unit, roi_center_mm, mode)?;
+        let mut outputs = vec![Output::new("cameras.json", serde_json::to_vec_pretty(&set)?)];
+        for (camera, pixels) in set.cameras.iter().zip(images) {
+            let view = camera.view.name();
+            let image = DrrImage {
+                width: camera.width,
+                height: camera.height,
+                pixels,
+                camera_to_world: camera.camera_to_world.map(|r| r.map(|x| x as f32)),
+                focal_px: camera.focal_px as f32,
+                units: format!("I/I0 (Beer-Lambert); scene units of {} mm", set.frame.mm_per_unit),
+                view: view.to_string(),
+            };
+            outputs.push(Output::new(format!("drr_{view}.png"), preview(&image)));
+            outputs.push(Output::new(format!("drr_{view}.exr"), exr_image::encode(&image)?));
+        }
+        Ok(outputs)
+    }
+}
+
+impl Drr {
+    /// The scene origin in patient mm, and how it was chosen.
+    fn roi_center(&self, ctx: &Context) -> anyhow::Result<([f64; 3], &'static str)> {
+        match self.params.roi_center {
+            RoiCenter::Mm(c) => Ok((c, "explicit")),
+            RoiCenter::Mode(RoiMode::Nodule) => {
+                let truth: GroundTruth = serde_json::from_slice(&ctx.read("ingest", "ground_truth.json")?)?;
+                let centre = truth.target.and_then(|t| truth.nodules[t].centroid_mm);
+                match centre {
+                    Some(c) => Ok((c, "nodule")),
+                    None => bail!(
+                        "[drr] roi_center = \"nodule\" needs a target nodule, and patient {} has no annotated \
+                         nodule: use roi_center = \"lungs\" or an explicit [x, y, z] in mm",
+                        ctx.patient()
+                    ),
+                }
+            }
+            RoiCenter::Mode(RoiMode::Lungs) => {
+                let ct_hu: Volume<i16> = read_volume(ctx, "ingest", "ct_hu")?;
+                match lung_field_centroid_mm(&ct_hu, LUNG_THRESHOLD_HU) {
+                    Some(c) => Ok((c, "lungs")),
+                    None => {
+                        bail!("[drr] roi_center = \"lungs\": no air enclosed by the body below {LUNG_THRESHOLD_HU} HU")
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Lung field threshold for `roi_center = "lungs"`: between parenchyma (≈ −850) and soft tissue.
+pub const LUNG_THRESHOLD_HU: i16 = -400;
+
+fn read_volume<T: mhd::MetaElement>(ctx: &Context, stage: &str, name: &str) -> anyhow::Result<Volume<T>> {
+    let header = String::from_utf8(ctx.read(stage, &format!("{name}.mhd"))?).context("MetaImage header is not text")?;
+    Ok(mhd::decode(&header, &ctx.read(stage, &format!("{name}.raw"))?)?)
+}
+
+/// The whole stage as a pure function: cameras and the three images (coronal, sagittal, axial).
+pub fn render_views(
+    params: &Params,
+    ct_unit: &Volume<f32>,
+    roi_center_mm: [f64; 3],
+    roi_center_mode: &str,
+) -> anyhow::Result<(CameraSet, Vec<Vec<f32>>)> {
+    let frame = SceneFrame { roi_center_mm, mm_per_unit: params.mm_per_unit };
+    let aabb = params.aabb();
+    let poses: Vec<DMat4> = View::ALL.iter().map(|&v| nominal_pose(params, v)).collect();
+    let focal = match params.focal_px {
+        Focal::Px(f) => f,
+        Focal::Mode(FocalMode::Fit) => fit_focal_px(&poses, &aabb, params.width_px, params.height_px),
+    };
+    let camera = |view: View, pose: DMat4| Camera::new(view, pose, focal, params.width_px, params.height_px);
+    let cameras: Vec<Camera> = View::ALL.iter().zip(&poses).map(|(&v, &p)| camera(v, p)).collect();
+    let perturbed = params.pose_error_deg > 0.0 || params.pose_error_mm > 0.0;
+    let rendered: Vec<Camera> = if perturbed {
+        View::ALL.iter().zip(&poses).map(|(&v, &p)| camera(v, pose_error(params, v, p))).collect()
+    } else {
+        cameras.clone()
+    };
+    let field = VolumeField::new(ct_unit, &frame);
+    let images = rendered
+        .iter()
+        .map(|cam| {
+            let mut pixels = render(&field, &aabb, cam, f64::INFINITY, params.attenuation_scale);
+            degrade(params, cam.view, &mut pixels);
+            pixels
+        })
+        .collect();
+    let set = CameraSet {
+        frame,
+        roi_center_mode: roi_center_mode.to_string(),
+        aabb,
+        cameras,
+        rendered_with: perturbed.then_some(rendered),
+        attenuation_scale: params.attenuation_scale,
+    };
+    Ok((set, images))
+}
+
+/// The SPEC pose of `view`, orbited by its configured angle offset.
+fn nominal_pose(params: &Params, view: View) -> DMat4 {
+    let (axis, offset_deg) = match view {
+        View::Coronal => (DVec3::Z, params.view_angle_offsets_deg[0]),
+        View::Sagittal => (DVec3::Z, params.view_angle_offsets_deg[1]),
+        View::Axial => (DVec3::X, params.view_angle_offsets_deg[2]),
+    };
+    orbit(view.pose(params.distance), axis, offset_deg.to_radians())
+}
+
+/// A random stream per (seed, purpose, view): results never depend on evaluation order.
+fn rng(params: &Params, purpose: &str, view: View) -> ChaCha8Rng {
+    let hash = blake3::hash(format!("{}/{purpose}/{}", params.seed, view.name()).as_bytes());
+    ChaCha8Rng::from_seed(*hash.as_bytes())
+}
+
+/// `pose` rotated by `pose_error_deg` about a random axis through the origin, then shifted by
+/// `pose_error_mm` in a random direction.
+fn pose_error(params: &Params, view: View, pose: DMat4) -> DMat4 {
+    let mut rng = rng(params, "pose", view);
+    let mut unit = || {
+        let normal = Normal::new(0.0, 1.0).expect("unit normal");
+        DVec3::new(normal.sample(&mut rng), normal.sample(&mut rng), normal.sample(&mut rng)).normalize()
+    };
+    let (axis, shift) = (unit(), unit());
+    let rotated = orbit(pose, axis, params.pose_error_deg.to_radians());
+    DMat4::from_translation(shift * params.pose_error_mm / params.mm_per_unit) * rotated
+}
+
+/// Poisson quantum noise (`photons` per unattenuated pixel), then Gaussian detector noise.
+fn degrade(params: &Params, view: View, pixels: &mut [f32]) {
+    if params.photons > 0.0 {
+        let mut rng = rng(params, "quantum", view);
+        for p in pixels.iter_mut() {
+            let mean = params.photons * f64::from(*p);
+            let counts = if mean > 0.0 { Poisson::new(mean).expect("positive mean").sample(&mut rng) } else { 0.0 };
+            *p = (counts / params.photons) as f32;
+        }
+    }
+    if params.detector_noise > 0.0 {
+        let mut rng = rng(params, "detector", view);
+        let normal = Normal::new(0.0, params.detector_noise).expect("positive sd");
+        for p in pixels.iter_mut() {
+            *p += normal.sample(&mut rng) as f32;
+        }
+    }
+}
+
+/// A radiograph-style preview: attenuation `−ln I` (dense = white), windowed to its range.
+fn preview(image: &DrrImage) -> Vec<u8> {
+    let data: Vec<f32> = image.pixels.iter().map(|&i| -(i.max(1e-6)).ln()).collect();
+    let img = png::Image { width: image.width, height: image.height, pixel_mm: 1.0, data };
+    png::image_png(&img, png::Window::spanning(&img))
+}
