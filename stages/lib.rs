@@ -15,6 +15,7 @@ pub mod geometry;
 pub mod kernels;
 pub mod phantom;
 pub mod stage;
+pub mod train;
 pub mod volume;
 
 pub use stage::STAGE_NAMES;

@@ -1,0 +1,222 @@
+//! The training loop: Adam on MSE + λ1·L1 + λ2·TV over seeded ray batches (SPEC §3 train).
+
+use super::adam::{Adam, AdamParams};
+use super::field::VmField;
+use super::regularize::{self, TvNorm};
+use super::render::{Lattice, Ray, Renderer};
+use crate::geometry::{Aabb, Camera};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainParams {
+    /// Lattice nodes per axis (N); planes are N×N, lines N.
+    pub grid: usize,
+    /// Components per plane/line pair (R).
+    pub rank: usize,
+    /// Δ in σ = ReLU(f + Δ).
+    pub shift: f64,
+    /// s in Î = exp(−s · Σ σ δ).
+    pub scale: f64,
+    pub iterations: usize,
+    pub batch_rays: usize,
+    pub lr: f64,
+    /// Learning rate at the end over at the start (exponential decay).
+    pub lr_decay_ratio: f64,
+    pub lambda_l1: f64,
+    pub lambda_tv: f64,
+    pub tv_norm: TvNorm,
+    /// Factors start as `init_scale · N(0, 1)`.
+    pub init_scale: f64,
+    /// Iterations after which the alpha mask is (re)computed.
+    pub alpha_mask_iterations: Vec<usize>,
+    pub alpha_threshold: f64,
+    /// Evaluate and log every this many iterations (and at the last).
+    pub log_every: usize,
+    pub seed: u64,
+}
+
+impl Default for TrainParams {
+    fn default() -> Self {
+        TrainParams {
+            grid: 64,
+            rank: 16,
+            shift: 0.0,
+            scale: 1.0,
+            iterations: 3000,
+            batch_rays: 2048,
+            lr: 0.02,
+            lr_decay_ratio: 0.1,
+            lambda_l1: 1e-4,
+            lambda_tv: 1e-5,
+            tv_norm: TvNorm::L1,
+            init_scale: 0.1,
+            alpha_mask_iterations: vec![1500, 2500],
+            alpha_threshold: 1e-3,
+            log_every: 100,
+            seed: 0,
+        }
+    }
+}
+
+/// One logged iteration.
+#[derive(Debug, Clone, Serialize)]
+pub struct LogRow {
+    pub iteration: usize,
+    pub loss: f64,
+    pub photo: f64,
+    pub l1: f64,
+    pub tv: f64,
+    /// PSNR (dB) of each view rendered in full with midpoint samples, in camera order.
+    /// (`photo` is the batch MSE, except at iteration 0: the mean full-view MSE.)
+    pub psnr_db: Vec<f64>,
+    pub lr: f64,
+    pub seconds: f64,
+}
+
+/// The three (or more) training images with their cameras.
+pub struct Views<'a> {
+    pub cameras: &'a [Camera],
+    /// `I/I0` per pixel, row-major, one image per camera.
+    pub images: &'a [Vec<f32>],
+    pub aabb: Aabb,
+}
+
+impl Views<'_> {
+    /// Every pixel's ray, per view, keeping only rays that meet the box (TensoRF's filtering).
+    pub fn rays(&self) -> Vec<Vec<Ray>> {
+        self.cameras
+            .iter()
+            .zip(self.images)
+            .map(|(cam, img)| {
+                let mut rays = Vec::with_capacity(img.len());
+                for j in 0..cam.height {
+                    for i in 0..cam.width {
+                        let (origin, dir) = (cam.eye(), cam.ray_dir(i, j));
+                        let target = f64::from(img[i + cam.width * j]);
+                        rays.push(Ray { origin, dir, target });
+                    }
+                }
+                rays
+            })
+            .collect()
+    }
+}
+
+/// The trained field, its log, and the final alpha mask (if one was computed).
+pub struct Fitted {
+    pub field: VmField<f32>,
+    pub log: Vec<LogRow>,
+    pub mask: Option<Vec<bool>>,
+    pub renderer: Renderer,
+}
+
+/// The renderer of `params` on `aabb`: samples every half mean voxel.
+pub fn renderer(params: &TrainParams, aabb: Aabb) -> Renderer {
+    let mean_voxel = (0..3).map(|a| (aabb.max[a] - aabb.min[a]) / params.grid as f64).sum::<f64>() / 3.0;
+    Renderer {
+        lattice: Lattice { n: params.grid, aabb },
+        shift: params.shift,
+        scale: params.scale,
+        step: 0.5 * mean_voxel,
+    }
+}
+
+/// Fits a field to `views`. `on_log` sees every logged row as it is made.
+pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow)) -> Fitted {
+    let started = Instant::now();
+    let renderer = renderer(params, views.aabb);
+    let per_view = views.rays();
+    let hits = |r: &Ray| views.aabb.intersect(r.origin, r.dir).is_some();
+    let pool: Vec<Ray> = per_view.iter().flatten().copied().filter(hits).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
+    let mut field: VmField<f32> = VmField::random(params.grid, params.rank, params.init_scale, rng.gen());
+    let adam_params = AdamParams {
+        lr: params.lr,
+        beta1: 0.9,
+        beta2: 0.99,
+        eps: 1e-8,
+        decay_ratio: params.lr_decay_ratio,
+        iterations: params.iterations,
+    };
+    let mut adam = Adam::new(adam_params, &field);
+    let mut order: Vec<usize> = (0..pool.len()).collect();
+    let mut cursor = order.len(); // reshuffle on first use
+    let mut mask: Option<Vec<bool>> = None;
+    let mut log = Vec::new();
+    // Row 0: the initial field, before any update (its "photo" is the full-view MSE).
+    let psnr_db = view_psnr(&renderer, &field, None, &per_view);
+    let photo = psnr_db.iter().map(|p| 10f64.powf(-p / 10.0)).sum::<f64>() / psnr_db.len() as f64;
+    let mut scratch = VmField::zeros(field.n, field.rank);
+    let (l1, tv) =
+        (regularize::l1(&field, 0.0, &mut scratch), regularize::tv(&field, params.tv_norm, 0.0, &mut scratch));
+    let initial = LogRow {
+        iteration: 0,
+        loss: photo + params.lambda_l1 * l1 + params.lambda_tv * tv,
+        photo,
+        l1,
+        tv,
+        psnr_db,
+        lr: params.lr,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    on_log(&initial);
+    log.push(initial);
+    let mut batch = Vec::with_capacity(params.batch_rays);
+    let mut offsets = Vec::with_capacity(params.batch_rays);
+    for it in 0..params.iterations {
+        batch.clear();
+        offsets.clear();
+        while batch.len() < params.batch_rays.min(pool.len()) {
+            if cursor == order.len() {
+                order.shuffle(&mut rng);
+                cursor = 0;
+            }
+            batch.push(pool[order[cursor]]);
+            offsets.push(rng.gen::<f64>() * renderer.step);
+            cursor += 1;
+        }
+        let dense = field.compose();
+        let mut grad_dense = vec![0f32; dense.len()];
+        let result = renderer.batch(&dense, mask.as_deref(), &batch, &offsets, Some(&mut grad_dense));
+        let mut grad = field.contract(&grad_dense);
+        let l1 = regularize::l1(&field, params.lambda_l1 as f32, &mut grad);
+        let tv = regularize::tv(&field, params.tv_norm, params.lambda_tv as f32, &mut grad);
+        let lr = adam.update(&mut field, &grad);
+        if params.alpha_mask_iterations.contains(&(it + 1)) {
+            mask = Some(renderer.alpha_mask(&field.compose(), params.alpha_threshold));
+        }
+        if (it + 1) % params.log_every.max(1) == 0 || it + 1 == params.iterations {
+            let row = LogRow {
+                iteration: it + 1,
+                loss: result.mse + params.lambda_l1 * l1 + params.lambda_tv * tv,
+                photo: result.mse,
+                l1,
+                tv,
+                psnr_db: view_psnr(&renderer, &field, mask.as_deref(), &per_view),
+                lr,
+                seconds: started.elapsed().as_secs_f64(),
+            };
+            on_log(&row);
+            log.push(row);
+        }
+    }
+    Fitted { field, log, mask, renderer }
+}
+
+/// PSNR (dB, peak 1) of each view rendered with midpoint samples.
+pub fn view_psnr(renderer: &Renderer, field: &VmField<f32>, mask: Option<&[bool]>, per_view: &[Vec<Ray>]) -> Vec<f64> {
+    let dense = field.compose();
+    per_view
+        .iter()
+        .map(|rays| {
+            let offsets = vec![renderer.step / 2.0; rays.len()];
+            let mse = renderer.batch(&dense, mask, rays, &offsets, None).mse;
+            10.0 * (1.0 / mse.max(1e-20)).log10()
+        })
+        .collect()
+}
