@@ -59,22 +59,22 @@ impl<T: Float + Send + Sync> VmField<T> {
         self.len() == 0
     }
 
-    /// The dense pre-activation `F` on the node lattice, index `x + N·(y + N·z)`.
+    /// The dense pre-activation `F` on the node lattice, index `x + N·(y + N·z)`. Every loop
+    /// runs over a contiguous row, so it vectorises; z-slabs run in parallel.
     pub fn compose(&self) -> Vec<T> {
-        let n = self.n;
+        let (n, rank) = (self.n, self.rank);
         let mut dense = vec![T::zero(); n * n * n];
         dense.par_chunks_mut(n * n).enumerate().for_each(|(z, slab)| {
-            for (p, &([a, b], c)) in PAIRS.iter().enumerate() {
-                for r in 0..self.rank {
-                    let plane = &self.planes[p][r * n * n..(r + 1) * n * n];
-                    let line = &self.lines[p][r * n..(r + 1) * n];
-                    for y in 0..n {
-                        for x in 0..n {
-                            let xyz = [x, y, z];
-                            let pv = plane[xyz[a] + n * xyz[b]];
-                            slab[x + n * y] = slab[x + n * y] + pv * line[xyz[c]];
-                        }
-                    }
+            for r in 0..rank {
+                let [p0, p1, p2] = [0, 1, 2].map(|p| &self.planes[p][r * n * n..(r + 1) * n * n]);
+                let [l0, l1, l2] = [0, 1, 2].map(|p| &self.lines[p][r * n..(r + 1) * n]);
+                // XY ⊗ Z: slab += L0[z] · P0 (the whole XY plane).
+                axpy(slab, l0[z], p0);
+                for y in 0..n {
+                    let row = &mut slab[n * y..n * (y + 1)];
+                    // XZ ⊗ Y: row += L1[y] · P1[·, z];  YZ ⊗ X: row += P2[y, z] · L2.
+                    axpy(row, l1[y], &p1[n * z..n * (z + 1)]);
+                    axpy(row, p2[y + n * z], l2);
                 }
             }
         });
@@ -83,28 +83,32 @@ impl<T: Float + Send + Sync> VmField<T> {
 
     /// The factors' gradient from the gradient `grad` of the loss with respect to `F`.
     pub fn contract(&self, grad: &[T]) -> VmField<T> {
-        let n = self.n;
-        let mut out = VmField::zeros(n, self.rank);
-        for (p, &([a, b], c)) in PAIRS.iter().enumerate() {
-            let (planes, lines) = (&mut out.planes[p], &mut out.lines[p]);
-            // dP_r[u,v] = Σ_w dF[..]·L_r[w];  dL_r[w] = Σ_{u,v} dF[..]·P_r[u,v].
-            planes.par_chunks_mut(n * n).zip(lines.par_chunks_mut(n)).enumerate().for_each(|(r, (dp, dl))| {
-                let plane = &self.planes[p][r * n * n..(r + 1) * n * n];
-                let line = &self.lines[p][r * n..(r + 1) * n];
-                for z in 0..n {
-                    for y in 0..n {
-                        for x in 0..n {
-                            let xyz = [x, y, z];
-                            let g = grad[x + n * (y + n * z)];
-                            let uv = xyz[a] + n * xyz[b];
-                            let w = xyz[c];
-                            dp[uv] = dp[uv] + g * line[w];
-                            dl[w] = dl[w] + g * plane[uv];
-                        }
-                    }
+        let (n, rank) = (self.n, self.rank);
+        let mut out = VmField::zeros(n, rank);
+        let [g0, g1, g2] = &mut out.planes;
+        let [h0, h1, h2] = &mut out.lines;
+        // One component per task: its plane and line gradients of all three pairs.
+        let planes = g0.par_chunks_mut(n * n).zip(g1.par_chunks_mut(n * n)).zip(g2.par_chunks_mut(n * n));
+        let lines = h0.par_chunks_mut(n).zip(h1.par_chunks_mut(n)).zip(h2.par_chunks_mut(n));
+        planes.zip(lines).enumerate().for_each(|(r, (((dp0, dp1), dp2), ((dl0, dl1), dl2)))| {
+            let [p0, p1, p2] = [0, 1, 2].map(|p| &self.planes[p][r * n * n..(r + 1) * n * n]);
+            let [l0, l1, l2] = [0, 1, 2].map(|p| &self.lines[p][r * n..(r + 1) * n]);
+            for z in 0..n {
+                let slab = &grad[n * n * z..n * n * (z + 1)];
+                // XY ⊗ Z: dP0 += L0[z]·dF_z, dL0[z] = <dF_z, P0>.
+                axpy(dp0, l0[z], slab);
+                dl0[z] = dl0[z] + dot(slab, p0);
+                for y in 0..n {
+                    let row = &slab[n * y..n * (y + 1)];
+                    // XZ ⊗ Y: dP1[·, z] += L1[y]·row, dL1[y] += <row, P1[·, z]>.
+                    axpy(&mut dp1[n * z..n * (z + 1)], l1[y], row);
+                    dl1[y] = dl1[y] + dot(row, &p1[n * z..n * (z + 1)]);
+                    // YZ ⊗ X: dP2[y, z] += <row, L2>, dL2 += P2[y, z]·row.
+                    dp2[y + n * z] = dp2[y + n * z] + dot(row, l2);
+                    axpy(dl2, p2[y + n * z], row);
                 }
-            });
-        }
+            }
+        });
         out
     }
 
@@ -116,6 +120,18 @@ impl<T: Float + Send + Sync> VmField<T> {
     pub fn params_mut(&mut self) -> impl Iterator<Item = &mut Vec<T>> {
         self.planes.iter_mut().chain(self.lines.iter_mut())
     }
+}
+
+/// `y += a·x`.
+fn axpy<T: Float>(y: &mut [T], a: T, x: &[T]) {
+    for (yi, &xi) in y.iter_mut().zip(x) {
+        *yi = *yi + a * xi;
+    }
+}
+
+/// `Σ x·y`, in a fixed order.
+fn dot<T: Float>(x: &[T], y: &[T]) -> T {
+    x.iter().zip(y).fold(T::zero(), |acc, (&a, &b)| acc + a * b)
 }
 
 #[cfg(test)]

@@ -46,24 +46,24 @@ pub fn tv<T: Float + Send + Sync>(field: &VmField<T>, norm: TvNorm, weight: T, g
         return 0.0;
     }
     let count = T::from(rank * n * (n - 1)).expect("count");
-    let mut value = 0.0;
+    let mut value = T::zero();
     for (plane, g) in field.planes.iter().zip(grad.planes.iter_mut()) {
-        // Differences along u (stride 1) and along v (stride n) over rank × n × n.
-        for stride in [1, n] {
-            for r in 0..rank {
-                for v in 0..n {
-                    for u in 0..n {
-                        let (uu, vv) = if stride == 1 { (u + 1, v) } else { (u, v + 1) };
-                        if uu >= n || vv >= n {
+        // Differences along u (stride 1) and along v (stride n) within each component.
+        for r in 0..rank {
+            let base = r * n * n;
+            for v in 0..n {
+                for u in 0..n {
+                    let i = base + u + n * v;
+                    for (ok, j) in [(u + 1 < n, i + 1), (v + 1 < n, i + n)] {
+                        if !ok {
                             continue;
                         }
-                        let (i, j) = (r * n * n + u + n * v, r * n * n + uu + n * vv);
                         let d = plane[j] - plane[i];
                         let (val, dd) = match norm {
                             TvNorm::L1 => (d.abs(), sign(d)),
                             TvNorm::L2 => (d * d, d + d),
                         };
-                        value += val.to_f64().expect("finite") / count.to_f64().expect("finite");
+                        value = value + val;
                         let step = weight * dd / count;
                         g[j] = g[j] + step;
                         g[i] = g[i] - step;
@@ -72,5 +72,5 @@ pub fn tv<T: Float + Send + Sync>(field: &VmField<T>, norm: TvNorm, weight: T, g
             }
         }
     }
-    value
+    (value / count).to_f64().expect("finite")
 }

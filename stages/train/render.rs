@@ -20,29 +20,43 @@ pub struct Lattice {
 }
 
 impl Lattice {
-    /// Continuous node index of scene point `p`, clamped to the outermost nodes.
-    fn index(&self, p: DVec3) -> [f64; 3] {
-        std::array::from_fn(|a| {
-            let cell = (self.aabb.max[a] - self.aabb.min[a]) / self.n as f64;
-            ((p[a] - self.aabb.min[a]) / cell - 0.5).clamp(0.0, (self.n - 1) as f64)
-        })
+    /// Continuous node index of the ray point `origin + t·dir` is `a + t·b` (before clamping).
+    fn index_line(&self, origin: DVec3, dir: DVec3) -> ([f64; 3], [f64; 3]) {
+        let cell: [f64; 3] = std::array::from_fn(|k| (self.aabb.max[k] - self.aabb.min[k]) / self.n as f64);
+        (
+            std::array::from_fn(|k| (origin[k] - self.aabb.min[k]) / cell[k] - 0.5),
+            std::array::from_fn(|k| dir[k] / cell[k]),
+        )
     }
 
-    /// The 8 neighbour nodes (linear indices) of `p` and their trilinear weights.
-    pub fn corners(&self, p: DVec3) -> [(usize, f64); 8] {
+    /// The 8 neighbour nodes (linear indices) of continuous index `q` (clamped to the
+    /// outermost nodes) and their trilinear weights.
+    fn corners_at(&self, q: [f64; 3]) -> [(usize, f64); 8] {
         let n = self.n;
-        let q = self.index(p);
-        let base: [usize; 3] = std::array::from_fn(|a| (q[a].floor() as usize).min(n.saturating_sub(2)));
-        let frac: [f64; 3] = std::array::from_fn(|a| q[a] - base[a] as f64);
+        let top = (n - 1) as f64;
+        let mut base = [0usize; 3];
+        let mut frac = [0f64; 3];
+        for k in 0..3 {
+            let x = q[k].clamp(0.0, top);
+            let b = (x as usize).min(n.saturating_sub(2));
+            base[k] = b;
+            frac[k] = x - b as f64;
+        }
         let next = usize::from(n > 1);
-        std::array::from_fn(|c| {
-            let (dx, dy, dz) = (c & 1, (c >> 1) & 1, (c >> 2) & 1);
-            let w = (if dx == 1 { frac[0] } else { 1.0 - frac[0] })
-                * (if dy == 1 { frac[1] } else { 1.0 - frac[1] })
-                * (if dz == 1 { frac[2] } else { 1.0 - frac[2] });
-            let (x, y, z) = (base[0] + dx * next, base[1] + dy * next, base[2] + dz * next);
-            (x + n * (y + n * z), w)
-        })
+        let origin = base[0] + n * (base[1] + n * base[2]);
+        let (sx, sy, sz) = (next, n * next, n * n * next);
+        let [fx, fy, fz] = frac;
+        let (gx, gy, gz) = (1.0 - fx, 1.0 - fy, 1.0 - fz);
+        [
+            (origin, gx * gy * gz),
+            (origin + sx, fx * gy * gz),
+            (origin + sy, gx * fy * gz),
+            (origin + sx + sy, fx * fy * gz),
+            (origin + sz, gx * gy * fz),
+            (origin + sx + sz, fx * gy * fz),
+            (origin + sy + sz, gx * fy * fz),
+            (origin + sx + sy + sz, fx * fy * fz),
+        ]
     }
 }
 
@@ -70,21 +84,26 @@ pub struct BatchResult<T> {
 }
 
 impl Renderer {
-    /// Sample parameters `t` of `ray` with offset `offset` ∈ [0, step).
-    fn samples(&self, ray: &Ray, offset: f64) -> impl Iterator<Item = f64> {
+    /// The continuous lattice index of each sample of `ray` with offset `offset` ∈ [0, step).
+    fn samples(&self, ray: &Ray, offset: f64) -> impl Iterator<Item = [f64; 3]> {
         let (t0, t1) = self.lattice.aabb.intersect(ray.origin, ray.dir).unwrap_or((0.0, 0.0));
+        let (a, b) = self.lattice.index_line(ray.origin, ray.dir);
         let step = self.step;
-        (0..).map(move |k| t0 + offset + k as f64 * step).take_while(move |&t| t < t1)
+        (0..)
+            .map(move |k| t0 + offset + k as f64 * step)
+            .take_while(move |&t| t < t1)
+            .map(move |t| std::array::from_fn(|k| a[k] + t * b[k]))
     }
 
-    /// Pre-activation at `p` (trilinear in `dense`), or `None` if the mask silences it.
+    /// Pre-activation at lattice point `q` (trilinear in `dense`), or `None` if the mask
+    /// silences it.
     fn pre_activation<T: Float>(
         &self,
         dense: &[T],
         mask: Option<&[bool]>,
-        p: DVec3,
+        q: [f64; 3],
     ) -> Option<(f64, [(usize, f64); 8])> {
-        let corners = self.lattice.corners(p);
+        let corners = self.lattice.corners_at(q);
         if let Some(keep) = mask {
             if !corners.iter().any(|&(i, _)| keep[i]) {
                 return None;
@@ -97,8 +116,8 @@ impl Renderer {
     /// `Î` of one ray.
     pub fn render_ray<T: Float>(&self, dense: &[T], mask: Option<&[bool]>, ray: &Ray, offset: f64) -> f64 {
         let mut optical_depth = 0.0;
-        for t in self.samples(ray, offset) {
-            if let Some((f, _)) = self.pre_activation(dense, mask, ray.origin + ray.dir * t) {
+        for q in self.samples(ray, offset) {
+            if let Some((f, _)) = self.pre_activation(dense, mask, q) {
                 optical_depth += (f + self.shift).max(0.0) * self.step;
             }
         }
@@ -127,8 +146,8 @@ impl Renderer {
                 if d_sigma == 0.0 {
                     continue;
                 }
-                for t in self.samples(ray, off) {
-                    if let Some((f, corners)) = self.pre_activation(dense, mask, ray.origin + ray.dir * t) {
+                for q in self.samples(ray, off) {
+                    if let Some((f, corners)) = self.pre_activation(dense, mask, q) {
                         if f + self.shift > 0.0 {
                             for (i, w) in corners {
                                 grad[i] = grad[i] + T::from(d_sigma * w).expect("finite");
