@@ -3,7 +3,7 @@
 //! Each stage's table deserialises straight into that stage's `Params`; unknown keys and wrong
 //! types are errors. Relative paths are taken relative to the configuration file's folder.
 
-use crate::stage::{drr, hu, ingest};
+use crate::stage::{drr, hu, ingest, train};
 use anyhow::{anyhow, bail, Context as _};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -21,7 +21,7 @@ pub struct Config {
     #[serde(default)]
     pub drr: drr::Params,
     #[serde(default)]
-    pub train: NotYet,
+    pub train: train::Params,
     #[serde(default)]
     pub grid: NotYet,
     #[serde(default)]
@@ -154,6 +154,7 @@ impl Config {
         self.dataset.check()?;
         self.hu.check()?;
         self.drr.check()?;
+        self.train.check()?;
         self.ingest.check()?;
         Ok(())
     }
@@ -210,8 +211,10 @@ mod tests {
 
     #[test]
     fn keys_in_future_stage_tables_are_rejected() {
+        let e = Config::parse(&format!("{MINIMAL}[grid]\nsize = 3\n")).unwrap_err().to_string();
+        assert!(e.contains("size"), "{e}");
         let e = Config::parse(&format!("{MINIMAL}[train]\niters = 3\n")).unwrap_err().to_string();
-        assert!(e.contains("iters"), "{e}");
+        assert!(e.contains("iters") && e.contains("iterations"), "{e}");
     }
 
     #[test]

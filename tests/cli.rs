@@ -40,7 +40,8 @@ impl Project {
         let text = format!(
             "[pipeline]\nname = \"test\"\ncache_dir = \"{cache}\"\nout_dir = \"{out}\"\nworkers = 2\n\
              [dataset]\nkind = \"dicom\"\nroot = \"data\"\n\
-             [drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n{extra}"
+             [drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n\
+             [train]\niterations = 3\ngrid = 8\nrank = 2\nbatch_rays = 64\nlog_every = 1\n{extra}"
         );
         std::fs::write(self.path(name), text).unwrap();
     }
@@ -102,7 +103,7 @@ fn editing_hu_recomputes_hu_only_and_forced_runs_cut_off_early() {
     assert_eq!((count(&r, "ingest", "computed"), count(&r, "hu", "cached")), (2, 2));
 
     let status = text(&p.aret(&["status", "pipeline.toml"]).stdout);
-    assert!(status.lines().filter(|l| l.starts_with("P")).all(|l| l.matches("cached").count() == 3), "{status}");
+    assert!(status.lines().filter(|l| l.starts_with("P")).all(|l| l.matches("cached").count() == 4), "{status}");
 }
 
 #[test]
@@ -179,7 +180,7 @@ fn config_errors_name_key_and_line_and_bad_patients_are_listed() {
     let out = p.aret(&["run", "pipeline.toml"]);
     assert_eq!(out.status.code(), Some(2));
     let err = text(&out.stderr);
-    assert!(err.contains("pipeline.toml") && err.contains("line 14") && err.contains("hu_mx"), "{err}");
+    assert!(err.contains("pipeline.toml") && err.contains("line 20") && err.contains("hu_mx"), "{err}");
 
     p.write_config("pipeline.toml", "cache", "out", "");
     let err = text(&p.aret(&["run", "pipeline.toml", "--patients", "P1,P7"]).stderr);

@@ -4,4 +4,6 @@ pub mod dicom_writer;
 pub mod exr_image;
 pub mod lidc_xml;
 pub mod mhd;
+pub mod model;
 pub mod png;
+pub mod svg;

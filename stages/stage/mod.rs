@@ -7,6 +7,7 @@ pub mod drr;
 pub mod hu;
 pub mod ingest;
 pub mod phantom;
+pub mod train;
 
 use crate::config::{Config, DatasetKind};
 use crate::engine::{Stage, StageGraph, SOURCE};
@@ -28,6 +29,7 @@ pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
     stages.push(Box::new(ingest::Ingest { params: config.ingest.clone(), input: ingest_input }));
     stages.push(Box::new(hu::Hu { params: config.hu.clone() }));
     stages.push(Box::new(drr::Drr { params: config.drr.clone() }));
+    stages.push(Box::new(train::Train { params: config.train.clone() }));
     StageGraph::new(stages)
 }
 

@@ -38,6 +38,34 @@ pub struct TrainParams {
     /// Evaluate and log every this many iterations (and at the last).
     pub log_every: usize,
     pub seed: u64,
+    /// Where the fit runs (part of the cache key: backends differ in rounding).
+    pub backend: Backend,
+    /// Worker threads (0: all cores). Results do not depend on it: not part of the cache key.
+    pub threads: usize,
+}
+
+/// Where the training runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    Cpu,
+    Gpu,
+    /// The GPU when an adapter exists, else the CPU.
+    Auto,
+}
+
+impl TrainParams {
+    pub fn check(&self) -> anyhow::Result<()> {
+        if self.grid < 2 || self.rank == 0 || self.iterations == 0 || self.batch_rays == 0 {
+            anyhow::bail!("[train] grid must be ≥ 2 and rank, iterations, batch_rays ≥ 1");
+        }
+        for (key, v) in [("scale", self.scale), ("lr", self.lr), ("lr_decay_ratio", self.lr_decay_ratio)] {
+            if !(v.is_finite() && v > 0.0) {
+                anyhow::bail!("[train] {key} must be positive (got {v})");
+            }
+        }
+        Ok(())
+    }
 }
 
 impl Default for TrainParams {
@@ -59,6 +87,8 @@ impl Default for TrainParams {
             alpha_threshold: 1e-3,
             log_every: 100,
             seed: 0,
+            backend: Backend::Cpu,
+            threads: 0,
         }
     }
 }

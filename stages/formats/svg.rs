@@ -1,0 +1,68 @@
+//! Small self-contained SVG line plots (no fonts or scripts needed to view them).
+
+use std::fmt::Write as _;
+
+/// One named series of (x, y) points, drawn in `colour`.
+pub struct Series<'a> {
+    pub name: &'a str,
+    pub colour: &'a str,
+    pub points: Vec<(f64, f64)>,
+}
+
+/// A line plot with a log-10 y axis (non-positive values are dropped), axes, ticks and a legend.
+pub fn log_plot(title: &str, x_label: &str, series: &[Series]) -> String {
+    let (w, h, left, right, top, bottom) = (640.0, 400.0, 70.0, 20.0, 40.0, 50.0);
+    let pts: Vec<(f64, f64)> = series.iter().flat_map(|s| s.points.iter().copied()).filter(|p| p.1 > 0.0).collect();
+    let (x0, x1) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let (y0, y1) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.1), b.max(p.1)));
+    let (x0, x1) = if x1 > x0 { (x0, x1) } else { (x0 - 1.0, x0 + 1.0) };
+    let (ly0, ly1) = if y1 > y0 { (y0.log10().floor(), y1.log10().ceil()) } else { (-1.0, 1.0) };
+    let sx = |x: f64| left + (x - x0) / (x1 - x0) * (w - left - right);
+    let sy = |y: f64| top + (ly1 - y.log10()) / (ly1 - ly0) * (h - top - bottom);
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif" font-size="12">"#
+    );
+    let _ = writeln!(s, r#"<rect width="{w}" height="{h}" fill="white"/>"#);
+    let _ = writeln!(s, r#"<text x="{}" y="22" text-anchor="middle" font-size="15">{title}</text>"#, w / 2.0);
+    let _ = writeln!(s, r#"<text x="{}" y="{}" text-anchor="middle">{x_label}</text>"#, w / 2.0, h - 12.0);
+    let (px0, px1, py0, py1) = (left, w - right, top, h - bottom);
+    let _ = writeln!(s, r#"<path d="M{px0} {py0} V{py1} H{px1}" fill="none" stroke="black"/>"#);
+    for e in (ly0 as i32)..=(ly1 as i32) {
+        let y = sy(10f64.powi(e));
+        let _ = writeln!(
+            s,
+            r##"<path d="M{px0} {y:.1} H{px1}" stroke="#ddd"/><text x="{}" y="{:.1}" text-anchor="end">1e{e}</text>"##,
+            px0 - 6.0,
+            y + 4.0
+        );
+    }
+    for k in 0..=4 {
+        let x = x0 + (x1 - x0) * k as f64 / 4.0;
+        let _ = writeln!(s, r#"<text x="{:.1}" y="{}" text-anchor="middle">{}</text>"#, sx(x), py1 + 16.0, x.round());
+    }
+    for (k, series) in series.iter().enumerate() {
+        let path: Vec<String> = series
+            .points
+            .iter()
+            .filter(|p| p.1 > 0.0)
+            .enumerate()
+            .map(|(i, &(x, y))| format!("{}{:.1} {:.1}", if i == 0 { "M" } else { "L" }, sx(x), sy(y)))
+            .collect();
+        let _ =
+            writeln!(s, r#"<path d="{}" fill="none" stroke="{}" stroke-width="1.5"/>"#, path.join(" "), series.colour);
+        let ly = top + 14.0 + 16.0 * k as f64;
+        let _ = writeln!(
+            s,
+            r#"<path d="M{} {ly} h18" stroke="{}" stroke-width="2"/><text x="{}" y="{}">{}</text>"#,
+            px1 - 150.0,
+            series.colour,
+            px1 - 126.0,
+            ly + 4.0,
+            series.name
+        );
+    }
+    s.push_str("</svg>\n");
+    s
+}

@@ -1,0 +1,126 @@
+//! `train`: fits the VM attenuation field to the three DRRs (SPEC §3 train).
+//!
+//! Inputs: `drr/cameras.json` (the nominal cameras: poses are read, never recomputed) and
+//! `drr/drr_<view>.exr`. Outputs: `model.safetensors` (factors, alpha mask, metadata),
+//! `train_log.csv` (iteration, loss, photo, L1, TV, PSNR per view, lr, seconds) and `loss.svg`.
+
+use crate::engine::{Context, Output, Stage};
+use crate::formats::model::{self, ModelMeta};
+use crate::formats::{exr_image, svg};
+use crate::stage::drr::CameraSet;
+use crate::train::fit::{fit, LogRow, Views};
+use anyhow::bail;
+use std::fmt::Write as _;
+
+pub const VERSION: u32 = 1;
+
+/// `[train]` is the fit's own parameter table.
+pub use crate::train::fit::{Backend, TrainParams as Params};
+
+pub struct Train {
+    pub params: Params,
+}
+
+impl Stage for Train {
+    fn name(&self) -> &'static str {
+        "train"
+    }
+    fn version(&self) -> u32 {
+        VERSION
+    }
+    fn inputs(&self) -> &'static [&'static str] {
+        &["drr"]
+    }
+    fn params(&self) -> serde_json::Value {
+        let mut json = super::params_json(&self.params);
+        json.as_object_mut().expect("params are a table").remove("threads");
+        json
+    }
+    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
+        let backend = match self.params.backend {
+            Backend::Cpu => "cpu",
+            // The GPU backend arrives with its own issue; "auto" uses the CPU until then.
+            Backend::Auto => "cpu",
+            Backend::Gpu => bail!(
+                "[train] backend = \"gpu\" is not available in this build yet: use backend = \"cpu\" \
+                 (or \"auto\", which falls back to the CPU)"
+            ),
+        };
+        let set: CameraSet = serde_json::from_slice(&ctx.read("drr", "cameras.json")?)?;
+        let mut images = Vec::new();
+        for cam in &set.cameras {
+            let image = exr_image::decode(&ctx.read("drr", &format!("drr_{}.exr", cam.view.name()))?)?;
+            if (image.width, image.height) != (cam.width, cam.height) {
+                bail!(
+                    "drr_{}.exr is {}×{}, its camera {}×{}",
+                    cam.view.name(),
+                    image.width,
+                    image.height,
+                    cam.width,
+                    cam.height
+                );
+            }
+            images.push(image.pixels);
+        }
+        let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
+        let params = &self.params;
+        let fitted = if self.params.threads > 0 {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(self.params.threads).build()?;
+            pool.install(|| fit(params, &views, |_| {}))
+        } else {
+            fit(params, &views, |_| {})
+        };
+        let meta = ModelMeta {
+            grid: params.grid,
+            rank: params.rank,
+            aabb: set.aabb,
+            shift: params.shift,
+            scale: params.scale,
+            step: fitted.renderer.step,
+            seed: params.seed,
+            iterations: params.iterations,
+            backend: backend.into(),
+            parameters: fitted.field.len(),
+        };
+        let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();
+        Ok(vec![
+            Output::new("model.safetensors", model::encode(&fitted.field, fitted.mask.as_deref(), &meta)?),
+            Output::new("train_log.csv", log_csv(&fitted.log, &views_named)),
+            Output::new("loss.svg", loss_svg(&fitted.log)),
+        ])
+    }
+}
+
+fn log_csv(log: &[LogRow], views: &[&str]) -> String {
+    let mut s = String::from("iteration,loss,photo,l1,tv");
+    for v in views {
+        let _ = write!(s, ",psnr_{v}_db");
+    }
+    s.push_str(",lr,seconds\n");
+    for r in log {
+        let _ = write!(s, "{},{:e},{:e},{:e},{:e}", r.iteration, r.loss, r.photo, r.l1, r.tv);
+        for p in &r.psnr_db {
+            let _ = write!(s, ",{p:.4}");
+        }
+        let _ = writeln!(s, ",{:e},{:.3}", r.lr, r.seconds);
+    }
+    s
+}
+
+fn loss_svg(log: &[LogRow]) -> String {
+    let series = |name, colour, f: fn(&LogRow) -> f64| svg::Series {
+        name,
+        colour,
+        points: log.iter().map(|r| (r.iteration as f64, f(r))).collect(),
+    };
+    svg::log_plot(
+        "Training loss",
+        "iteration",
+        &[
+            series("total loss", "#1f77b4", |r| r.loss),
+            series("photometric (MSE)", "#d62728", |r| r.photo),
+            series("L1", "#2ca02c", |r| r.l1),
+            series("TV", "#9467bd", |r| r.tv),
+        ],
+    )
+}
