@@ -129,9 +129,19 @@ fn axpy<T: Float>(y: &mut [T], a: T, x: &[T]) {
     }
 }
 
-/// `Σ x·y`, in a fixed order.
+/// `Σ x·y` in a fixed order: eight interleaved partial sums (so it vectorises), then the
+/// remainder, then the partials pairwise.
 fn dot<T: Float>(x: &[T], y: &[T]) -> T {
-    x.iter().zip(y).fold(T::zero(), |acc, (&a, &b)| acc + a * b)
+    let mut acc = [T::zero(); 8];
+    let (xc, yc) = (x.chunks_exact(8), y.chunks_exact(8));
+    let (xr, yr) = (xc.remainder(), yc.remainder());
+    for (a, b) in xc.zip(yc) {
+        for k in 0..8 {
+            acc[k] = acc[k] + a[k] * b[k];
+        }
+    }
+    let tail = xr.iter().zip(yr).fold(T::zero(), |t, (&a, &b)| t + a * b);
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
 }
 
 #[cfg(test)]

@@ -29,9 +29,9 @@ impl Lattice {
         )
     }
 
-    /// The 8 neighbour nodes (linear indices) of continuous index `q` (clamped to the
-    /// outermost nodes) and their trilinear weights.
-    fn corners_at(&self, q: [f64; 3]) -> [(usize, f64); 8] {
+    /// The lower corner node (linear index) of continuous index `q`, clamped to the outermost
+    /// nodes, and the fractional offsets from it.
+    fn cell_of(&self, q: [f64; 3]) -> (usize, [f64; 3]) {
         let n = self.n;
         let top = (n - 1) as f64;
         let mut base = [0usize; 3];
@@ -42,8 +42,13 @@ impl Lattice {
             base[k] = b;
             frac[k] = x - b as f64;
         }
+        (base[0] + n * (base[1] + n * base[2]), frac)
+    }
+
+    /// The 8 corner nodes of the cell at `origin` and their trilinear weights for `frac`.
+    fn corners(&self, origin: usize, frac: [f64; 3]) -> [(usize, f64); 8] {
+        let n = self.n;
         let next = usize::from(n > 1);
-        let origin = base[0] + n * (base[1] + n * base[2]);
         let (sx, sy, sz) = (next, n * next, n * n * next);
         let [fx, fy, fz] = frac;
         let (gx, gy, gz) = (1.0 - fx, 1.0 - fy, 1.0 - fz);
@@ -58,6 +63,13 @@ impl Lattice {
             (origin + sx + sy + sz, fx * fy * fz),
         ]
     }
+}
+
+/// A sample that passed the mask with a positive activation: where its gradient goes.
+#[derive(Debug, Clone, Copy)]
+struct Active {
+    cell: usize,
+    frac: [f64; 3],
 }
 
 /// A training ray: origin, unit direction, and the measured pixel `I/I0`.
@@ -95,38 +107,45 @@ impl Renderer {
             .map(move |t| std::array::from_fn(|k| a[k] + t * b[k]))
     }
 
-    /// Pre-activation at lattice point `q` (trilinear in `dense`), or `None` if the mask
-    /// silences it.
-    fn pre_activation<T: Float>(
+    /// `Î` of one ray; with `active`, also records the samples whose σ is positive (their
+    /// gradient is non-zero) for the backward pass.
+    fn trace<T: Float>(
         &self,
         dense: &[T],
         mask: Option<&[bool]>,
-        q: [f64; 3],
-    ) -> Option<(f64, [(usize, f64); 8])> {
-        let corners = self.lattice.corners_at(q);
-        if let Some(keep) = mask {
-            if !corners.iter().any(|&(i, _)| keep[i]) {
-                return None;
-            }
-        }
-        let f = corners.iter().map(|&(i, w)| dense[i].to_f64().expect("finite") * w).sum();
-        Some((f, corners))
-    }
-
-    /// `Î` of one ray.
-    pub fn render_ray<T: Float>(&self, dense: &[T], mask: Option<&[bool]>, ray: &Ray, offset: f64) -> f64 {
+        ray: &Ray,
+        offset: f64,
+        mut active: Option<&mut Vec<Active>>,
+    ) -> f64 {
         let mut optical_depth = 0.0;
         for q in self.samples(ray, offset) {
-            if let Some((f, _)) = self.pre_activation(dense, mask, q) {
-                optical_depth += (f + self.shift).max(0.0) * self.step;
+            let (cell, frac) = self.lattice.cell_of(q);
+            let corners = self.lattice.corners(cell, frac);
+            if let Some(keep) = mask {
+                if !corners.iter().any(|&(i, _)| keep[i]) {
+                    continue;
+                }
+            }
+            let f: f64 = corners.iter().map(|&(i, w)| dense[i].to_f64().expect("finite") * w).sum();
+            if f + self.shift > 0.0 {
+                optical_depth += (f + self.shift) * self.step;
+                if let Some(list) = active.as_deref_mut() {
+                    list.push(Active { cell, frac });
+                }
             }
         }
         (-self.scale * optical_depth).exp()
     }
 
+    /// `Î` of one ray.
+    pub fn render_ray<T: Float>(&self, dense: &[T], mask: Option<&[bool]>, ray: &Ray, offset: f64) -> f64 {
+        self.trace(dense, mask, ray, offset, None)
+    }
+
     /// Renders `rays` (with their per-ray `offsets`), returns predictions and MSE, and when
-    /// `grad` is given adds `dMSE/dF` to it. Rays render in parallel; the scatter runs in ray
-    /// order, so the gradient is bit-identical whatever the thread count.
+    /// `grad` is given adds `dMSE/dF` to it. Rays trace in parallel, each recording its active
+    /// samples; the scatter then runs in ray order, so the gradient is bit-identical whatever
+    /// the thread count.
     pub fn batch<T: Float + Send + Sync>(
         &self,
         dense: &[T],
@@ -135,29 +154,34 @@ impl Renderer {
         offsets: &[f64],
         grad: Option<&mut [T]>,
     ) -> BatchResult<T> {
-        let predicted: Vec<f64> =
-            rays.par_iter().zip(offsets).map(|(ray, &off)| self.render_ray(dense, mask, ray, off)).collect();
+        let want_grad = grad.is_some();
+        let traced: Vec<(f64, Vec<Active>)> = rays
+            .par_iter()
+            .zip(offsets)
+            .map(|(ray, &off)| {
+                let mut active = Vec::new();
+                let pred = self.trace(dense, mask, ray, off, want_grad.then_some(&mut active));
+                (pred, active)
+            })
+            .collect();
         let b = rays.len() as f64;
-        let mse = rays.iter().zip(&predicted).map(|(r, &p)| (p - r.target).powi(2)).sum::<f64>() / b;
+        let mse = rays.iter().zip(&traced).map(|(r, (p, _))| (p - r.target).powi(2)).sum::<f64>() / b;
         if let Some(grad) = grad {
-            for ((ray, &off), &pred) in rays.iter().zip(offsets).zip(&predicted) {
-                // dL/dÎ = 2(Î − I)/B;  dÎ/dσ_k = −s·δ·Î;  dσ/dF = 1[F + Δ > 0].
+            for (ray, (pred, active)) in rays.iter().zip(&traced) {
+                // dL/dÎ = 2(Î − I)/B;  dÎ/dσ_k = −s·δ·Î;  dσ/dF = 1[F + Δ > 0] (the active samples).
                 let d_sigma = 2.0 * (pred - ray.target) / b * (-self.scale * self.step * pred);
                 if d_sigma == 0.0 {
                     continue;
                 }
-                for q in self.samples(ray, off) {
-                    if let Some((f, corners)) = self.pre_activation(dense, mask, q) {
-                        if f + self.shift > 0.0 {
-                            for (i, w) in corners {
-                                grad[i] = grad[i] + T::from(d_sigma * w).expect("finite");
-                            }
-                        }
+                for a in active {
+                    for (i, w) in self.lattice.corners(a.cell, a.frac) {
+                        grad[i] = grad[i] + T::from(d_sigma * w).expect("finite");
                     }
                 }
             }
         }
-        BatchResult { predicted: predicted.into_iter().map(|p| T::from(p).expect("finite")).collect(), mse }
+        let predicted = traced.into_iter().map(|(p, _)| T::from(p).expect("finite")).collect();
+        BatchResult { predicted, mse }
     }
 
     /// The alpha mask on the lattice: `alpha = 1 − exp(−σ·step·s)` at each node, dilated by a
