@@ -119,8 +119,8 @@ fn loss_svg(log: &[LogRow]) -> String {
         &[
             series("total loss", "#1f77b4", |r| r.loss),
             series("photometric (MSE)", "#d62728", |r| r.photo),
-            series("L1", "#2ca02c", |r| r.l1),
-            series("TV", "#9467bd", |r| r.tv),
+            series("L1 (before λ1)", "#2ca02c", |r| r.l1),
+            series("TV (before λ2)", "#9467bd", |r| r.tv),
         ],
     )
 }
