@@ -46,30 +46,39 @@ pub fn tv<T: Float + Send + Sync>(field: &VmField<T>, norm: TvNorm, weight: T, g
         return 0.0;
     }
     let count = T::from(rank * n * (n - 1)).expect("count");
+    let scale = weight / count;
     let mut value = T::zero();
+    let mut step = vec![T::zero(); n * (n - 1)];
+    // Each difference d_k = b_k − a_k adds |d| (or d²); ∂/∂d_k, scaled, goes to b_k with + and to
+    // a_k with −. Differences are taken between contiguous slices (a row and itself shifted by
+    // one; the plane and itself shifted by one row), then applied in two passes.
+    let mut diff = |a: &[T], b: &[T], step: &mut [T]| {
+        for ((&x, &y), s) in a.iter().zip(b).zip(step.iter_mut()) {
+            let d = y - x;
+            let (val, dd) = match norm {
+                TvNorm::L1 => (d.abs(), sign(d)),
+                TvNorm::L2 => (d * d, d + d),
+            };
+            value = value + val;
+            *s = scale * dd;
+        }
+    };
+    let apply = |g: &mut [T], shift: usize, step: &[T]| {
+        for (gi, &s) in g.iter_mut().zip(step) {
+            *gi = *gi - s;
+        }
+        for (gi, &s) in g[shift..].iter_mut().zip(step) {
+            *gi = *gi + s;
+        }
+    };
     for (plane, g) in field.planes.iter().zip(grad.planes.iter_mut()) {
-        // Differences along u (stride 1) and along v (stride n) within each component.
-        for r in 0..rank {
-            let base = r * n * n;
-            for v in 0..n {
-                for u in 0..n {
-                    let i = base + u + n * v;
-                    for (ok, j) in [(u + 1 < n, i + 1), (v + 1 < n, i + n)] {
-                        if !ok {
-                            continue;
-                        }
-                        let d = plane[j] - plane[i];
-                        let (val, dd) = match norm {
-                            TvNorm::L1 => (d.abs(), sign(d)),
-                            TvNorm::L2 => (d * d, d + d),
-                        };
-                        value = value + val;
-                        let step = weight * dd / count;
-                        g[j] = g[j] + step;
-                        g[i] = g[i] - step;
-                    }
-                }
+        for (comp, gcomp) in plane.chunks_exact(n * n).zip(g.chunks_exact_mut(n * n)) {
+            for (row, grow) in comp.chunks_exact(n).zip(gcomp.chunks_exact_mut(n)) {
+                diff(&row[..n - 1], &row[1..], &mut step[..n - 1]);
+                apply(grow, 1, &step[..n - 1]);
             }
+            diff(&comp[..n * (n - 1)], &comp[n..], &mut step);
+            apply(gcomp, n, &step);
         }
     }
     (value / count).to_f64().expect("finite")
