@@ -393,3 +393,20 @@ fn series_of(n: usize) -> Vec<SliceSpec> {
     }
     specs
 }
+
+#[test]
+fn stages_rerun_only_for_the_outputs_they_read() {
+    let p = Project::new(&[], 0);
+    let series = p.path("data/P1/series");
+    std::fs::create_dir_all(&series).unwrap();
+    let specs = series_of(4);
+    write_series(&series, &specs, default_name);
+    std::fs::write(series.join("reads.xml"), lidc_xml(specs[2].ipp[2])).unwrap();
+    p.run(&[]);
+    // A new consensus level changes ground_truth.json only: hu (which reads ct_hu) and drr (whose
+    // ROI centre is explicit in these tests) stay cached.
+    p.write_config("pipeline.toml", "cache", "out", "[ingest]\nclevel = 1.0\n");
+    let r = p.run(&[]);
+    assert_eq!(count(&r, "ingest", "computed"), 1);
+    assert_eq!((count(&r, "hu", "cached"), count(&r, "drr", "cached"), count(&r, "train", "cached")), (1, 1, 1));
+}

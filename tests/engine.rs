@@ -41,11 +41,12 @@ impl Stage for Concat {
             }
             parts.push(std::fs::read_to_string(&f.path)?);
         }
-        Ok(vec![Output::new("all.txt", parts.join(&self.sep))])
+        let count = parts.len().to_string();
+        Ok(vec![Output::new("all.txt", parts.join(&self.sep)), Output::new("files.txt", count)])
     }
 }
 
-/// Length of `concat/all.txt`, or only its parity.
+/// Length of `concat/all.txt`, or only its parity. Reads nothing else of `concat`.
 struct Length {
     parity_only: bool,
     runs: Counter,
@@ -62,6 +63,9 @@ impl Stage for Length {
     }
     fn params(&self) -> serde_json::Value {
         serde_json::json!({ "parity_only": self.parity_only })
+    }
+    fn reads(&self, _stage: &str, output: &str) -> bool {
+        output == "all.txt"
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         self.runs.fetch_add(1, Ordering::SeqCst);
@@ -345,4 +349,17 @@ fn graph_rejects_inputs_declared_later() {
         Box::new(Concat { sep: String::new(), runs: c.concat.clone() }),
     ]);
     assert!(g.is_err());
+}
+
+#[test]
+fn outputs_a_stage_does_not_read_do_not_invalidate_it() {
+    let w = two_patients();
+    let g = w.graph("", false);
+    w.run(&g, &[], false);
+    w.counters.take();
+    // An empty extra file: concat's all.txt is unchanged, its files.txt is not.
+    std::fs::write(w.path("data/P1/c.txt"), "").unwrap();
+    w.run(&g, &[], false);
+    assert_eq!(w.counters.take(), [1, 0, 0], "length reads only all.txt");
+    assert_eq!(w.out("P1/files.txt"), "3");
 }

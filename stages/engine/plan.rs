@@ -22,7 +22,8 @@ pub fn patient_inputs(stage: &dyn Stage, sources: &[SourceFile], finished: &Fini
         if input == SOURCE {
             out.extend(sources.iter().map(|f| (SOURCE.to_string(), f.rel.clone(), f.hash)));
         } else if let Some(outputs) = finished.get(input) {
-            out.extend(outputs.iter().map(|o| (input.to_string(), o.name.clone(), o.hash)));
+            let read = outputs.iter().filter(|o| stage.reads(input, &o.name));
+            out.extend(read.map(|o| (input.to_string(), o.name.clone(), o.hash)));
         }
     }
     out

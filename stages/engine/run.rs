@@ -142,7 +142,7 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
         } else {
             progress.started(stage.name(), COHORT);
             let inputs = plan::cohort_inputs(stage, &patients, &cohort_finished, &failed);
-            let ctx = Context { unit: COHORT, store, sources: &[], inputs: &cohort_finished, cohort: &patients };
+            let ctx = Context { stage, unit: COHORT, store, sources: &[], inputs: &cohort_finished, cohort: &patients };
             let (outcome, outputs) = run_stage(&shared, stage, COHORT, inputs, &ctx, &options.out_dir);
             match outputs {
                 Some(outputs) => drop(cohort_finished.insert(stage.name(), outputs)),
@@ -209,6 +209,7 @@ fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
                 let inputs = plan::patient_inputs(stage, sources, &job.finished);
                 let no_cohort = BTreeMap::new();
                 let ctx = Context {
+                    stage,
                     unit: &job.unit.id,
                     store: shared.store,
                     sources,

@@ -52,6 +52,12 @@ pub trait Stage: Send + Sync {
     fn is_cohort(&self) -> bool {
         false
     }
+    /// Whether this stage reads output `output` of its input `stage`. Only outputs it reads
+    /// enter its cache key, so a change elsewhere in that stage's outputs (a log with wall
+    /// times, say) does not make it rerun. All are read unless a stage says otherwise.
+    fn reads(&self, _stage: &str, _output: &str) -> bool {
+        true
+    }
     /// Whether output `name` is published to `out_dir` (all are, unless a stage says otherwise).
     fn publishes(&self, _name: &str) -> bool {
         true
@@ -120,6 +126,8 @@ pub type Finished = BTreeMap<&'static str, Vec<OutputRef>>;
 
 /// What a stage's `run` may read: its inputs, nothing else.
 pub struct Context<'a> {
+    /// The stage being run: what it may read.
+    pub(crate) stage: &'a dyn Stage,
     pub(crate) unit: &'a str,
     pub(crate) store: &'a Store,
     pub(crate) sources: &'a [SourceFile],
@@ -164,7 +172,8 @@ impl<'a> Context<'a> {
         }
         let outputs = self.inputs.get(stage).ok_or_else(|| anyhow!("stage `{stage}` is not an input here"))?;
         let store = self.store;
-        Ok(outputs.iter().map(|o| InputFile { name: o.name.clone(), path: store.blob_path(&o.hash) }).collect())
+        let read = outputs.iter().filter(|o| self.stage.reads(stage, &o.name));
+        Ok(read.map(|o| InputFile { name: o.name.clone(), path: store.blob_path(&o.hash) }).collect())
     }
 
     /// Path of a stored upstream output, for stages that stream a large file.
@@ -173,6 +182,9 @@ impl<'a> Context<'a> {
     }
 
     fn find<'f>(&self, finished: &'f Finished, stage: &str, name: &str) -> anyhow::Result<&'f OutputRef> {
+        if !self.stage.reads(stage, name) {
+            return Err(anyhow!("stage `{}` reads `{stage}/{name}` but does not declare it", self.stage.name()));
+        }
         finished
             .get(stage)
             .ok_or_else(|| anyhow!("stage `{stage}` is not an input here"))?

@@ -184,6 +184,15 @@ impl Stage for Drr {
     fn params(&self) -> serde_json::Value {
         super::params_json(&self.params)
     }
+    /// The normalised CT, and from ingest only what the ROI centre needs.
+    fn reads(&self, stage: &str, output: &str) -> bool {
+        match (stage, self.params.roi_center) {
+            ("hu", _) => output.starts_with("ct_unit."),
+            (_, RoiCenter::Mode(RoiMode::Nodule)) => output == "ground_truth.json",
+            (_, RoiCenter::Mode(RoiMode::Lungs)) => output.starts_with("ct_hu."),
+            (_, RoiCenter::Mm(_)) => false,
+        }
+    }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let ct_unit: Volume<f32> = read_volume(ctx, "hu", "ct_unit")?;
         let (roi_center_mm, mode) = self.roi_center(ctx)?;

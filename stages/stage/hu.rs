@@ -62,6 +62,9 @@ impl Stage for Hu {
     fn params(&self) -> serde_json::Value {
         super::params_json(&self.params)
     }
+    fn reads(&self, _stage: &str, output: &str) -> bool {
+        output.starts_with("ct_hu.")
+    }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let header = String::from_utf8(ctx.read("ingest", "ct_hu.mhd")?).context("ct_hu.mhd is not text")?;
         let ct_hu: Volume<i16> = mhd::decode(&header, &ctx.read("ingest", "ct_hu.raw")?)?;

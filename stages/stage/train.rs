@@ -36,6 +36,9 @@ impl Stage for Train {
         json.as_object_mut().expect("params are a table").remove("threads");
         json
     }
+    fn reads(&self, _stage: &str, output: &str) -> bool {
+        output == "cameras.json" || output.ends_with(".exr")
+    }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let backend = match self.params.backend {
             Backend::Cpu => "cpu",
