@@ -10,13 +10,13 @@
 
 use crate::engine::{Context, Output, Stage};
 use crate::formats::exr_image::{self, DrrImage};
-use crate::formats::{mhd, png};
+use crate::formats::png;
 use crate::geometry::{fit_focal_px, orbit, Aabb, Camera, SceneFrame, View};
 use crate::kernels::lung_field::lung_field_centroid_mm;
 use crate::kernels::raymarch::{render, VolumeField};
 use crate::stage::ingest::truth::GroundTruth;
 use crate::volume::Volume;
-use anyhow::{bail, Context as _};
+use anyhow::bail;
 use glam::{DMat4, DVec3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -194,7 +194,7 @@ impl Stage for Drr {
         }
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        let ct_unit: Volume<f32> = read_volume(ctx, "hu", "ct_unit")?;
+        let ct_unit: Volume<f32> = super::read_volume(ctx, "hu", "ct_unit")?;
         let (roi_center_mm, mode) = self.roi_center(ctx)?;
         let (set, images) = render_views(&self.params, &ct_unit, roi_center_mm, mode)?;
         let mut outputs = vec![Output::new("cameras.json", serde_json::to_vec_pretty(&set)?)];
@@ -234,7 +234,7 @@ impl Drr {
                 }
             }
             RoiCenter::Mode(RoiMode::Lungs) => {
-                let ct_hu: Volume<i16> = read_volume(ctx, "ingest", "ct_hu")?;
+                let ct_hu: Volume<i16> = super::read_volume(ctx, "ingest", "ct_hu")?;
                 match lung_field_centroid_mm(&ct_hu, LUNG_THRESHOLD_HU) {
                     Some(c) => Ok((c, "lungs")),
                     None => {
@@ -248,11 +248,6 @@ impl Drr {
 
 /// Lung field threshold for `roi_center = "lungs"`: between parenchyma (≈ −850) and soft tissue.
 pub const LUNG_THRESHOLD_HU: i16 = -400;
-
-fn read_volume<T: mhd::MetaElement>(ctx: &Context, stage: &str, name: &str) -> anyhow::Result<Volume<T>> {
-    let header = String::from_utf8(ctx.read(stage, &format!("{name}.mhd"))?).context("MetaImage header is not text")?;
-    Ok(mhd::decode(&header, &ctx.read(stage, &format!("{name}.raw"))?)?)
-}
 
 /// The whole stage as a pure function: cameras and the three images (coronal, sagittal, axial).
 pub fn render_views(

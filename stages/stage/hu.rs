@@ -6,7 +6,7 @@
 use crate::engine::{Context, Output, Stage};
 use crate::formats::mhd;
 use crate::volume::Volume;
-use anyhow::{bail, Context as _};
+use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
 pub const VERSION: u32 = 1;
@@ -66,8 +66,7 @@ impl Stage for Hu {
         output.starts_with("ct_hu.")
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        let header = String::from_utf8(ctx.read("ingest", "ct_hu.mhd")?).context("ct_hu.mhd is not text")?;
-        let ct_hu: Volume<i16> = mhd::decode(&header, &ctx.read("ingest", "ct_hu.raw")?)?;
+        let ct_hu: Volume<i16> = super::read_volume(ctx, "ingest", "ct_hu")?;
         let (header, raw) = mhd::encode(&normalise(&ct_hu, &self.params), "ct_unit.raw");
         Ok(vec![Output::new("ct_unit.mhd", header), Output::new("ct_unit.raw", raw)])
     }

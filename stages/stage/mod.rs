@@ -37,3 +37,15 @@ pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
 pub(crate) fn params_json<P: serde::Serialize>(params: &P) -> serde_json::Value {
     serde_json::to_value(params).expect("stage parameters serialise to JSON")
 }
+
+/// The MetaImage volume `<name>.mhd` + `<name>.raw` that input stage `stage` produced.
+pub(crate) fn read_volume<T: crate::formats::mhd::MetaElement>(
+    ctx: &crate::engine::Context,
+    stage: &str,
+    name: &str,
+) -> anyhow::Result<crate::volume::Volume<T>> {
+    use anyhow::Context as _;
+    let header = String::from_utf8(ctx.read(stage, &format!("{name}.mhd"))?)
+        .with_context(|| format!("{stage}/{name}.mhd is not text"))?;
+    Ok(crate::formats::mhd::decode(&header, &ctx.read(stage, &format!("{name}.raw"))?)?)
+}
