@@ -982,7 +982,7 @@ fn slice_gap(slices: &[CtSlice], positions: &[f64], gap_tolerance: f64) -> Resul
         return Ok(s.slice_thickness.or(s.spacing_between_slices).unwrap_or(1.0));
     }
     let gaps: Vec<f64> = positions.windows(2).map(|w| w[1] - w[0]).collect();
-    let median = median(&gaps);
+    let median = crate::kernels::stats::median(&gaps);
     let off = |g: f64| (g - median).abs() > gap_tolerance * median;
     let n_bad = gaps.iter().filter(|&&g| off(g)).count();
     if let Some(k) = gaps.iter().position(|&g| off(g)) {
@@ -996,18 +996,6 @@ fn slice_gap(slices: &[CtSlice], positions: &[f64], gap_tolerance: f64) -> Resul
         });
     }
     Ok(median)
-}
-
-/// Median of a non-empty list (mean of the two middle values for an even count).
-fn median(values: &[f64]) -> f64 {
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let mid = v.len() / 2;
-    if v.len() % 2 == 1 {
-        v[mid]
-    } else {
-        (v[mid - 1] + v[mid]) / 2.0
-    }
 }
 
 fn assemble(

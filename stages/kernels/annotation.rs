@@ -55,14 +55,7 @@ impl ScanGeometry {
     /// pylidc's `Scan.slice_spacing`: the median gap between consecutive slice positions
     /// (numpy's median: the mean of the two middle gaps when their count is even).
     pub fn slice_spacing_mm(&self) -> f64 {
-        let mut gaps: Vec<f64> = self.z_positions_mm.windows(2).map(|w| w[1] - w[0]).collect();
-        gaps.sort_by(f64::total_cmp);
-        let n = gaps.len();
-        if n % 2 == 1 {
-            gaps[n / 2]
-        } else {
-            (gaps[n / 2 - 1] + gaps[n / 2]) / 2.0
-        }
+        super::stats::median_gap(&self.z_positions_mm)
     }
 
     /// Farthest an ROI's z may lie from its slice: a tenth of the slice spacing.

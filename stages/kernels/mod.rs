@@ -10,3 +10,4 @@ pub mod lung_field;
 pub mod mask;
 pub mod polygon;
 pub mod raymarch;
+pub mod stats;

@@ -10,6 +10,7 @@ use crate::formats::dicom_writer::{write_ct_series, SeriesMeta};
 use crate::formats::lidc_xml::{self, ReadMessage};
 use crate::formats::png;
 use crate::kernels::consensus::{scan_truth, GroundTruthParams, NoduleTruth, ScanGeometry};
+use crate::kernels::stats::median_gap;
 use crate::volume::{Geometry, Volume};
 use anyhow::{anyhow, bail, Context as _};
 use serde::Deserialize;
@@ -49,11 +50,9 @@ impl ScanInfo {
     /// the real z positions, slice spacing their median gap.
     pub fn geometry(&self) -> Geometry {
         let ps = self.pixel_spacing_mm;
-        let mut gaps: Vec<f64> = self.zvals_mm.windows(2).map(|w| w[1] - w[0]).collect();
-        gaps.sort_by(f64::total_cmp);
         Geometry {
             dims: [self.cols, self.rows, self.zvals_mm.len()],
-            spacing_mm: [ps, ps, gaps[gaps.len() / 2]],
+            spacing_mm: [ps, ps, median_gap(&self.zvals_mm)],
             origin_mm: [-(self.cols as f64) / 2.0 * ps, -(self.rows as f64) / 2.0 * ps, self.zvals_mm[0]],
             direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         }
