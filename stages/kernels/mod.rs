@@ -11,3 +11,4 @@ pub mod mask;
 pub mod polygon;
 pub mod raymarch;
 pub mod stats;
+pub mod trilinear;

@@ -66,25 +66,7 @@ impl Field for VolumeField<'_> {
 
 /// Trilinear interpolation at continuous index `p`, clamped to the edge voxels.
 pub fn trilinear(data: &[f32], dims: [usize; 3], p: DVec3) -> f64 {
-    let mut base = [0usize; 3];
-    let mut frac = [0f64; 3];
-    for a in 0..3 {
-        let top = (dims[a] - 1) as f64;
-        let x = p[a].clamp(0.0, top);
-        let f = x.floor().min((top - 1.0).max(0.0));
-        base[a] = f as usize;
-        frac[a] = x - f;
-    }
-    let step = |a: usize| usize::from(dims[a] > 1);
-    let at = |i: usize, j: usize, k: usize| f64::from(data[i + dims[0] * (j + dims[1] * k)]);
-    let (i0, j0, k0) = (base[0], base[1], base[2]);
-    let (i1, j1, k1) = (i0 + step(0), j0 + step(1), k0 + step(2));
-    let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
-    let c00 = lerp(at(i0, j0, k0), at(i1, j0, k0), frac[0]);
-    let c10 = lerp(at(i0, j1, k0), at(i1, j1, k0), frac[0]);
-    let c01 = lerp(at(i0, j0, k1), at(i1, j0, k1), frac[0]);
-    let c11 = lerp(at(i0, j1, k1), at(i1, j1, k1), frac[0]);
-    lerp(lerp(c00, c10, frac[1]), lerp(c01, c11, frac[1]), frac[2])
+    super::trilinear::sample(data, dims, p.to_array())
 }
 
 /// `∫ field ds` along the ray `origin + t·dir` (unit `dir`) inside `aabb`: midpoint rule with

@@ -8,6 +8,7 @@
 //! alpha mask, when given, silences samples none of whose 8 neighbour nodes is kept.
 
 use crate::geometry::Aabb;
+use crate::kernels::trilinear;
 use glam::DVec3;
 use num_traits::Float;
 use rayon::prelude::*;
@@ -29,39 +30,18 @@ impl Lattice {
         )
     }
 
-    /// The lower corner node (linear index) of continuous index `q`, clamped to the outermost
-    /// nodes, and the fractional offsets from it.
+    fn dims(&self) -> [usize; 3] {
+        [self.n; 3]
+    }
+
+    /// The cell holding lattice point `q`: its lower corner node and fractional offsets.
     fn cell_of(&self, q: [f64; 3]) -> (usize, [f64; 3]) {
-        let n = self.n;
-        let top = (n - 1) as f64;
-        let mut base = [0usize; 3];
-        let mut frac = [0f64; 3];
-        for k in 0..3 {
-            let x = q[k].clamp(0.0, top);
-            let b = (x as usize).min(n.saturating_sub(2));
-            base[k] = b;
-            frac[k] = x - b as f64;
-        }
-        (base[0] + n * (base[1] + n * base[2]), frac)
+        trilinear::cell(q, self.dims())
     }
 
     /// The 8 corner nodes of the cell at `origin` and their trilinear weights for `frac`.
     fn corners(&self, origin: usize, frac: [f64; 3]) -> [(usize, f64); 8] {
-        let n = self.n;
-        let next = usize::from(n > 1);
-        let (sx, sy, sz) = (next, n * next, n * n * next);
-        let [fx, fy, fz] = frac;
-        let (gx, gy, gz) = (1.0 - fx, 1.0 - fy, 1.0 - fz);
-        [
-            (origin, gx * gy * gz),
-            (origin + sx, fx * gy * gz),
-            (origin + sy, gx * fy * gz),
-            (origin + sx + sy, fx * fy * gz),
-            (origin + sz, gx * gy * fz),
-            (origin + sx + sz, fx * gy * fz),
-            (origin + sy + sz, gx * fy * fz),
-            (origin + sx + sy + sz, fx * fy * fz),
-        ]
+        trilinear::corners(origin, frac, self.dims())
     }
 }
 
