@@ -179,8 +179,8 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     let mut mask: Option<Vec<bool>> = None;
     let mut log = Vec::new();
     // Row 0: the initial field, before any update (its "photo" is the full-view MSE).
-    let psnr_db = view_psnr(&renderer, &field, None, &per_view);
-    let photo = psnr_db.iter().map(|p| 10f64.powf(-p / 10.0)).sum::<f64>() / psnr_db.len() as f64;
+    let initial_mse = view_mse(&renderer, &field, None, &per_view);
+    let photo = initial_mse.iter().sum::<f64>() / initial_mse.len() as f64;
     let mut scratch = VmField::zeros(field.n, field.rank);
     let (l1, tv) =
         (regularize::l1(&field, 0.0, &mut scratch), regularize::tv(&field, params.tv_norm, 0.0, &mut scratch));
@@ -190,7 +190,7 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
         photo,
         l1,
         tv,
-        psnr_db,
+        psnr_db: initial_mse.iter().map(|&m| psnr_db(m)).collect(),
         lr: params.lr,
         seconds: started.elapsed().as_secs_f64(),
     };
@@ -227,7 +227,7 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
                 photo: result.mse,
                 l1,
                 tv,
-                psnr_db: view_psnr(&renderer, &field, mask.as_deref(), &per_view),
+                psnr_db: view_mse(&renderer, &field, mask.as_deref(), &per_view).into_iter().map(psnr_db).collect(),
                 lr,
                 seconds: started.elapsed().as_secs_f64(),
             };
@@ -238,15 +238,19 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     Fitted { field, log, mask, renderer }
 }
 
-/// PSNR (dB, peak 1) of each view rendered with midpoint samples.
-pub fn view_psnr(renderer: &Renderer, field: &VmField<f32>, mask: Option<&[bool]>, per_view: &[Vec<Ray>]) -> Vec<f64> {
+/// Mean squared error of each view rendered in full with midpoint samples.
+pub fn view_mse(renderer: &Renderer, field: &VmField<f32>, mask: Option<&[bool]>, per_view: &[Vec<Ray>]) -> Vec<f64> {
     let dense = field.compose();
     per_view
         .iter()
         .map(|rays| {
             let offsets = vec![renderer.step / 2.0; rays.len()];
-            let mse = renderer.batch(&dense, mask, rays, &offsets, None).mse;
-            10.0 * (1.0 / mse.max(1e-20)).log10()
+            renderer.batch(&dense, mask, rays, &offsets, None).mse
         })
         .collect()
+}
+
+/// PSNR (dB) of a mean squared error, peak 1.
+pub fn psnr_db(mse: f64) -> f64 {
+    10.0 * (1.0 / mse.max(1e-20)).log10()
 }
