@@ -17,6 +17,10 @@ pub struct Aabb {
 }
 
 impl Aabb {
+    pub fn new(min: [f64; 3], max: [f64; 3]) -> Aabb {
+        Aabb { min, max }
+    }
+
     pub fn min(&self) -> DVec3 {
         DVec3::from(self.min)
     }

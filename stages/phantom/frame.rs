@@ -16,22 +16,8 @@ pub(crate) const REF_HEIGHT_MM: f64 = 330.0;
 /// its own size (340 mm wide): a larger FOV means a proportionally larger patient.
 pub(crate) const REF_FOV_MM: f64 = 360.0;
 
-/// An axis-aligned box.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub(crate) struct Aabb {
-    pub lo: [f64; 3],
-    pub hi: [f64; 3],
-}
-
-impl Aabb {
-    pub(crate) fn new(lo: [f64; 3], hi: [f64; 3]) -> Aabb {
-        Aabb { lo, hi }
-    }
-
-    pub(crate) fn corners(&self) -> impl Iterator<Item = [f64; 3]> + '_ {
-        (0..8).map(move |c| [0, 1, 2].map(|a| if c >> a & 1 == 0 { self.lo[a] } else { self.hi[a] }))
-    }
-}
+/// Boxes in patient or reference millimetres: the scene's box type.
+pub(crate) use crate::geometry::Aabb;
 
 /// Voxel index `(i, j, k)` (column, row, slice) ↔ patient mm, for any orientation.
 #[derive(Debug, Clone)]
@@ -40,14 +26,15 @@ pub(crate) struct IndexMap {
     origin: [f64; 3],
     /// `step[a]`: patient-space displacement of one voxel along index axis `a`, mm.
     step: [[f64; 3]; 3],
-    /// Inverse of the matrix whose columns are `step`.
+    /// Rows of the inverse of the matrix whose columns are `step`: `index_a = Σ_c inverse[a][c]·d_c`.
     inverse: [[f64; 3]; 3],
 }
 
 impl IndexMap {
     pub(crate) fn new(geometry: &Geometry) -> IndexMap {
         let step: [[f64; 3]; 3] = std::array::from_fn(|a| geometry.direction[a].map(|c| c * geometry.spacing_mm[a]));
-        IndexMap { dims: geometry.dims, origin: geometry.origin_mm, step, inverse: invert_columns(&step) }
+        let inverse = glam::DMat3::from_cols_array_2d(&step).inverse().transpose().to_cols_array_2d();
+        IndexMap { dims: geometry.dims, origin: geometry.origin_mm, step, inverse }
     }
 
     pub(crate) fn to_patient(&self, ijk: [f64; 3]) -> [f64; 3] {
@@ -75,17 +62,17 @@ impl IndexMap {
     /// Patient-space box holding every voxel centre.
     pub(crate) fn patient_bounds(&self) -> Aabb {
         let last = self.dims.map(|n| n.saturating_sub(1) as f64);
-        bounds_of(Aabb::new([0.0; 3], last).corners().map(|c| self.to_patient(c)))
+        bounds_of(Aabb::new([0.0; 3], last).corners().into_iter().map(|c| self.to_patient(c.to_array())))
     }
 
     /// Inclusive index ranges `[lo, hi]` per axis of the voxels whose centres may lie in the
     /// patient box `b`, clipped to the grid; `None` if none can.
     pub(crate) fn index_range(&self, b: &Aabb) -> Option<[(usize, usize); 3]> {
-        let ib = bounds_of(b.corners().map(|c| self.to_index(c)));
+        let ib = bounds_of(b.corners().into_iter().map(|c| self.to_index(c.to_array())));
         let mut out = [(0, 0); 3];
         for (a, range) in out.iter_mut().enumerate() {
-            let lo = ib.lo[a].ceil().max(0.0);
-            let hi = ib.hi[a].floor().min(self.dims[a] as f64 - 1.0);
+            let lo = ib.min[a].ceil().max(0.0);
+            let hi = ib.max[a].floor().min(self.dims[a] as f64 - 1.0);
             if lo > hi {
                 return None;
             }
@@ -99,27 +86,11 @@ fn bounds_of(points: impl Iterator<Item = [f64; 3]>) -> Aabb {
     let mut b = Aabb::new([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for p in points {
         for (a, v) in p.into_iter().enumerate() {
-            b.lo[a] = b.lo[a].min(v);
-            b.hi[a] = b.hi[a].max(v);
+            b.min[a] = b.min[a].min(v);
+            b.max[a] = b.max[a].max(v);
         }
     }
     b
-}
-
-/// `m[a][c]` is column `a`, row `c`; returns `inv[a][c]` with `index_a = Σ_c inv[a][c]·p_c`.
-fn invert_columns(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    // Rows of the matrix M (M[r][a] = m[a][r]).
-    let e = |r: usize, a: usize| m[a][r];
-    let det = e(0, 0) * (e(1, 1) * e(2, 2) - e(1, 2) * e(2, 1)) - e(0, 1) * (e(1, 0) * e(2, 2) - e(1, 2) * e(2, 0))
-        + e(0, 2) * (e(1, 0) * e(2, 1) - e(1, 1) * e(2, 0));
-    let det = if det.abs() < 1e-12 { 1e-12 } else { det };
-    // inv = adj(M) / det; inv[a][c] is row a, column c of M⁻¹.
-    let cof = |r: usize, c: usize| {
-        let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
-        let (c1, c2) = ((c + 1) % 3, (c + 2) % 3);
-        e(r1, c1) * e(r2, c2) - e(r1, c2) * e(r2, c1)
-    };
-    std::array::from_fn(|a| std::array::from_fn(|c| cof(c, a) / det))
 }
 
 /// Patient mm ↔ reference-frame mm (see the module doc).
@@ -142,13 +113,13 @@ impl BodyFrame {
         let (normal, spacing) = grid.slice_step();
         let pixel = grid.pixel_mm();
         // Voxel centres span the FOV less one voxel; the FOV itself is one voxel wider.
-        let fov = (b.hi[0] - b.lo[0]).max(b.hi[1] - b.lo[1]) + pixel;
+        let fov = (b.max[0] - b.min[0]).max(b.max[1] - b.min[1]) + pixel;
         let slab = spacing * normal[2].abs();
-        let z_range = (b.hi[2] - b.lo[2] + slab).max(1.0);
+        let z_range = (b.max[2] - b.min[2] + slab).max(1.0);
         BodyFrame {
-            centre_xy_mm: [(b.lo[0] + b.hi[0]) / 2.0, (b.lo[1] + b.hi[1]) / 2.0],
+            centre_xy_mm: [(b.min[0] + b.max[0]) / 2.0, (b.min[1] + b.max[1]) / 2.0],
             scale_xy: (fov / REF_FOV_MM).max(1e-3),
-            z_lo_mm: b.lo[2] - slab / 2.0,
+            z_lo_mm: b.min[2] - slab / 2.0,
             scale_z: z_range / REF_HEIGHT_MM,
         }
     }
@@ -171,7 +142,7 @@ impl BodyFrame {
 
     /// A reference-frame box in patient mm (the map is an axis-aligned scaling).
     pub(crate) fn box_to_patient(self, b: &Aabb) -> Aabb {
-        Aabb::new(self.to_patient(b.lo), self.to_patient(b.hi))
+        Aabb::new(self.to_patient(b.min), self.to_patient(b.max))
     }
 }
 

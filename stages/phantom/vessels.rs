@@ -88,7 +88,7 @@ fn attraction_points(spec: &TreeSpec, lung_sd: &dyn Fn(V3) -> f32, rng: &mut Cha
         if points.len() == spec.points {
             break;
         }
-        let p: V3 = std::array::from_fn(|a| rng.gen_range(b.lo[a]..b.hi[a]) as f32);
+        let p: V3 = std::array::from_fn(|a| rng.gen_range(b.min[a]..b.max[a]) as f32);
         if lung_sd(p) < -POINT_MARGIN_MM {
             points.push(p);
         }
@@ -197,8 +197,9 @@ struct Grid {
 
 impl Grid {
     fn new(points: &[V3], b: &Aabb, cell_mm: f32) -> Grid {
-        let lo = b.lo.map(|v| v as f32);
-        let dims: [usize; 3] = std::array::from_fn(|a| (((b.hi[a] - b.lo[a]) as f32 / cell_mm).ceil() as usize).max(1));
+        let lo = b.min.map(|v| v as f32);
+        let dims: [usize; 3] =
+            std::array::from_fn(|a| (((b.max[a] - b.min[a]) as f32 / cell_mm).ceil() as usize).max(1));
         let mut cells = vec![Vec::new(); dims.iter().product()];
         let mut grid = Grid { lo, cell_mm, dims, cells: Vec::new() };
         for (q, p) in points.iter().enumerate() {
