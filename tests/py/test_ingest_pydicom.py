@@ -271,32 +271,26 @@ def test_ct_small_without_preamble(aret_pipe, tmp_path):
 # ----------------------------------------------------------------------- real series
 
 
-def test_dicomdirtests_ct5n_series_matches_pydicom_and_simpleitk(aret_pipe, tmp_path):
-    # 5 slices of 16x16, z from 8.76 down to -1.24 mm in 2.5 mm steps: uniform, and in
-    # decreasing z with the file names, so sorting is exercised.
-    files = dicomdir_series("98892001/CT5N")
-    assert len(files) == 5
-    run = run_ingest(aret_pipe, tmp_path, {"ct5n": files})
-    expect_ok(run)
-    ours, header = run.hu("ct5n")
-    expected, datasets = expected_hu(files)
-    assert_hu_equal(ours, expected)
-    assert_geometry_from_dicom(header, datasets, 2.5)
-    compare_with_simpleitk(run, "ct5n", tmp_path / "data" / "ct5n")
+# CT5N: 5 slices of 16x16, z from 8.76 down to -1.24 mm in 2.5 mm steps (decreasing z with the
+# file names, so sorting is exercised). CT2: its first slice (17106) is 202.5 mm away from the
+# other three (1.25 mm apart), so the last three form a valid series.
+REAL_SERIES = [
+    ("ct5n", "98892001/CT5N", (), 5, 2.5),
+    ("ct2", "77654033/CT2", ("17106",), 3, 1.25),
+]
 
 
-def test_dicomdirtests_ct2_uniform_part_matches_simpleitk(aret_pipe, tmp_path):
-    # CT2's first slice (17106) is 202.5 mm away from the other three (1.25 mm apart):
-    # the last three form a valid series.
-    files = [f for f in dicomdir_series("77654033/CT2") if f.name != "17106"]
-    assert len(files) == 3
-    run = run_ingest(aret_pipe, tmp_path, {"ct2": files})
+@pytest.mark.parametrize("patient,folder,left_out,n_slices,gap_mm", REAL_SERIES)
+def test_dicomdirtests_series_match_pydicom_and_simpleitk(aret_pipe, tmp_path, patient, folder, left_out, n_slices, gap_mm):
+    files = [f for f in dicomdir_series(folder) if f.name not in left_out]
+    assert len(files) == n_slices
+    run = run_ingest(aret_pipe, tmp_path, {patient: files})
     expect_ok(run)
-    ours, header = run.hu("ct2")
+    ours, header = run.hu(patient)
     expected, datasets = expected_hu(files)
     assert_hu_equal(ours, expected)
-    assert_geometry_from_dicom(header, datasets, 1.25)
-    compare_with_simpleitk(run, "ct2", tmp_path / "data" / "ct2")
+    assert_geometry_from_dicom(header, datasets, gap_mm)
+    compare_with_simpleitk(run, patient, tmp_path / "data" / patient)
 
 
 def test_non_ct_and_non_dicom_files_in_patient_folder_are_skipped(aret_pipe, tmp_path):
