@@ -7,7 +7,11 @@
 
 use aret_pipe::formats::exr_image;
 use aret_pipe::stage::drr::CameraSet;
-use aret_pipe::train::fit::{fit, TrainParams, Views};
+use aret_pipe::train::adam::{Adam, AdamParams};
+use aret_pipe::train::field::VmField;
+use aret_pipe::train::fit::{fit, renderer, TrainParams, Views};
+use aret_pipe::train::regularize;
+use rand::SeedableRng;
 use std::time::Instant;
 
 fn main() -> anyhow::Result<()> {
@@ -24,6 +28,7 @@ fn main() -> anyhow::Result<()> {
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
     let params = TrainParams { iterations, log_every: iterations, ..TrainParams::default() };
     let mut per_iteration = Vec::new();
+    let mut last_field = None;
     for run in 0..runs {
         let t = Instant::now();
         let fitted = fit(&params, &views, |_| {});
@@ -31,6 +36,7 @@ fn main() -> anyhow::Result<()> {
         let last = fitted.log.last().expect("a log row");
         println!("run {run}: {iterations} iterations in {s:.2} s; PSNR {:?} dB", last.psnr_db);
         per_iteration.push(s / iterations as f64);
+        last_field = Some(fitted.field);
     }
     per_iteration.sort_by(f64::total_cmp);
     let median = per_iteration[per_iteration.len() / 2];
@@ -40,5 +46,65 @@ fn main() -> anyhow::Result<()> {
         rayon::current_num_threads(),
         median * 3000.0
     );
+    profile_kernels(&params, &views, &last_field.expect("at least one run"));
     Ok(())
+}
+
+/// Median time of each kernel of one iteration, on the trained field (realistic activity).
+fn profile_kernels(params: &TrainParams, views: &Views, field: &VmField<f32>) {
+    let renderer = renderer(params, views.aabb);
+    let pool: Vec<_> =
+        views.rays().into_iter().flatten().filter(|r| views.aabb.intersect(r.origin, r.dir).is_some()).collect();
+    // A batch as training draws it: a random subset, traced in pool order.
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    let mut picked = rand::seq::index::sample(&mut rng, pool.len(), params.batch_rays).into_vec();
+    picked.sort_unstable();
+    let batch: Vec<_> = picked.iter().map(|&i| pool[i]).collect();
+    let offsets: Vec<f64> = (0..batch.len()).map(|i| renderer.step * ((i * 37) % 101) as f64 / 101.0).collect();
+    let dense = field.compose();
+    let mut grad_dense = vec![0f32; dense.len()];
+    let mut grad = field.contract(&grad_dense);
+    let mut adam =
+        Adam::new(AdamParams { lr: 0.0, beta1: 0.9, beta2: 0.99, eps: 1e-8, decay_ratio: 1.0, iterations: 1 }, field);
+    let mut scratch = field.clone();
+    let median_ms = |f: &mut dyn FnMut()| {
+        let mut times: Vec<f64> = (0..21)
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .collect();
+        times.sort_by(f64::total_cmp);
+        times[times.len() / 2]
+    };
+    let rows = [
+        ("compose", median_ms(&mut || drop(std::hint::black_box(field.compose())))),
+        ("render only", median_ms(&mut || drop(renderer.batch(&dense, None, &batch, &offsets, None)))),
+        (
+            "render + scatter",
+            median_ms(&mut || {
+                grad_dense.fill(0.0);
+                renderer.batch(&dense, None, &batch, &offsets, Some(&mut grad_dense));
+            }),
+        ),
+        ("contract", median_ms(&mut || grad = field.contract(&grad_dense))),
+        (
+            "L1 + TV",
+            median_ms(&mut || {
+                regularize::l1(field, 1e-4, &mut grad);
+                regularize::tv(field, params.tv_norm, 1e-5, &mut grad);
+            }),
+        ),
+        (
+            "Adam",
+            median_ms(&mut || {
+                adam.update(&mut scratch, &grad);
+            }),
+        ),
+    ];
+    println!("kernel medians (ms, 21 repeats):");
+    for (name, ms) in rows {
+        println!("  {name:<18} {ms:7.3}");
+    }
 }

@@ -5,6 +5,7 @@
 
 /// The cell holding continuous index `q` on a lattice of `dims` (x fastest): the linear index
 /// of its lower corner node and the fractional position inside it.
+#[inline]
 pub fn cell(q: [f64; 3], dims: [usize; 3]) -> (usize, [f64; 3]) {
     let mut base = [0usize; 3];
     let mut frac = [0f64; 3];
@@ -19,6 +20,7 @@ pub fn cell(q: [f64; 3], dims: [usize; 3]) -> (usize, [f64; 3]) {
 
 /// The 8 corner nodes of the cell at `origin` and their trilinear weights for `frac` (an axis
 /// with a single node repeats it with the other weight).
+#[inline]
 pub fn corners(origin: usize, frac: [f64; 3], dims: [usize; 3]) -> [(usize, f64); 8] {
     let sx = usize::from(dims[0] > 1);
     let sy = dims[0] * usize::from(dims[1] > 1);

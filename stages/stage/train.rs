@@ -87,7 +87,10 @@ impl Stage for Train {
         };
         let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();
         Ok(vec![
-            Output::new("model.safetensors", model::encode(&fitted.field, fitted.mask.as_deref(), &meta)?),
+            Output::new(
+                "model.safetensors",
+                model::encode(&fitted.field, fitted.mask.as_ref().map(|m| m.nodes.as_slice()), &meta)?,
+            ),
             Output::new("train_log.csv", log_csv(&fitted.log, &views_named)),
             Output::new("loss.svg", loss_svg(&fitted.log)),
         ])

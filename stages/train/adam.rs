@@ -3,6 +3,10 @@
 
 use super::field::VmField;
 use num_traits::Float;
+use rayon::prelude::*;
+
+/// Entries per parallel task (elementwise: the split cannot change any result).
+const CHUNK: usize = 8192;
 
 #[derive(Debug, Clone, Copy)]
 pub struct AdamParams {
@@ -46,11 +50,14 @@ impl<T: Float + Send + Sync> Adam<T> {
         let sqrt_bias2 = c(bias2.sqrt());
         for (((x, g), m), v) in field.params_mut().zip(grad.params()).zip(self.m.params_mut()).zip(self.v.params_mut())
         {
-            for i in 0..x.len() {
-                m[i] = b1 * m[i] + (T::one() - b1) * g[i];
-                v[i] = b2 * v[i] + (T::one() - b2) * g[i] * g[i];
-                x[i] = x[i] - lr_t * m[i] / (v[i].sqrt() / sqrt_bias2 + eps);
-            }
+            let chunks = x.par_chunks_mut(CHUNK).zip(m.par_chunks_mut(CHUNK)).zip(v.par_chunks_mut(CHUNK));
+            chunks.zip(g.par_chunks(CHUNK)).for_each(|(((x, m), v), g)| {
+                for i in 0..x.len() {
+                    m[i] = b1 * m[i] + (T::one() - b1) * g[i];
+                    v[i] = b2 * v[i] + (T::one() - b2) * g[i] * g[i];
+                    x[i] = x[i] - lr_t * m[i] / (v[i].sqrt() / sqrt_bias2 + eps);
+                }
+            });
         }
         lr
     }

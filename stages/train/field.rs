@@ -8,11 +8,11 @@
 //! ([`VmField::contract`]): exact, and far cheaper than sampling the factors per point.
 //! Nodes sit at the N cell centres of the box (first node half a cell in from the face).
 
+use super::gemm::{gemm, Layout, Scalar, Shape};
 use num_traits::Float;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
-use rayon::prelude::*;
 
 /// The three (plane axes, line axis) pairs, in factor order.
 pub const PAIRS: [([usize; 2], usize); 3] = [([0, 1], 2), ([0, 2], 1), ([1, 2], 0)];
@@ -59,59 +59,6 @@ impl<T: Float + Send + Sync> VmField<T> {
         self.len() == 0
     }
 
-    /// The dense pre-activation `F` on the node lattice, index `x + N·(y + N·z)`. Every loop
-    /// runs over a contiguous row, so it vectorises; z-slabs run in parallel.
-    pub fn compose(&self) -> Vec<T> {
-        let (n, rank) = (self.n, self.rank);
-        let mut dense = vec![T::zero(); n * n * n];
-        dense.par_chunks_mut(n * n).enumerate().for_each(|(z, slab)| {
-            for r in 0..rank {
-                let [p0, p1, p2] = [0, 1, 2].map(|p| &self.planes[p][r * n * n..(r + 1) * n * n]);
-                let [l0, l1, l2] = [0, 1, 2].map(|p| &self.lines[p][r * n..(r + 1) * n]);
-                // XY ⊗ Z: slab += L0[z] · P0 (the whole XY plane).
-                axpy(slab, l0[z], p0);
-                for y in 0..n {
-                    let row = &mut slab[n * y..n * (y + 1)];
-                    // XZ ⊗ Y: row += L1[y] · P1[·, z];  YZ ⊗ X: row += P2[y, z] · L2.
-                    axpy(row, l1[y], &p1[n * z..n * (z + 1)]);
-                    axpy(row, p2[y + n * z], l2);
-                }
-            }
-        });
-        dense
-    }
-
-    /// The factors' gradient from the gradient `grad` of the loss with respect to `F`.
-    pub fn contract(&self, grad: &[T]) -> VmField<T> {
-        let (n, rank) = (self.n, self.rank);
-        let mut out = VmField::zeros(n, rank);
-        let [g0, g1, g2] = &mut out.planes;
-        let [h0, h1, h2] = &mut out.lines;
-        // One component per task: its plane and line gradients of all three pairs.
-        let planes = g0.par_chunks_mut(n * n).zip(g1.par_chunks_mut(n * n)).zip(g2.par_chunks_mut(n * n));
-        let lines = h0.par_chunks_mut(n).zip(h1.par_chunks_mut(n)).zip(h2.par_chunks_mut(n));
-        planes.zip(lines).enumerate().for_each(|(r, (((dp0, dp1), dp2), ((dl0, dl1), dl2)))| {
-            let [p0, p1, p2] = [0, 1, 2].map(|p| &self.planes[p][r * n * n..(r + 1) * n * n]);
-            let [l0, l1, l2] = [0, 1, 2].map(|p| &self.lines[p][r * n..(r + 1) * n]);
-            for z in 0..n {
-                let slab = &grad[n * n * z..n * n * (z + 1)];
-                // XY ⊗ Z: dP0 += L0[z]·dF_z, dL0[z] = <dF_z, P0>.
-                axpy(dp0, l0[z], slab);
-                dl0[z] = dl0[z] + dot(slab, p0);
-                for y in 0..n {
-                    let row = &slab[n * y..n * (y + 1)];
-                    // XZ ⊗ Y: dP1[·, z] += L1[y]·row, dL1[y] += <row, P1[·, z]>.
-                    axpy(&mut dp1[n * z..n * (z + 1)], l1[y], row);
-                    dl1[y] = dl1[y] + dot(row, &p1[n * z..n * (z + 1)]);
-                    // YZ ⊗ X: dP2[y, z] += <row, L2>, dL2 += P2[y, z]·row.
-                    dp2[y + n * z] = dp2[y + n * z] + dot(row, l2);
-                    axpy(dl2, p2[y + n * z], row);
-                }
-            }
-        });
-        out
-    }
-
     /// Every factor as one flat list (planes then lines, in pair order).
     pub fn params(&self) -> impl Iterator<Item = &Vec<T>> {
         self.planes.iter().chain(self.lines.iter())
@@ -122,26 +69,88 @@ impl<T: Float + Send + Sync> VmField<T> {
     }
 }
 
-/// `y += a·x`.
-fn axpy<T: Float>(y: &mut [T], a: T, x: &[T]) {
-    for (yi, &xi) in y.iter_mut().zip(x) {
-        *yi = *yi + a * xi;
+// Compose and contract are matrix products over the rank axis (GEMMs). With the dense field
+// `F[x + N·y + N²·z]` and factors `P[r·N² + u + N·v]`, `L[r·N + w]`:
+//   XY⊗Z: F as (xy × z)  = P0ᵀ (xy × r) · L0 (r × z)
+//   XZ⊗Y: F_z as (x × y) = P1ᵀ[·, z] (x × r) · L1 (r × y), one product per z
+//   YZ⊗X: F as (yz × x)  = P2ᵀ (yz × r) · L2 (r × x)
+// and contract takes the transposed products of dF with the other factor of each pair.
+impl<T: Scalar> VmField<T> {
+    /// The dense pre-activation `F` on the node lattice, index `x + N·(y + N·z)`.
+    pub fn compose(&self) -> Vec<T> {
+        let (n, r) = (self.n, self.rank);
+        let nn = n * n;
+        let mut dense = vec![T::zero(); nn * n];
+        let [p0, p1, p2] = &self.planes;
+        let [l0, l1, l2] = &self.lines;
+        let one = T::one();
+        let single = Shape { count: 1, m: nn, k: r, n };
+        gemm(
+            single,
+            (p0, Layout::new(0, 1, nn)),
+            (l0, Layout::new(0, n, 1)),
+            T::zero(),
+            (&mut dense, Layout::new(0, 1, nn)),
+        );
+        let per_z = Shape { count: n, m: n, k: r, n };
+        let (a1, c1) = (Layout::new(0, 1, nn).batched(n), Layout::new(0, 1, n).batched(nn));
+        gemm(per_z, (p1, a1), (l1, Layout::new(0, n, 1)), one, (&mut dense, c1));
+        gemm(single, (p2, Layout::new(0, 1, nn)), (l2, Layout::new(0, n, 1)), one, (&mut dense, Layout::new(0, n, 1)));
+        dense
     }
-}
 
-/// `Σ x·y` in a fixed order: eight interleaved partial sums (so it vectorises), then the
-/// remainder, then the partials pairwise.
-fn dot<T: Float>(x: &[T], y: &[T]) -> T {
-    let mut acc = [T::zero(); 8];
-    let (xc, yc) = (x.chunks_exact(8), y.chunks_exact(8));
-    let (xr, yr) = (xc.remainder(), yc.remainder());
-    for (a, b) in xc.zip(yc) {
-        for k in 0..8 {
-            acc[k] = acc[k] + a[k] * b[k];
+    /// The factors' gradient from the gradient `grad` of the loss with respect to `F`.
+    pub fn contract(&self, grad: &[T]) -> VmField<T> {
+        let (n, r) = (self.n, self.rank);
+        let nn = n * n;
+        let mut out = VmField::zeros(n, r);
+        let zero = T::zero();
+        let planes_t = Layout::new(0, 1, nn); // P as (uv × r)
+        let lines_t = Layout::new(0, 1, n); // L as (w × r)
+                                            // dP (uv × r) = dF (uv × w) · Lᵀ (w × r);  dL (r × w) = P (r × uv) · dF (uv × w).
+        let dense_xy_z = Layout::new(0, 1, nn);
+        let dense_yz_x = Layout::new(0, n, 1);
+        let plane_shape = Shape { count: 1, m: nn, k: n, n: r };
+        let line_shape = Shape { count: 1, m: r, k: nn, n };
+        let [dp0, dp1, dp2] = &mut out.planes;
+        let [dl0, dl1, dl2] = &mut out.lines;
+        gemm(plane_shape, (grad, dense_xy_z), (&self.lines[0], lines_t), zero, (dp0, planes_t));
+        gemm(
+            line_shape,
+            (&self.planes[0], Layout::new(0, nn, 1)),
+            (grad, dense_xy_z),
+            zero,
+            (dl0, Layout::new(0, n, 1)),
+        );
+        gemm(plane_shape, (grad, dense_yz_x), (&self.lines[2], lines_t), zero, (dp2, planes_t));
+        gemm(
+            line_shape,
+            (&self.planes[2], Layout::new(0, nn, 1)),
+            (grad, dense_yz_x),
+            zero,
+            (dl2, Layout::new(0, n, 1)),
+        );
+        // XZ⊗Y, per z: dP1[·, z] (x × r) = dF_z (x × y) · L1ᵀ (y × r), and dL1 (r × y) sums
+        // P1[·, z] (r × x) · dF_z (x × y) over z — per-z products first, then the sum in z order.
+        let dense_z = Layout::new(0, 1, n).batched(nn);
+        let per_z = |m, k, n| Shape { count: self.n, m, k, n };
+        gemm(per_z(n, n, r), (grad, dense_z), (&self.lines[1], lines_t), zero, (dp1, Layout::new(0, 1, nn).batched(n)));
+        let mut partial = vec![zero; n * r * n];
+        let p1_z = Layout::new(0, nn, 1).batched(n);
+        gemm(
+            per_z(r, n, n),
+            (&self.planes[1], p1_z),
+            (grad, dense_z),
+            zero,
+            (&mut partial, Layout::new(0, n, 1).batched(r * n)),
+        );
+        for slab in partial.chunks_exact(r * n) {
+            for (d, &p) in dl1.iter_mut().zip(slab) {
+                *d = *d + p;
+            }
         }
+        out
     }
-    let tail = xr.iter().zip(yr).fold(T::zero(), |t, (&a, &b)| t + a * b);
-    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
 }
 
 #[cfg(test)]

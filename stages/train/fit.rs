@@ -3,7 +3,7 @@
 use super::adam::{Adam, AdamParams};
 use super::field::VmField;
 use super::regularize::{self, TvNorm};
-use super::render::{Lattice, Ray, Renderer};
+use super::render::{AlphaMask, Lattice, Ray, Renderer, MAX_GRID};
 use crate::geometry::{Aabb, Camera};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
@@ -56,8 +56,8 @@ pub enum Backend {
 
 impl TrainParams {
     pub fn check(&self) -> anyhow::Result<()> {
-        if self.grid < 2 || self.rank == 0 || self.iterations == 0 || self.batch_rays == 0 {
-            anyhow::bail!("[train] grid must be ≥ 2 and rank, iterations, batch_rays ≥ 1");
+        if self.grid < 2 || self.grid > MAX_GRID || self.rank == 0 || self.iterations == 0 || self.batch_rays == 0 {
+            anyhow::bail!("[train] grid must be in [2, {MAX_GRID}] and rank, iterations, batch_rays ≥ 1");
         }
         for (key, v) in [("scale", self.scale), ("lr", self.lr), ("lr_decay_ratio", self.lr_decay_ratio)] {
             if !(v.is_finite() && v > 0.0) {
@@ -141,7 +141,7 @@ impl Views<'_> {
 pub struct Fitted {
     pub field: VmField<f32>,
     pub log: Vec<LogRow>,
-    pub mask: Option<Vec<bool>>,
+    pub mask: Option<AlphaMask>,
     pub renderer: Renderer,
 }
 
@@ -176,7 +176,7 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     let mut adam = Adam::new(adam_params, &field);
     let mut order: Vec<usize> = (0..pool.len()).collect();
     let mut cursor = order.len(); // reshuffle on first use
-    let mut mask: Option<Vec<bool>> = None;
+    let mut mask: Option<AlphaMask> = None;
     let mut log = Vec::new();
     // Row 0: the initial field, before any update (its "photo" is the full-view MSE).
     let initial_mse = view_mse(&renderer, &field, None, &per_view);
@@ -198,21 +198,27 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     log.push(initial);
     let mut batch = Vec::with_capacity(params.batch_rays);
     let mut offsets = Vec::with_capacity(params.batch_rays);
+    let mut drawn: Vec<(usize, f64)> = Vec::with_capacity(params.batch_rays);
     for it in 0..params.iterations {
-        batch.clear();
-        offsets.clear();
-        while batch.len() < params.batch_rays.min(pool.len()) {
+        drawn.clear();
+        while drawn.len() < params.batch_rays.min(pool.len()) {
             if cursor == order.len() {
                 order.shuffle(&mut rng);
                 cursor = 0;
             }
-            batch.push(pool[order[cursor]]);
-            offsets.push(rng.gen::<f64>() * renderer.step);
+            drawn.push((order[cursor], rng.gen::<f64>() * renderer.step));
             cursor += 1;
         }
+        // Trace in pool order (view, then pixel row): neighbouring rays share lattice cells,
+        // so they hit the cache. The drawn set and offsets are unchanged.
+        drawn.sort_unstable_by_key(|&(i, _)| i);
+        batch.clear();
+        offsets.clear();
+        batch.extend(drawn.iter().map(|&(i, _)| pool[i]));
+        offsets.extend(drawn.iter().map(|&(_, o)| o));
         let dense = field.compose();
         let mut grad_dense = vec![0f32; dense.len()];
-        let result = renderer.batch(&dense, mask.as_deref(), &batch, &offsets, Some(&mut grad_dense));
+        let result = renderer.batch(&dense, mask.as_ref(), &batch, &offsets, Some(&mut grad_dense));
         let mut grad = field.contract(&grad_dense);
         let l1 = regularize::l1(&field, params.lambda_l1 as f32, &mut grad);
         let tv = regularize::tv(&field, params.tv_norm, params.lambda_tv as f32, &mut grad);
@@ -227,7 +233,7 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
                 photo: result.mse,
                 l1,
                 tv,
-                psnr_db: view_mse(&renderer, &field, mask.as_deref(), &per_view).into_iter().map(psnr_db).collect(),
+                psnr_db: view_mse(&renderer, &field, mask.as_ref(), &per_view).into_iter().map(psnr_db).collect(),
                 lr,
                 seconds: started.elapsed().as_secs_f64(),
             };
@@ -239,7 +245,12 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
 }
 
 /// Mean squared error of each view rendered in full with midpoint samples.
-pub fn view_mse(renderer: &Renderer, field: &VmField<f32>, mask: Option<&[bool]>, per_view: &[Vec<Ray>]) -> Vec<f64> {
+pub fn view_mse(
+    renderer: &Renderer,
+    field: &VmField<f32>,
+    mask: Option<&AlphaMask>,
+    per_view: &[Vec<Ray>],
+) -> Vec<f64> {
     let dense = field.compose();
     per_view
         .iter()

@@ -6,5 +6,6 @@
 pub mod adam;
 pub mod field;
 pub mod fit;
+pub mod gemm;
 pub mod regularize;
 pub mod render;

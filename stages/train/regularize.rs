@@ -7,6 +7,7 @@
 
 use super::field::VmField;
 use num_traits::Float;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -26,16 +27,25 @@ fn sign<T: Float>(x: T) -> T {
     }
 }
 
+/// Entries per parallel task; fixed, so sums run in one order whatever the thread count.
+const CHUNK: usize = 8192;
+
 /// L1 and its gradient (added to `grad` scaled by `weight`).
 pub fn l1<T: Float + Send + Sync>(field: &VmField<T>, weight: T, grad: &mut VmField<T>) -> f64 {
     let mut value = 0.0;
     for (factor, g) in field.params().zip(grad.params_mut()) {
         let per_entry = weight / T::from(factor.len()).expect("length");
-        let mut sum = T::zero();
-        for (gi, &x) in g.iter_mut().zip(factor) {
-            sum = sum + x.abs();
-            *gi = *gi + per_entry * sign(x);
-        }
+        let partial: Vec<T> = factor
+            .par_chunks(CHUNK)
+            .zip(g.par_chunks_mut(CHUNK))
+            .map(|(x, g)| {
+                for (gi, &xi) in g.iter_mut().zip(x) {
+                    *gi = *gi + per_entry * sign(xi);
+                }
+                lane_sum(x.iter().map(|v| v.abs()))
+            })
+            .collect();
+        let sum = partial.into_iter().fold(T::zero(), |a, b| a + b);
         value += sum.to_f64().expect("finite") / factor.len() as f64;
     }
     value
@@ -50,30 +60,37 @@ pub fn tv<T: Float + Send + Sync>(field: &VmField<T>, norm: TvNorm, weight: T, g
     let count = T::from(rank * n * (n - 1)).expect("count");
     let scale = weight / count;
     let mut value = T::zero();
+    for (plane, g) in field.planes.iter().zip(grad.planes.iter_mut()) {
+        let per_component: Vec<T> = plane
+            .par_chunks_exact(n * n)
+            .zip(g.par_chunks_exact_mut(n * n))
+            .map(|(comp, g)| tv_component(comp, g, n, norm, scale))
+            .collect();
+        value = per_component.into_iter().fold(value, |a, b| a + b);
+    }
+    (value / count).to_f64().expect("finite")
+}
+
+/// One `n × n` component: the sum of its horizontal and vertical difference penalties, and
+/// their gradient, scaled, added to `g`.
+fn tv_component<T: Float>(comp: &[T], g: &mut [T], n: usize, norm: TvNorm, scale: T) -> T {
+    // Each difference d_k = b_k − a_k adds |d| (or d²); ∂/∂d_k, scaled, goes to b_k with + and
+    // to a_k with −. Differences run between contiguous slices (a row and itself shifted by
+    // one; the plane and itself shifted by one row), the gradient in two passes after.
     let mut step = vec![T::zero(); n * (n - 1)];
-    // Each difference d_k = b_k − a_k adds |d| (or d²); ∂/∂d_k, scaled, goes to b_k with + and to
-    // a_k with −. Differences are taken between contiguous slices (a row and itself shifted by
-    // one; the plane and itself shifted by one row), then applied in two passes.
-    // One monomorphic loop per norm; the value sums in eight lanes so the loop vectorises.
-    let mut diff = |a: &[T], b: &[T], step: &mut [T]| {
-        let mut lanes = [T::zero(); 8];
+    let mut value = T::zero();
+    let mut penalise = |a: &[T], b: &[T], step: &mut [T]| {
+        let diffs = a.iter().zip(b).map(|(&x, &y)| y - x);
         match norm {
             TvNorm::L1 => {
-                for (k, ((&x, &y), s)) in a.iter().zip(b).zip(step.iter_mut()).enumerate() {
-                    let d = y - x;
-                    lanes[k % 8] = lanes[k % 8] + d.abs();
-                    *s = scale * sign(d);
-                }
+                value = value + lane_sum(diffs.clone().map(|d| d.abs()));
+                step.iter_mut().zip(diffs).for_each(|(s, d)| *s = scale * sign(d));
             }
             TvNorm::L2 => {
-                for (k, ((&x, &y), s)) in a.iter().zip(b).zip(step.iter_mut()).enumerate() {
-                    let d = y - x;
-                    lanes[k % 8] = lanes[k % 8] + d * d;
-                    *s = scale * (d + d);
-                }
+                value = value + lane_sum(diffs.clone().map(|d| d * d));
+                step.iter_mut().zip(diffs).for_each(|(s, d)| *s = scale * (d + d));
             }
         }
-        value = lanes.iter().fold(value, |acc, &l| acc + l);
     };
     let apply = |g: &mut [T], shift: usize, step: &[T]| {
         for (gi, &s) in g.iter_mut().zip(step) {
@@ -83,15 +100,21 @@ pub fn tv<T: Float + Send + Sync>(field: &VmField<T>, norm: TvNorm, weight: T, g
             *gi = *gi + s;
         }
     };
-    for (plane, g) in field.planes.iter().zip(grad.planes.iter_mut()) {
-        for (comp, gcomp) in plane.chunks_exact(n * n).zip(g.chunks_exact_mut(n * n)) {
-            for (row, grow) in comp.chunks_exact(n).zip(gcomp.chunks_exact_mut(n)) {
-                diff(&row[..n - 1], &row[1..], &mut step[..n - 1]);
-                apply(grow, 1, &step[..n - 1]);
-            }
-            diff(&comp[..n * (n - 1)], &comp[n..], &mut step);
-            apply(gcomp, n, &step);
-        }
+    for (row, grow) in comp.chunks_exact(n).zip(g.chunks_exact_mut(n)) {
+        penalise(&row[..n - 1], &row[1..], &mut step[..n - 1]);
+        apply(grow, 1, &step[..n - 1]);
     }
-    (value / count).to_f64().expect("finite")
+    penalise(&comp[..n * (n - 1)], &comp[n..], &mut step);
+    apply(g, n, &step);
+    value
+}
+
+/// `Σ values` in eight interleaved partial sums (so the loop vectorises), then the partials
+/// pairwise: one fixed order.
+fn lane_sum<T: Float>(values: impl Iterator<Item = T>) -> T {
+    let mut lanes = [T::zero(); 8];
+    for (k, v) in values.enumerate() {
+        lanes[k & 7] = lanes[k & 7] + v;
+    }
+    ((lanes[0] + lanes[4]) + (lanes[1] + lanes[5])) + ((lanes[2] + lanes[6]) + (lanes[3] + lanes[7]))
 }

@@ -7,6 +7,7 @@
 //! beyond the outermost ones, and `Î = exp(−s · Σ σ_k δ)`, the DRR's Beer–Lambert model. An
 //! alpha mask, when given, silences samples none of whose 8 neighbour nodes is kept.
 
+use super::gemm::Scalar;
 use crate::geometry::Aabb;
 use crate::kernels::trilinear;
 use glam::DVec3;
@@ -29,27 +30,6 @@ impl Lattice {
             std::array::from_fn(|k| dir[k] / cell[k]),
         )
     }
-
-    fn dims(&self) -> [usize; 3] {
-        [self.n; 3]
-    }
-
-    /// The cell holding lattice point `q`: its lower corner node and fractional offsets.
-    fn cell_of(&self, q: [f64; 3]) -> (usize, [f64; 3]) {
-        trilinear::cell(q, self.dims())
-    }
-
-    /// The 8 corner nodes of the cell at `origin` and their trilinear weights for `frac`.
-    fn corners(&self, origin: usize, frac: [f64; 3]) -> [(usize, f64); 8] {
-        trilinear::corners(origin, frac, self.dims())
-    }
-}
-
-/// A sample that passed the mask with a positive activation: where its gradient goes.
-#[derive(Debug, Clone, Copy)]
-struct Active {
-    cell: usize,
-    frac: [f64; 3],
 }
 
 /// A training ray: origin, unit direction, and the measured pixel `I/I0`.
@@ -75,98 +55,235 @@ pub struct BatchResult<T> {
     pub mse: f64,
 }
 
-impl Renderer {
-    /// The continuous lattice index of each sample of `ray` with offset `offset` ∈ [0, step).
-    fn samples(&self, ray: &Ray, offset: f64) -> impl Iterator<Item = [f64; 3]> {
-        let (t0, t1) = self.lattice.aabb.intersect(ray.origin, ray.dir).unwrap_or((0.0, 0.0));
-        let (a, b) = self.lattice.index_line(ray.origin, ray.dir);
-        let step = self.step;
-        (0..)
-            .map(move |k| t0 + offset + k as f64 * step)
-            .take_while(move |&t| t < t1)
-            .map(move |t| std::array::from_fn(|k| a[k] + t * b[k]))
-    }
+/// The alpha mask: kept lattice nodes, and the cells with at least one kept corner (the
+/// samples that still contribute).
+#[derive(Debug, Clone, PartialEq)]
+pub struct AlphaMask {
+    pub nodes: Vec<bool>,
+    cells: Vec<bool>,
+}
 
-    /// `Î` of one ray; with `active`, also records the samples whose σ is positive (their
-    /// gradient is non-zero) for the backward pass.
-    fn trace<T: Float>(
-        &self,
-        dense: &[T],
-        mask: Option<&[bool]>,
-        ray: &Ray,
-        offset: f64,
-        mut active: Option<&mut Vec<Active>>,
-    ) -> f64 {
-        let mut optical_depth = 0.0;
-        for q in self.samples(ray, offset) {
-            let (cell, frac) = self.lattice.cell_of(q);
-            let corners = self.lattice.corners(cell, frac);
-            if let Some(keep) = mask {
-                if !corners.iter().any(|&(i, _)| keep[i]) {
-                    continue;
-                }
-            }
-            let f: f64 = corners.iter().map(|&(i, w)| dense[i].to_f64().expect("finite") * w).sum();
-            if f + self.shift > 0.0 {
-                optical_depth += (f + self.shift) * self.step;
-                if let Some(list) = active.as_deref_mut() {
-                    list.push(Active { cell, frac });
+impl AlphaMask {
+    /// The mask of the kept `nodes` on an `n³` lattice.
+    pub fn from_nodes(nodes: Vec<bool>, n: usize) -> AlphaMask {
+        let dims = [n; 3];
+        let mut cells = vec![false; nodes.len()];
+        for z in 0..n.saturating_sub(1) {
+            for y in 0..n - 1 {
+                for x in 0..n - 1 {
+                    let origin = x + n * (y + n * z);
+                    cells[origin] = trilinear::corners(origin, [0.0; 3], dims).iter().any(|&(i, _)| nodes[i]);
                 }
             }
         }
-        (-self.scale * optical_depth).exp()
+        AlphaMask { nodes, cells }
+    }
+}
+
+/// A sample with a positive activation (its gradient is non-zero): its cell's lower corner
+/// and its ray within the tracing task, packed in 32 bits (16 bytes a sample in f32), and its
+/// position in the cell.
+#[derive(Debug, Clone, Copy, Default)]
+struct Active<T> {
+    cell_and_ray: u32,
+    frac: [T; 3],
+}
+
+/// Bits of `Active::cell_and_ray` for the cell: lattices up to 512³ nodes.
+const CELL_BITS: u32 = 27;
+/// The largest lattice `batch` takes.
+pub const MAX_GRID: usize = 512;
+
+impl<T> Active<T> {
+    fn cell(&self) -> usize {
+        (self.cell_and_ray & ((1 << CELL_BITS) - 1)) as usize
+    }
+
+    fn ray_in_task(&self) -> usize {
+        (self.cell_and_ray >> CELL_BITS) as usize
+    }
+}
+
+/// Rays per tracing task (at most 2^(32 − CELL_BITS)); fixed, so the work split never
+/// depends on the thread count.
+const RAYS_PER_TASK: usize = 32;
+/// Lattice z-planes per scatter task.
+const PLANES_PER_SLAB: usize = 4;
+
+/// One task's traced rays: predictions, and its active samples ordered by cell z-plane
+/// (stable, so ray order holds within a plane), `by_plane[z]..by_plane[z + 1]` at plane z.
+struct Traced<T> {
+    predicted: Vec<f64>,
+    active: Vec<Active<T>>,
+    by_plane: Vec<usize>,
+}
+
+impl Renderer {
+    /// The continuous lattice index of the first sample of `ray` (offset `offset` ∈ [0, step)),
+    /// its increment per sample, and the number of samples inside the box.
+    fn samples(&self, ray: &Ray, offset: f64) -> ([f64; 3], [f64; 3], usize) {
+        let Some((t0, t1)) = self.lattice.aabb.intersect(ray.origin, ray.dir) else {
+            return ([0.0; 3], [0.0; 3], 0);
+        };
+        let (a, b) = self.lattice.index_line(ray.origin, ray.dir);
+        let first = t0 + offset;
+        // Samples at first + k·step for every k ≥ 0 with first + k·step < t1.
+        let count = if first < t1 { ((t1 - first) / self.step).ceil() as usize } else { 0 };
+        (std::array::from_fn(|k| a[k] + first * b[k]), std::array::from_fn(|k| self.step * b[k]), count)
+    }
+
+    /// `Î` of one ray; with `active`, also appends the samples whose σ is positive (their
+    /// gradient is non-zero), tagged with the ray's index in its task.
+    fn trace<T: Scalar>(
+        &self,
+        dense: &[T],
+        mask: Option<&AlphaMask>,
+        ray: &Ray,
+        offset: f64,
+        mut active: Option<(&mut Vec<Active<T>>, u32)>,
+    ) -> f64 {
+        let (q0, dq, count) = self.samples(ray, offset);
+        let (q0, dq) = (q0.map(|v| T::from(v).expect("finite")), dq.map(|v| T::from(v).expect("finite")));
+        let n = self.lattice.n;
+        let (sy, sz) = (n, n * n);
+        let (last_node, last_cell) = (T::from(n - 1).expect("small"), n - 2);
+        let shift = T::from(self.shift).expect("finite");
+        let mut optical_depth = T::zero();
+        if let Some((list, _)) = active.as_mut() {
+            list.reserve(count);
+        }
+        let mut k = T::zero();
+        for _ in 0..count {
+            // The cell and position in it, clamped to the outermost nodes (kernels::trilinear's
+            // rule, in T).
+            let mut base = [0usize; 3];
+            let mut frac = [T::zero(); 3];
+            for a in 0..3 {
+                let x = (q0[a] + k * dq[a]).max(T::zero()).min(last_node);
+                base[a] = x.trunc_index().min(last_cell);
+                frac[a] = x - T::from(base[a]).expect("small");
+            }
+            k = k + T::one();
+            let cell = base[0] + n * (base[1] + n * base[2]);
+            if mask.is_some_and(|m| !m.cells[cell]) {
+                continue;
+            }
+            let [fx, fy, fz] = frac;
+            let lerp = |a: T, b: T, t: T| a + (b - a) * t;
+            let corners = &dense[cell..=cell + sz + sy + 1]; // one bounds check per sample
+            let v = |i: usize| corners[i];
+            let f = lerp(
+                lerp(lerp(v(0), v(1), fx), lerp(v(sy), v(sy + 1), fx), fy),
+                lerp(lerp(v(sz), v(sz + 1), fx), lerp(v(sz + sy), v(sz + sy + 1), fx), fy),
+                fz,
+            );
+            let sigma = f + shift;
+            optical_depth = optical_depth + sigma.max(T::zero());
+            if let Some((list, ray)) = active.as_mut() {
+                // Pushed, then dropped unless active: no branch on the sign of σ, which would
+                // mispredict on a field near zero.
+                list.push(Active { cell_and_ray: cell as u32 | *ray << CELL_BITS, frac: [fx, fy, fz] });
+                list.truncate(list.len() - usize::from(sigma <= T::zero()));
+            }
+        }
+        (-self.scale * self.step * optical_depth.to_f64().expect("finite")).exp()
     }
 
     /// `Î` of one ray.
-    pub fn render_ray<T: Float>(&self, dense: &[T], mask: Option<&[bool]>, ray: &Ray, offset: f64) -> f64 {
+    pub fn render_ray<T: Scalar>(&self, dense: &[T], mask: Option<&AlphaMask>, ray: &Ray, offset: f64) -> f64 {
         self.trace(dense, mask, ray, offset, None)
     }
 
     /// Renders `rays` (with their per-ray `offsets`), returns predictions and MSE, and when
-    /// `grad` is given adds `dMSE/dF` to it. Rays trace in parallel, each recording its active
-    /// samples; the scatter then runs in ray order, so the gradient is bit-identical whatever
-    /// the thread count.
-    pub fn batch<T: Float + Send + Sync>(
+    /// `grad` is given adds `dMSE/dF` to it.
+    ///
+    /// Rays trace in parallel, in fixed groups that record their active samples sorted by
+    /// z-plane; the scatter then runs in parallel over z-slabs of the lattice, each adding the
+    /// groups' samples in group, then plane, then ray order. Every gradient element is summed
+    /// in one fixed order: the result is bit-identical whatever the thread count.
+    pub fn batch<T: Scalar>(
         &self,
         dense: &[T],
-        mask: Option<&[bool]>,
+        mask: Option<&AlphaMask>,
         rays: &[Ray],
         offsets: &[f64],
         grad: Option<&mut [T]>,
     ) -> BatchResult<T> {
         let want_grad = grad.is_some();
-        let traced: Vec<(f64, Vec<Active>)> = rays
-            .par_iter()
-            .zip(offsets)
-            .map(|(ray, &off)| {
+        let n = self.lattice.n;
+        let traced: Vec<Traced<T>> = rays
+            .par_chunks(RAYS_PER_TASK)
+            .zip(offsets.par_chunks(RAYS_PER_TASK))
+            .map(|(rays, offsets)| {
                 let mut active = Vec::new();
-                let pred = self.trace(dense, mask, ray, off, want_grad.then_some(&mut active));
-                (pred, active)
+                let predicted = rays
+                    .iter()
+                    .zip(offsets)
+                    .enumerate()
+                    .map(|(i, (ray, &off))| {
+                        self.trace(dense, mask, ray, off, want_grad.then_some((&mut active, i as u32)))
+                    })
+                    .collect();
+                let (active, by_plane) = sort_by_plane(active, n);
+                Traced { predicted, active, by_plane }
             })
             .collect();
+        let predicted: Vec<f64> = traced.iter().flat_map(|t| t.predicted.iter().copied()).collect();
         let b = rays.len() as f64;
-        let mse = rays.iter().zip(&traced).map(|(r, (p, _))| (p - r.target).powi(2)).sum::<f64>() / b;
+        let mse = rays.iter().zip(&predicted).map(|(r, p)| (p - r.target).powi(2)).sum::<f64>() / b;
         if let Some(grad) = grad {
-            for (ray, (pred, active)) in rays.iter().zip(&traced) {
-                // dL/dÎ = 2(Î − I)/B;  dÎ/dσ_k = −s·δ·Î;  dσ/dF = 1[F + Δ > 0] (the active samples).
-                let d_sigma = 2.0 * (pred - ray.target) / b * (-self.scale * self.step * pred);
-                if d_sigma == 0.0 {
-                    continue;
-                }
-                for a in active {
-                    for (i, w) in self.lattice.corners(a.cell, a.frac) {
-                        grad[i] = grad[i] + T::from(d_sigma * w).expect("finite");
+            // dL/dÎ = 2(Î − I)/B;  dÎ/dσ_k = −s·δ·Î;  dσ/dF = 1[F + Δ > 0] (the active samples).
+            let d_sigma: Vec<T> = rays
+                .iter()
+                .zip(&predicted)
+                .map(|(ray, &p)| T::from(2.0 * (p - ray.target) / b * (-self.scale * self.step * p)).expect("finite"))
+                .collect();
+            self.scatter(&traced, &d_sigma, grad);
+        }
+        BatchResult { predicted: predicted.into_iter().map(|p| T::from(p).expect("finite")).collect(), mse }
+    }
+
+    /// Adds each active sample's `d_sigma` times its trilinear weights to its cell's corners.
+    fn scatter<T: Scalar>(&self, traced: &[Traced<T>], d_sigma: &[T], grad: &mut [T]) {
+        let n = self.lattice.n;
+        let (sy, sz) = (n, n * n);
+        grad.par_chunks_mut(sz * PLANES_PER_SLAB).enumerate().for_each(|(slab, out)| {
+            let (z0, z1) = (slab * PLANES_PER_SLAB, ((slab + 1) * PLANES_PER_SLAB).min(n));
+            let base = z0 * sz;
+            for (t, d_sigma) in traced.iter().zip(d_sigma.chunks(RAYS_PER_TASK)) {
+                // Cells on plane z0 − 1 reach into this slab with their upper corners.
+                let range = t.by_plane[z0.saturating_sub(1)]..t.by_plane[z1];
+                for a in &t.active[range] {
+                    let g = d_sigma[a.ray_in_task()];
+                    if g == T::zero() {
+                        continue;
+                    }
+                    let cell = a.cell();
+                    let cz = cell / sz;
+                    let [fx, fy, fz] = a.frac;
+                    let (gx, gy) = (T::one() - fx, T::one() - fy);
+                    let face = [gx * gy, fx * gy, gx * fy, fx * fy];
+                    let offsets = [0, 1, sy, sy + 1];
+                    let mut splat = |plane_origin: usize, w: T| {
+                        let face_nodes = &mut out[plane_origin - base..=plane_origin - base + sy + 1];
+                        for (o, f) in offsets.iter().zip(face) {
+                            face_nodes[*o] = face_nodes[*o] + w * f;
+                        }
+                    };
+                    if cz >= z0 {
+                        splat(cell, g * (T::one() - fz));
+                    }
+                    if cz + 1 < z1 {
+                        splat(cell + sz, g * fz);
                     }
                 }
             }
-        }
-        let predicted = traced.into_iter().map(|(p, _)| T::from(p).expect("finite")).collect();
-        BatchResult { predicted, mse }
+        });
     }
 
     /// The alpha mask on the lattice: `alpha = 1 − exp(−σ·step·s)` at each node, dilated by a
     /// 3×3×3 max, kept where above `threshold`.
-    pub fn alpha_mask<T: Float>(&self, dense: &[T], threshold: f64) -> Vec<bool> {
+    pub fn alpha_mask<T: Float>(&self, dense: &[T], threshold: f64) -> AlphaMask {
         let n = self.lattice.n;
         let alpha: Vec<f64> = dense
             .iter()
@@ -185,6 +302,27 @@ impl Renderer {
                 }
             }
         }
-        keep
+        AlphaMask::from_nodes(keep, n)
     }
+}
+
+/// Stable counting sort of `active` by the z-plane of its cell; returns the sorted samples and
+/// the start of each plane (`n + 1` entries).
+fn sort_by_plane<T: Copy + Default>(active: Vec<Active<T>>, n: usize) -> (Vec<Active<T>>, Vec<usize>) {
+    let plane = |a: &Active<T>| a.cell() / (n * n);
+    let mut start = vec![0usize; n + 1];
+    for a in &active {
+        start[plane(a) + 1] += 1;
+    }
+    for z in 0..n {
+        start[z + 1] += start[z];
+    }
+    let mut next = start.clone();
+    let mut sorted = vec![Active::default(); active.len()];
+    for a in active {
+        let z = plane(&a);
+        sorted[next[z]] = a;
+        next[z] += 1;
+    }
+    (sorted, start)
 }
