@@ -1,5 +1,5 @@
-//! The commands behind the CLI: run, status, gc. Each loads the configuration, builds the stage
-//! graph, and hands it to the engine.
+//! The commands behind the CLI: run, status, gc (each loads the configuration, builds the stage
+//! graph, and hands it to the engine), and the standalone phantom and convert.
 
 use crate::config::Config;
 use crate::engine::lock::FileLock;
@@ -8,6 +8,8 @@ use crate::engine::progress::{self, Progress};
 use crate::engine::run::{self, RunOptions, RunSummary, Unit};
 use crate::engine::store::{write_atomic, Store};
 use crate::engine::StageGraph;
+use crate::formats::vdb::{self, FloatGrid, GridClass};
+use crate::volume::Volume;
 use crate::{dataset, stage};
 use anyhow::{bail, Context as _};
 use std::path::Path;
@@ -155,4 +157,55 @@ pub fn phantom(
         ));
     }
     Ok(report)
+}
+
+/// `aret-pipe convert`: a MetaImage volume (`.mhd` + its raw data; uchar, short or float) to an
+/// OpenVDB file with one float grid `grid` in patient millimetres. Zero voxels become inactive
+/// background. Returns a one-line report.
+pub fn convert(input: &Path, output: &Path, grid: &str, class: GridClass) -> anyhow::Result<String> {
+    use crate::formats::mhd;
+    let header = std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
+    let field = |key: &'static str| {
+        mhd::header_field(&header, key).ok_or_else(|| anyhow::anyhow!("{}: header has no `{key}`", input.display()))
+    };
+    let data_file = field("ElementDataFile")?;
+    if data_file.eq_ignore_ascii_case("LOCAL") || data_file.contains('%') || data_file.eq_ignore_ascii_case("LIST") {
+        bail!(
+            "{}: ElementDataFile = {data_file} is not supported; give the data as one separate raw file",
+            input.display()
+        );
+    }
+    let raw_path = input.parent().unwrap_or(Path::new("")).join(data_file);
+    let raw = std::fs::read(&raw_path).with_context(|| format!("reading {}", raw_path.display()))?;
+    let context = || format!("decoding {}", input.display());
+    let volume: Volume<f32> = match field("ElementType")? {
+        "MET_FLOAT" => mhd::decode::<f32>(&header, &raw).with_context(context)?,
+        "MET_SHORT" => mhd::decode::<i16>(&header, &raw).with_context(context)?.map(f32::from),
+        "MET_UCHAR" => mhd::decode::<u8>(&header, &raw).with_context(context)?.map(f32::from),
+        other => {
+            bail!("{}: ElementType {other} is not supported (MET_FLOAT, MET_SHORT, MET_UCHAR are)", input.display())
+        }
+    };
+    let g = &volume.geometry;
+    // OpenVDB's ScaleTranslateMap scales and shifts the index axes but cannot rotate them.
+    let identity = g.direction.iter().enumerate().all(|(a, d)| (0..3).all(|c| (d[c] - f64::from(a == c)).abs() < 1e-6));
+    if !identity {
+        bail!(
+            "{}: TransformMatrix {:?} is not the identity; the VDB transform (scale and translate) cannot rotate",
+            input.display(),
+            g.direction
+        );
+    }
+    let bytes = vdb::encode(&[FloatGrid {
+        name: grid,
+        dims: g.dims,
+        values: &volume.data,
+        voxel_size_mm: g.spacing_mm,
+        origin_mm: g.origin_mm,
+        class,
+    }])?;
+    write_atomic(output, &bytes, false)?;
+    let active = volume.data.iter().filter(|v| **v != 0.0).count();
+    let [nx, ny, nz] = g.dims;
+    Ok(format!("{grid}: {nx}×{ny}×{nz}, {active} active voxel(s) → {} ({} bytes)\n", output.display(), bytes.len()))
 }

@@ -1,7 +1,7 @@
 //! The `aret-pipe` command line: parses arguments, then calls the library. Nothing else.
 
 use aret_pipe::commands::{self, RunArgs};
-use clap::{Parser, Subcommand};
+use clap::{Parser, Subcommand, ValueEnum};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -60,6 +60,26 @@ enum Command {
         #[arg(long)]
         seed: Option<u64>,
     },
+    /// Convert a MetaImage volume (.mhd + raw; float, short or uchar) to an OpenVDB file.
+    Convert {
+        /// The MetaImage header (its ElementDataFile is read from beside it).
+        input: PathBuf,
+        /// The .vdb file to write.
+        output: PathBuf,
+        /// The grid's name in the file (default: the input's file stem, e.g. `density`).
+        #[arg(long)]
+        grid: Option<String>,
+        /// What the values are: `fog` for a density in [0, 1] (volume renderers show it as
+        /// smoke), `other` for anything else.
+        #[arg(long, value_enum, default_value_t = ClassArg::Other)]
+        class: ClassArg,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ClassArg {
+    Fog,
+    Other,
 }
 
 fn main() -> ExitCode {
@@ -82,6 +102,17 @@ fn main() -> ExitCode {
             let defaults = aret_pipe::phantom::PhantomParams::default();
             let params = aret_pipe::phantom::PhantomParams { seed: seed.unwrap_or(defaults.seed), ..defaults };
             commands::phantom(&cohort, &out, patients.as_deref(), &params).map(|report| {
+                print!("{report}");
+                0
+            })
+        }
+        Command::Convert { input, output, grid, class } => {
+            let grid = grid.unwrap_or_else(|| input.file_stem().unwrap_or_default().to_string_lossy().into_owned());
+            let class = match class {
+                ClassArg::Fog => aret_pipe::formats::vdb::GridClass::FogVolume,
+                ClassArg::Other => aret_pipe::formats::vdb::GridClass::Unknown,
+            };
+            commands::convert(&input, &output, &grid, class).map(|report| {
                 print!("{report}");
                 0
             })

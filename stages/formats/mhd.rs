@@ -141,6 +141,15 @@ pub fn decode<T: MetaElement>(header_text: &str, raw: &[u8]) -> Result<Volume<T>
     Ok(Volume { geometry, data })
 }
 
+/// The value of `key` in a header's `key = value` lines (trimmed), e.g. `ElementType` to choose
+/// the element type before decoding, or `ElementDataFile` to find the raw data.
+pub fn header_field<'a>(header_text: &'a str, key: &str) -> Option<&'a str> {
+    header_text.lines().find_map(|line| {
+        let (k, v) = line.split_once('=')?;
+        (k.trim() == key).then(|| v.trim())
+    })
+}
+
 /// Shortest text that parses back to the same f64 (Rust's `Display` for floats).
 fn format_num(x: f64) -> String {
     if x == 0.0 {
@@ -187,5 +196,8 @@ mod tests {
         assert_eq!(back, volume);
         assert!(matches!(decode::<f32>(&hdr, &raw), Err(MhdError::ElementType { .. })));
         assert!(matches!(decode::<i16>(&hdr, &raw[1..]), Err(MhdError::DataSize { .. })));
+        assert_eq!(header_field(&hdr, "ElementType"), Some("MET_SHORT"));
+        assert_eq!(header_field(&hdr, "ElementDataFile"), Some("x.raw"));
+        assert_eq!(header_field(&hdr, "Element"), None);
     }
 }

@@ -7,3 +7,4 @@ pub mod mhd;
 pub mod model;
 pub mod png;
 pub mod svg;
+pub mod vdb;
