@@ -12,7 +12,7 @@ use crate::formats::vdb::{self, FloatGrid, GridClass};
 use crate::volume::Volume;
 use crate::{dataset, stage};
 use anyhow::{bail, Context as _};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 #[derive(Debug, Default, Clone)]
 pub struct RunArgs {
@@ -159,17 +159,59 @@ pub fn phantom(
     Ok(report)
 }
 
-/// `aret-pipe convert`: a MetaImage volume (`.mhd` + its raw data; uchar, short or float) to an
-/// OpenVDB file with one float grid `grid` in patient millimetres. Zero voxels become inactive
-/// background. Returns a one-line report.
-pub fn convert(input: &Path, output: &Path, grid: &str, class: GridClass) -> anyhow::Result<String> {
+/// `aret-pipe convert`: MetaImage volumes (`.mhd` + their raw data; uchar, short or float) to
+/// one OpenVDB file, one float grid per input, in patient millimetres. Zero voxels become
+/// inactive background. `grids` and `classes` pair with `inputs` in order (each given once per
+/// input, or not at all: names default to the file stems, classes to unknown). Returns one
+/// line per grid.
+pub fn convert(inputs: &[PathBuf], grids: &[String], classes: &[GridClass], output: &Path) -> anyhow::Result<String> {
+    for (flag, n) in [("--grid", grids.len()), ("--class", classes.len())] {
+        if n != 0 && n != inputs.len() {
+            bail!(
+                "{flag} is given {n} time(s) for {} input(s); give it once per input, in order, or not at all",
+                inputs.len()
+            );
+        }
+    }
+    let volumes = inputs.iter().map(|p| read_metaimage_f32(p)).collect::<anyhow::Result<Vec<_>>>()?;
+    let names: Vec<String> = match grids {
+        [] => inputs.iter().map(|p| p.file_stem().unwrap_or_default().to_string_lossy().into_owned()).collect(),
+        _ => grids.to_vec(),
+    };
+    let float_grids: Vec<FloatGrid> = volumes
+        .iter()
+        .zip(&names)
+        .enumerate()
+        .map(|(n, (v, name))| FloatGrid {
+            name,
+            dims: v.geometry.dims,
+            values: &v.data,
+            voxel_size_mm: v.geometry.spacing_mm,
+            origin_mm: v.geometry.origin_mm,
+            class: classes.get(n).copied().unwrap_or(GridClass::Unknown),
+        })
+        .collect();
+    let bytes = vdb::encode(&float_grids)?;
+    write_atomic(output, &bytes, false)?;
+    let mut report = String::new();
+    for g in &float_grids {
+        let active = g.values.iter().filter(|v| **v != 0.0).count();
+        let [nx, ny, nz] = g.dims;
+        report.push_str(&format!("{}: {nx}×{ny}×{nz}, {active} active voxel(s)\n", g.name));
+    }
+    report.push_str(&format!("→ {} ({} bytes)\n", output.display(), bytes.len()));
+    Ok(report)
+}
+
+/// A MetaImage volume as float32, refusing what a VDB ScaleTranslateMap cannot place.
+fn read_metaimage_f32(input: &Path) -> anyhow::Result<Volume<f32>> {
     use crate::formats::mhd;
     let header = std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
     let field = |key: &'static str| {
         mhd::header_field(&header, key).ok_or_else(|| anyhow::anyhow!("{}: header has no `{key}`", input.display()))
     };
     let data_file = field("ElementDataFile")?;
-    if data_file.eq_ignore_ascii_case("LOCAL") || data_file.contains('%') || data_file.eq_ignore_ascii_case("LIST") {
+    if ["LOCAL", "LIST"].iter().any(|k| data_file.eq_ignore_ascii_case(k)) || data_file.contains('%') {
         bail!(
             "{}: ElementDataFile = {data_file} is not supported; give the data as one separate raw file",
             input.display()
@@ -186,26 +228,14 @@ pub fn convert(input: &Path, output: &Path, grid: &str, class: GridClass) -> any
             bail!("{}: ElementType {other} is not supported (MET_FLOAT, MET_SHORT, MET_UCHAR are)", input.display())
         }
     };
-    let g = &volume.geometry;
     // OpenVDB's ScaleTranslateMap scales and shifts the index axes but cannot rotate them.
-    let identity = g.direction.iter().enumerate().all(|(a, d)| (0..3).all(|c| (d[c] - f64::from(a == c)).abs() < 1e-6));
+    let d = &volume.geometry.direction;
+    let identity = d.iter().enumerate().all(|(a, row)| (0..3).all(|c| (row[c] - f64::from(a == c)).abs() < 1e-6));
     if !identity {
         bail!(
-            "{}: TransformMatrix {:?} is not the identity; the VDB transform (scale and translate) cannot rotate",
-            input.display(),
-            g.direction
+            "{}: TransformMatrix {d:?} is not the identity; the VDB transform (scale and translate) cannot rotate",
+            input.display()
         );
     }
-    let bytes = vdb::encode(&[FloatGrid {
-        name: grid,
-        dims: g.dims,
-        values: &volume.data,
-        voxel_size_mm: g.spacing_mm,
-        origin_mm: g.origin_mm,
-        class,
-    }])?;
-    write_atomic(output, &bytes, false)?;
-    let active = volume.data.iter().filter(|v| **v != 0.0).count();
-    let [nx, ny, nz] = g.dims;
-    Ok(format!("{grid}: {nx}×{ny}×{nz}, {active} active voxel(s) → {} ({} bytes)\n", output.display(), bytes.len()))
+    Ok(volume)
 }

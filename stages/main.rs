@@ -60,19 +60,21 @@ enum Command {
         #[arg(long)]
         seed: Option<u64>,
     },
-    /// Convert a MetaImage volume (.mhd + raw; float, short or uchar) to an OpenVDB file.
+    /// Convert MetaImage volumes (.mhd + raw; float, short or uchar) to one OpenVDB file,
+    /// one float grid per input: `convert density.mhd uncertainty.mhd out.vdb --class fog --class other`.
     Convert {
-        /// The MetaImage header (its ElementDataFile is read from beside it).
-        input: PathBuf,
+        /// The MetaImage headers (each one's ElementDataFile is read from beside it).
+        #[arg(required = true, num_args = 1..)]
+        inputs: Vec<PathBuf>,
         /// The .vdb file to write.
         output: PathBuf,
-        /// The grid's name in the file (default: the input's file stem, e.g. `density`).
+        /// Grid names, once per input in order (default: each input's file stem, e.g. `density`).
         #[arg(long)]
-        grid: Option<String>,
-        /// What the values are: `fog` for a density in [0, 1] (volume renderers show it as
-        /// smoke), `other` for anything else.
-        #[arg(long, value_enum, default_value_t = ClassArg::Other)]
-        class: ClassArg,
+        grid: Vec<String>,
+        /// What each input's values are, once per input in order: `fog` for a density in [0, 1]
+        /// (volume renderers show it as smoke), `other` for anything else (the default).
+        #[arg(long, value_enum)]
+        class: Vec<ClassArg>,
     },
 }
 
@@ -106,13 +108,15 @@ fn main() -> ExitCode {
                 0
             })
         }
-        Command::Convert { input, output, grid, class } => {
-            let grid = grid.unwrap_or_else(|| input.file_stem().unwrap_or_default().to_string_lossy().into_owned());
-            let class = match class {
-                ClassArg::Fog => aret_pipe::formats::vdb::GridClass::FogVolume,
-                ClassArg::Other => aret_pipe::formats::vdb::GridClass::Unknown,
-            };
-            commands::convert(&input, &output, &grid, class).map(|report| {
+        Command::Convert { inputs, output, grid, class } => {
+            let classes: Vec<_> = class
+                .into_iter()
+                .map(|c| match c {
+                    ClassArg::Fog => aret_pipe::formats::vdb::GridClass::FogVolume,
+                    ClassArg::Other => aret_pipe::formats::vdb::GridClass::Unknown,
+                })
+                .collect();
+            commands::convert(&inputs, &grid, &classes, &output).map(|report| {
                 print!("{report}");
                 0
             })

@@ -263,3 +263,40 @@ fn convert_refuses_a_rotated_volume() {
     assert!(stderr.contains("TransformMatrix") && stderr.contains("cannot rotate"), "{stderr}");
     assert!(!output.exists());
 }
+
+#[test]
+fn convert_pairs_names_and_classes_with_inputs_in_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let geometry = |spacing| Geometry {
+        dims: [4, 3, 2],
+        spacing_mm: spacing,
+        origin_mm: [1.0, 2.0, 3.0],
+        direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+    };
+    let a = Volume { data: sparse_values(24, 0.3, 5), geometry: geometry([1.0, 1.0, 2.0]) };
+    let b = Volume { data: sparse_values(24, 0.3, 6), geometry: geometry([0.5, 0.5, 0.5]) };
+    let (pa, pb) = (write_mhd(dir.path(), "a", &a), write_mhd(dir.path(), "b", &b));
+    let output = dir.path().join("ab.vdb");
+    let run = |extra: &[&str]| {
+        std::process::Command::new(BIN).arg("convert").arg(&pa).arg(&pb).arg(&output).args(extra).output().unwrap()
+    };
+    let out = run(&["--grid", "density", "--grid", "uncertainty", "--class", "fog", "--class", "other"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let bytes = std::fs::read(&output).unwrap();
+    for (name, v, class) in [("density", &a, GridClass::FogVolume), ("uncertainty", &b, GridClass::Unknown)] {
+        let g = v.geometry.clone();
+        let expected = FloatGrid {
+            name,
+            dims: g.dims,
+            values: &v.data,
+            voxel_size_mm: g.spacing_mm,
+            origin_mm: g.origin_mm,
+            class,
+        };
+        assert_grid_reads_back(&bytes, &expected);
+    }
+    let out = run(&["--grid", "density"]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("--grid is given 1 time(s) for 2 input(s)"), "{stderr}");
+}
