@@ -17,8 +17,8 @@
 //!   nodes without an active voxel are not written, and there are no tiles.
 //! - Compression: the flags are `COMPRESS_ACTIVE_MASK` (0x2) and nothing else: each node stores
 //!   only its active values, as float32 (never half), with no zlib or blosc codec. Every reader
-//!   since file format 222 understands this, and it keeps a 10%-occupied grid at about a third
-//!   of its raw size.
+//!   since file format 222 understands this. A 64³ grid takes 181 kB with 10% of its voxels
+//!   active at random (raw: 1 MiB), 1.12 MB with all of them (masks and flags cost 7%).
 //!
 //! Index space is cell-centred in OpenVDB: index (i, j, k) is the centre of voxel (i, j, k), so
 //! the transform maps it to `origin_mm + (i, j, k) · voxel_size_mm` in patient millimetres.
