@@ -1,10 +1,10 @@
 //! OpenVDB (`.vdb`) writer for float grids, so the density and uncertainty volumes open in
-//! Houdini, Blender, ParaView and anything else built on OpenVDB. No crate writes the format,
+//! Houdini, Blender and anything else built on OpenVDB. No crate writes the format,
 //! so this module writes it by hand; `tests/vdb.rs` reads the files back with the vdb-rs crate
 //! and `tests/py/test_vdb_openvdb.py` with the official library (`pyopenvdb`, `vdb_print`).
 //!
 //! What we write (all little-endian):
-//! - Header: magic `b" BDV\0\0\0\0"`, file format 224 (what OpenVDB 7 to 12 write and read),
+//! - Header: magic `b" BDV\0\0\0\0"`, file format 224 (what OpenVDB 4 to 12 write; all read it),
 //!   library version 11.0, "has grid offsets" = 1, a 36-character UUID derived from a blake3
 //!   hash of everything after it (so equal grids give equal bytes), an empty file metadata map
 //!   and the grid count.
@@ -28,8 +28,8 @@ use std::fmt::Write as _;
 
 /// OpenVDB's magic number, as the first 8 bytes of every file.
 const MAGIC: i64 = 0x5644_4220;
-/// File format 224 (`OPENVDB_FILE_VERSION_MULTIPASS_IO`): the current format of OpenVDB 7 to 12
-/// and the newest that Debian's OpenVDB 10 reads without a warning.
+/// File format 224 (`OPENVDB_FILE_VERSION_MULTIPASS_IO`): what OpenVDB 4 to 12 write, and the
+/// newest that Debian's OpenVDB 10 reads without a warning (225, for half grids, came after 12).
 const FILE_VERSION: u32 = 224;
 /// The library version recorded in the header; readers only report it.
 const LIBRARY_VERSION: (u32, u32) = (11, 0);
