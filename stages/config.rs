@@ -3,7 +3,7 @@
 //! Each stage's table deserialises straight into that stage's `Params`; unknown keys and wrong
 //! types are errors. Relative paths are taken relative to the configuration file's folder.
 
-use crate::stage::{drr, hu, ingest, train};
+use crate::stage::{drr, grid, hu, ingest, train};
 use anyhow::{anyhow, bail, Context as _};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -23,7 +23,7 @@ pub struct Config {
     #[serde(default)]
     pub train: train::Params,
     #[serde(default)]
-    pub grid: NotYet,
+    pub grid: grid::Params,
     #[serde(default)]
     pub sweep: NotYet,
     #[serde(default)]

@@ -6,6 +6,7 @@
 pub mod annotation;
 pub mod cluster;
 pub mod consensus;
+pub mod localization;
 pub mod lung_field;
 pub mod mask;
 pub mod polygon;

@@ -4,6 +4,7 @@
 //! pure `run`. Stages know nothing about caching.
 
 pub mod drr;
+pub mod grid;
 pub mod hu;
 pub mod ingest;
 pub mod phantom;
@@ -30,6 +31,7 @@ pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
     stages.push(Box::new(hu::Hu { params: config.hu.clone() }));
     stages.push(Box::new(drr::Drr { params: config.drr.clone() }));
     stages.push(Box::new(train::Train { params: config.train.clone() }));
+    stages.push(Box::new(grid::Grid { params: config.grid.clone() }));
     StageGraph::new(stages)
 }
 

@@ -281,6 +281,23 @@ impl Renderer {
         });
     }
 
+    /// σ at every lattice node as the renderer samples it there (`ReLU(F + Δ)`, zero where the
+    /// alpha mask silences the node's cell), index `x + N·(y + N·z)`: the grid stage's density.
+    pub fn node_density<T: Scalar>(&self, dense: &[T], mask: Option<&AlphaMask>) -> Vec<f32> {
+        let n = self.lattice.n;
+        let last_cell = |c: usize| c.min(n - 2);
+        (0..n * n * n)
+            .map(|i| {
+                let (x, y, z) = (i % n, (i / n) % n, i / (n * n));
+                let cell = last_cell(x) + n * (last_cell(y) + n * last_cell(z));
+                if mask.is_some_and(|m| !m.cells[cell]) {
+                    return 0.0;
+                }
+                (dense[i].to_f64().expect("finite") + self.shift).max(0.0) as f32
+            })
+            .collect()
+    }
+
     /// The alpha mask on the lattice: `alpha = 1 − exp(−σ·step·s)` at each node, dilated by a
     /// 3×3×3 max, kept where above `threshold`.
     pub fn alpha_mask<T: Float>(&self, dense: &[T], threshold: f64) -> AlphaMask {

@@ -1,0 +1,178 @@
+//! Localization against the ground truth (SPEC §3 select): the consensus mask resampled onto
+//! the density grid as per-cell coverage, and the Dice, centroid distance and hit of a
+//! selected set of cells.
+//!
+//! A cell's coverage is the fraction of the CT voxels whose centres fall in it that are in
+//! the consensus mask (counted exactly, not supersampled). Dice uses the cells with coverage
+//! ≥ 0.5; a selection is a hit when it holds at least one cell with coverage > 0 (it touches
+//! the nodule's footprint).
+
+use crate::volume::{Geometry, Volume};
+
+/// The ground truth on the density grid.
+#[derive(Debug, Clone)]
+pub struct GroundTruthOnGrid {
+    /// Coverage of each density cell, in [0, 1].
+    pub coverage: Vec<f32>,
+    /// Centroid of the consensus voxels, patient mm.
+    pub centroid_mm: [f64; 3],
+    /// Number of cells with coverage ≥ 0.5.
+    pub core_cells: usize,
+}
+
+/// How a selected set of cells compares with the ground truth.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Localization {
+    pub dice: f64,
+    pub centroid_distance_mm: f64,
+    pub hit: bool,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum LocalizationError {
+    #[error("ground-truth mask and density grid must both be axis-aligned (direction a signed identity); {0} is not")]
+    Rotated(&'static str),
+    #[error("the ground-truth mask is empty: no consensus voxel to localise against")]
+    EmptyMask,
+}
+
+/// Resamples the consensus `mask` (non-zero = inside) onto `grid`.
+pub fn ground_truth_on_grid(mask: &Volume<u8>, grid: &Geometry) -> Result<GroundTruthOnGrid, LocalizationError> {
+    check_axis_aligned(&mask.geometry, "the ground-truth mask")?;
+    check_axis_aligned(grid, "the density grid")?;
+    // Axis-aligned: the cell of CT index i along axis a depends on i alone, so per-axis maps
+    // give every voxel's cell and every cell's voxel count (a product of per-axis counts).
+    let cell_of_index: [Vec<Option<usize>>; 3] = std::array::from_fn(|a| {
+        (0..mask.geometry.dims[a])
+            .map(|i| {
+                let mm = axis_mm(&mask.geometry, a, i as f64);
+                let c = ((mm - grid.origin_mm[a]) / (grid.spacing_mm[a] * grid.direction[a][a])).round();
+                (c >= 0.0 && c < grid.dims[a] as f64).then_some(c as usize)
+            })
+            .collect()
+    });
+    let per_axis_counts: [Vec<usize>; 3] = std::array::from_fn(|a| {
+        let mut counts = vec![0; grid.dims[a]];
+        for c in cell_of_index[a].iter().flatten() {
+            counts[*c] += 1;
+        }
+        counts
+    });
+    let [nx, ny, _] = grid.dims;
+    let [mx, my, mz] = mask.geometry.dims;
+    let mut inside = vec![0u32; grid.len()];
+    let (mut sum_mm, mut count) = ([0f64; 3], 0usize);
+    for k in 0..mz {
+        for j in 0..my {
+            let row = &mask.data[mx * (j + my * k)..mx * (j + my * k + 1)];
+            for (i, _) in row.iter().enumerate().filter(|(_, &v)| v != 0) {
+                let ijk = [i, j, k];
+                for a in 0..3 {
+                    sum_mm[a] += axis_mm(&mask.geometry, a, ijk[a] as f64);
+                }
+                count += 1;
+                if let (Some(cx), Some(cy), Some(cz)) = (cell_of_index[0][i], cell_of_index[1][j], cell_of_index[2][k]) {
+                    inside[cx + nx * (cy + ny * cz)] += 1;
+                }
+            }
+        }
+    }
+    if count == 0 {
+        return Err(LocalizationError::EmptyMask);
+    }
+    let coverage: Vec<f32> = inside
+        .iter()
+        .enumerate()
+        .map(|(c, &n_in)| {
+            if n_in == 0 {
+                return 0.0;
+            }
+            let (cx, cy, cz) = (c % nx, (c / nx) % ny, c / (nx * ny));
+            let total = per_axis_counts[0][cx] * per_axis_counts[1][cy] * per_axis_counts[2][cz];
+            n_in as f32 / total as f32
+        })
+        .collect();
+    let core_cells = coverage.iter().filter(|&&c| c >= 0.5).count();
+    Ok(GroundTruthOnGrid { coverage, centroid_mm: sum_mm.map(|s| s / count as f64), core_cells })
+}
+
+impl GroundTruthOnGrid {
+    /// Dice, centroid distance and hit of the cells where `selected` is true on `grid`.
+    pub fn compare(&self, selected: &[bool], grid: &Geometry) -> Localization {
+        let (mut both, mut chosen, mut hit) = (0usize, 0usize, false);
+        let (mut sum_mm, mut count) = ([0f64; 3], 0usize);
+        let [nx, ny, _] = grid.dims;
+        for (c, _) in selected.iter().enumerate().filter(|(_, &s)| s) {
+            chosen += 1;
+            let cov = self.coverage[c];
+            hit |= cov > 0.0;
+            both += usize::from(cov >= 0.5);
+            let mm = grid.voxel_to_patient_mm([(c % nx) as f64, ((c / nx) % ny) as f64, (c / (nx * ny)) as f64]);
+            for a in 0..3 {
+                sum_mm[a] += mm[a];
+            }
+            count += 1;
+        }
+        let dice = if chosen + self.core_cells == 0 { 0.0 } else { 2.0 * both as f64 / (chosen + self.core_cells) as f64 };
+        let centroid_distance_mm = if count == 0 {
+            f64::INFINITY
+        } else {
+            (0..3).map(|a| (sum_mm[a] / count as f64 - self.centroid_mm[a]).powi(2)).sum::<f64>().sqrt()
+        };
+        Localization { dice, centroid_distance_mm, hit }
+    }
+}
+
+/// Patient-mm coordinate along axis `a` of index `i` (axis-aligned geometry).
+fn axis_mm(g: &Geometry, a: usize, i: f64) -> f64 {
+    g.origin_mm[a] + i * g.spacing_mm[a] * g.direction[a][a]
+}
+
+fn check_axis_aligned(g: &Geometry, what: &'static str) -> Result<(), LocalizationError> {
+    let aligned = (0..3).all(|a| (0..3).all(|b| if a == b { g.direction[a][b].abs() == 1.0 } else { g.direction[a][b] == 0.0 }));
+    if aligned {
+        Ok(())
+    } else {
+        Err(LocalizationError::Rotated(what))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn geometry(dims: [usize; 3], spacing_mm: [f64; 3], origin_mm: [f64; 3]) -> Geometry {
+        Geometry { dims, spacing_mm, origin_mm, direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] }
+    }
+
+    #[test]
+    fn coverage_counts_ct_voxels_per_cell() {
+        // CT 1 mm voxels 0..8 per axis; grid cells of 2 mm centred at 0.5, 2.5, …: each holds
+        // 2×2×2 CT voxels. Mask: a 3×2×2 block at x 0..3, y 0..2, z 0..2.
+        let ct = geometry([8, 8, 8], [1.0; 3], [0.0; 3]);
+        let mut data = vec![0u8; 512];
+        for z in 0..2 {
+            for y in 0..2 {
+                for x in 0..3 {
+                    data[x + 8 * (y + 8 * z)] = 1;
+                }
+            }
+        }
+        let grid = geometry([4, 4, 4], [2.0; 3], [0.5; 3]);
+        let gt = ground_truth_on_grid(&Volume { geometry: ct, data }, &grid).unwrap();
+        assert_eq!(gt.coverage[0], 1.0);
+        assert_eq!(gt.coverage[1], 0.5);
+        assert_eq!(gt.coverage[2], 0.0);
+        assert_eq!(gt.core_cells, 2);
+        assert_eq!(gt.centroid_mm, [1.0, 0.5, 0.5]);
+        let mut selected = vec![false; 64];
+        selected[1] = true;
+        let l = gt.compare(&selected, &grid);
+        assert!(l.hit);
+        assert!((l.dice - 2.0 / 3.0).abs() < 1e-12);
+        selected[1] = false;
+        selected[63] = true;
+        let miss = gt.compare(&selected, &grid);
+        assert!(!miss.hit && miss.dice == 0.0 && miss.centroid_distance_mm > 8.0);
+    }
+}
