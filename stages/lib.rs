@@ -12,6 +12,7 @@ pub mod dataset;
 pub mod engine;
 pub mod formats;
 pub mod geometry;
+pub mod kernel_command;
 pub mod kernels;
 pub mod phantom;
 pub mod stage;

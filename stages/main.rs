@@ -76,6 +76,12 @@ enum Command {
         #[arg(long, value_enum)]
         class: Vec<ClassArg>,
     },
+    /// Developer entry point: one sweep/select kernel on MetaImage files (docs/kernels.md).
+    #[command(hide = true)]
+    Kernel {
+        #[command(subcommand)]
+        kernel: aret_pipe::kernel_command::KernelCommand,
+    },
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -121,6 +127,10 @@ fn main() -> ExitCode {
                 0
             })
         }
+        Command::Kernel { kernel } => aret_pipe::kernel_command::run(&kernel).map(|summary| {
+            print!("{summary}");
+            0
+        }),
     };
     match result {
         Ok(code) => ExitCode::from(code as u8),

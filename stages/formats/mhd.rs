@@ -32,7 +32,9 @@ macro_rules! meta_element {
 }
 meta_element!(u8, "MET_UCHAR");
 meta_element!(i16, "MET_SHORT");
+meta_element!(u32, "MET_UINT");
 meta_element!(f32, "MET_FLOAT");
+meta_element!(f64, "MET_DOUBLE");
 
 #[derive(Debug, thiserror::Error)]
 pub enum MhdError {
@@ -192,6 +194,7 @@ mod tests {
         let volume = Volume { geometry, data: (0..12).map(|v| v as i16 - 1000).collect::<Vec<i16>>() };
         let (hdr, raw) = encode(&volume, "x.raw");
         assert!(hdr.contains("AnatomicalOrientation = RAI"));
+        assert_eq!(header_field(&hdr, "ElementDataFile"), Some("x.raw"));
         let back: Volume<i16> = decode(&hdr, &raw).unwrap();
         assert_eq!(back, volume);
         assert!(matches!(decode::<f32>(&hdr, &raw), Err(MhdError::ElementType { .. })));

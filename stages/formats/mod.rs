@@ -5,6 +5,7 @@ pub mod exr_image;
 pub mod lidc_xml;
 pub mod mhd;
 pub mod model;
+pub mod obj;
 pub mod png;
 pub mod svg;
 pub mod vdb;

@@ -1,0 +1,154 @@
+//! `aret-pipe kernel …`: one numeric kernel of the sweep/select stages on files, for
+//! developers and for the cross-checks in `tests/py` (scipy, cc3d, numpy, trimesh, pyvista,
+//! pymeshlab read what this writes). Hidden from `--help`: it is a test entry point, not part
+//! of the pipeline. Inputs and outputs are MetaImage (`.mhd` + `.raw`); a mask is MET_UCHAR,
+//! non-zero meaning set. A JSON summary goes to stdout. See `docs/kernels.md`.
+
+use crate::formats::{mhd, obj};
+use crate::kernels::components::{label, Connectivity};
+use crate::kernels::{marching_cubes, mesh, morphology, stats};
+use crate::volume::Volume;
+use anyhow::{bail, Context as _};
+use clap::Subcommand;
+use serde_json::json;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, Subcommand)]
+pub enum KernelCommand {
+    /// Connected components: labels (MET_UINT, 0 = background, numbered as scipy.ndimage.label)
+    /// to OUT; prints {"count", "sizes"}.
+    Components {
+        mask: PathBuf,
+        out: PathBuf,
+        /// 6, 18 or 26.
+        #[arg(long, default_value_t = 26)]
+        connectivity: u32,
+        /// Drop components with fewer voxels (then renumber).
+        #[arg(long, default_value_t = 0)]
+        min_voxels: usize,
+    },
+    /// Binary dilation with the ball of integer radius R (border value 0, as scipy).
+    Dilate {
+        mask: PathBuf,
+        out: PathBuf,
+        #[arg(long, default_value_t = 2)]
+        radius: usize,
+    },
+    /// Binary erosion with the ball of integer radius R (border value 0, as scipy).
+    Erode {
+        mask: PathBuf,
+        out: PathBuf,
+        #[arg(long, default_value_t = 2)]
+        radius: usize,
+    },
+    /// Binary closing with the ball of radius R on the mask zero-padded by R, cropped back.
+    Close {
+        mask: PathBuf,
+        out: PathBuf,
+        #[arg(long, default_value_t = 2)]
+        radius: usize,
+    },
+    /// numpy's linear percentiles of every value of a MET_DOUBLE or MET_FLOAT volume; prints
+    /// {"percentiles", "values"}.
+    Percentiles {
+        values: PathBuf,
+        /// Comma-separated percentiles in [0, 100].
+        #[arg(long, value_delimiter = ',', required = true)]
+        p: Vec<f64>,
+    },
+    /// Marching cubes of a mask (closed, outward, patient mm) to a Wavefront OBJ; prints
+    /// {"vertices", "triangles", "enclosed_volume_mm3", "voxel_volume_mm3", "closed_and_oriented"}.
+    Mesh {
+        mask: PathBuf,
+        out: PathBuf,
+        /// Write per-vertex normals (`vn`) too.
+        #[arg(long)]
+        normals: bool,
+    },
+}
+
+/// Runs `command`; returns the JSON summary to print.
+pub fn run(command: &KernelCommand) -> anyhow::Result<String> {
+    let summary = match command {
+        KernelCommand::Components { mask, out, connectivity, min_voxels } => {
+            let connectivity = Connectivity::try_from(*connectivity)?;
+            let m = read_mask(mask)?;
+            let c = label(&m.data, m.geometry.dims, connectivity).without_small(*min_voxels);
+            write_volume(out, &Volume { geometry: m.geometry, data: c.labels.clone() })?;
+            json!({ "count": c.count(), "sizes": c.sizes })
+        }
+        KernelCommand::Dilate { mask, out, radius } => morph(mask, out, |m, d| morphology::dilate(m, d, *radius))?,
+        KernelCommand::Erode { mask, out, radius } => morph(mask, out, |m, d| morphology::erode(m, d, *radius))?,
+        KernelCommand::Close { mask, out, radius } => morph(mask, out, |m, d| morphology::close(m, d, *radius))?,
+        KernelCommand::Percentiles { values, p } => {
+            let v = read_values(values)?;
+            json!({ "percentiles": p, "values": stats::percentiles(&v, p)? })
+        }
+        KernelCommand::Mesh { mask, out, normals } => {
+            let m = read_mask(mask)?;
+            let surface = marching_cubes::mesh_mask(&m.data, &m.geometry);
+            let volume = mesh::enclosed_volume_mm3(&surface);
+            let voxels = m.data.iter().filter(|&&v| v).count() as f64;
+            let voxel_volume = voxels * m.geometry.spacing_mm.iter().product::<f64>();
+            let vertex_normals = normals.then(|| mesh::vertex_normals(&surface));
+            let comment = format!("enclosed volume {volume} mm³; voxel volume {voxel_volume} mm³");
+            let text = obj::encode(&surface.vertices, vertex_normals.as_deref(), &surface.triangles, &[&comment]);
+            std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+            json!({
+                "vertices": surface.vertices.len(),
+                "triangles": surface.triangles.len(),
+                "enclosed_volume_mm3": volume,
+                "voxel_volume_mm3": voxel_volume,
+                "closed_and_oriented": mesh::check_edges(&surface).is_closed_and_oriented(),
+            })
+        }
+    };
+    Ok(format!("{summary}\n"))
+}
+
+fn morph(mask: &Path, out: &Path, f: impl Fn(&[bool], [usize; 3]) -> Vec<bool>) -> anyhow::Result<serde_json::Value> {
+    let m = read_mask(mask)?;
+    let result = f(&m.data, m.geometry.dims);
+    let set = result.iter().filter(|&&v| v).count();
+    write_volume(out, &Volume { geometry: m.geometry, data: result.iter().map(|&v| u8::from(v)).collect() })?;
+    Ok(json!({ "voxels": set }))
+}
+
+/// A MET_UCHAR MetaImage as a mask (non-zero = set).
+fn read_mask(path: &Path) -> anyhow::Result<Volume<bool>> {
+    let (header, raw) = read_files(path)?;
+    let v: Volume<u8> = mhd::decode(&header, &raw).with_context(|| format!("reading {}", path.display()))?;
+    Ok(v.map(|x| x != 0))
+}
+
+/// Every value of a MET_DOUBLE (exact) or MET_FLOAT (widened) MetaImage.
+fn read_values(path: &Path) -> anyhow::Result<Vec<f64>> {
+    let (header, raw) = read_files(path)?;
+    if let Ok(v) = mhd::decode::<f64>(&header, &raw) {
+        return Ok(v.data);
+    }
+    let v: Volume<f32> = mhd::decode(&header, &raw)
+        .with_context(|| format!("reading {} (MET_DOUBLE or MET_FLOAT expected)", path.display()))?;
+    Ok(v.data.into_iter().map(f64::from).collect())
+}
+
+/// The header text and the raw bytes it names.
+fn read_files(path: &Path) -> anyhow::Result<(String, Vec<u8>)> {
+    let header = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let Some(name) = mhd::header_field(&header, "ElementDataFile") else {
+        bail!("{}: no ElementDataFile line (a MetaImage header with a separate .raw is expected)", path.display());
+    };
+    let raw_path = path.parent().unwrap_or(Path::new(".")).join(name);
+    let raw = std::fs::read(&raw_path).with_context(|| format!("reading {}", raw_path.display()))?;
+    Ok((header, raw))
+}
+
+/// `out` (.mhd) and its `.raw` beside it.
+fn write_volume<T: mhd::MetaElement>(out: &Path, volume: &Volume<T>) -> anyhow::Result<()> {
+    let raw_path = out.with_extension("raw");
+    let raw_name = raw_path.file_name().and_then(|n| n.to_str()).context("output file name is not UTF-8")?;
+    let (header, raw) = mhd::encode(volume, raw_name);
+    std::fs::write(out, header).with_context(|| format!("writing {}", out.display()))?;
+    std::fs::write(&raw_path, raw).with_context(|| format!("writing {}", raw_path.display()))?;
+    Ok(())
+}
