@@ -3,7 +3,7 @@
 //! Each stage's table deserialises straight into that stage's `Params`; unknown keys and wrong
 //! types are errors. Relative paths are taken relative to the configuration file's folder.
 
-use crate::stage::{drr, grid, hu, ingest, train};
+use crate::stage::{drr, grid, hu, ingest, select, sweep, train};
 use anyhow::{anyhow, bail, Context as _};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -25,9 +25,9 @@ pub struct Config {
     #[serde(default)]
     pub grid: grid::Params,
     #[serde(default)]
-    pub sweep: NotYet,
+    pub sweep: sweep::Params,
     #[serde(default)]
-    pub select: NotYet,
+    pub select: select::Params,
     #[serde(default)]
     pub metrics: NotYet,
     /// The folder relative paths are resolved against (the config file's folder).

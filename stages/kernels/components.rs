@@ -107,6 +107,16 @@ impl Components {
         let labels = self.labels.iter().map(|&l| renumber[l as usize]).collect();
         Components { dims: self.dims, labels, sizes }
     }
+
+    /// Only the components listed in `keep` (ascending labels), renumbered `1..` in that order.
+    pub fn keep(&self, keep: &[u32]) -> Components {
+        let mut renumber = vec![0u32; self.sizes.len() + 1];
+        for (new, &old) in keep.iter().enumerate() {
+            renumber[old as usize] = new as u32 + 1;
+        }
+        let labels = self.labels.iter().map(|&l| renumber[l as usize]).collect();
+        Components { dims: self.dims, labels, sizes: keep.iter().map(|&l| self.size(l)).collect() }
+    }
 }
 
 /// Connected components of `mask` (x-fastest on `dims`) under `connectivity`, numbered as

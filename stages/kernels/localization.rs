@@ -71,7 +71,8 @@ pub fn ground_truth_on_grid(mask: &Volume<u8>, grid: &Geometry) -> Result<Ground
                     sum_mm[a] += axis_mm(&mask.geometry, a, ijk[a] as f64);
                 }
                 count += 1;
-                if let (Some(cx), Some(cy), Some(cz)) = (cell_of_index[0][i], cell_of_index[1][j], cell_of_index[2][k]) {
+                if let (Some(cx), Some(cy), Some(cz)) = (cell_of_index[0][i], cell_of_index[1][j], cell_of_index[2][k])
+                {
                     inside[cx + nx * (cy + ny * cz)] += 1;
                 }
             }
@@ -99,27 +100,45 @@ pub fn ground_truth_on_grid(mask: &Volume<u8>, grid: &Geometry) -> Result<Ground
 impl GroundTruthOnGrid {
     /// Dice, centroid distance and hit of the cells where `selected` is true on `grid`.
     pub fn compare(&self, selected: &[bool], grid: &Geometry) -> Localization {
-        let (mut both, mut chosen, mut hit) = (0usize, 0usize, false);
-        let (mut sum_mm, mut count) = ([0f64; 3], 0usize);
-        let [nx, ny, _] = grid.dims;
-        for (c, _) in selected.iter().enumerate().filter(|(_, &s)| s) {
-            chosen += 1;
-            let cov = self.coverage[c];
-            hit |= cov > 0.0;
-            both += usize::from(cov >= 0.5);
-            let mm = grid.voxel_to_patient_mm([(c % nx) as f64, ((c / nx) % ny) as f64, (c / (nx * ny)) as f64]);
-            for a in 0..3 {
-                sum_mm[a] += mm[a];
-            }
-            count += 1;
+        let labels: Vec<u32> = selected.iter().map(|&s| u32::from(s)).collect();
+        self.compare_labels(&labels, 1, grid)[0]
+    }
+
+    /// [`compare`](Self::compare) for every label `1..=count` of a label volume, in one pass.
+    pub fn compare_labels(&self, labels: &[u32], count: usize, grid: &Geometry) -> Vec<Localization> {
+        #[derive(Clone, Copy, Default)]
+        struct Tally {
+            cells: usize,
+            both: usize,
+            hit: bool,
+            sum: [f64; 3],
         }
-        let dice = if chosen + self.core_cells == 0 { 0.0 } else { 2.0 * both as f64 / (chosen + self.core_cells) as f64 };
-        let centroid_distance_mm = if count == 0 {
-            f64::INFINITY
-        } else {
-            (0..3).map(|a| (sum_mm[a] / count as f64 - self.centroid_mm[a]).powi(2)).sum::<f64>().sqrt()
-        };
-        Localization { dice, centroid_distance_mm, hit }
+        let mut tallies = vec![Tally::default(); count];
+        let [nx, ny, _] = grid.dims;
+        for (c, &l) in labels.iter().enumerate().filter(|(_, &l)| l != 0) {
+            let t = &mut tallies[l as usize - 1];
+            let cov = self.coverage[c];
+            t.cells += 1;
+            t.hit |= cov > 0.0;
+            t.both += usize::from(cov >= 0.5);
+            for (a, i) in [c % nx, (c / nx) % ny, c / (nx * ny)].into_iter().enumerate() {
+                t.sum[a] += i as f64;
+            }
+        }
+        tallies
+            .iter()
+            .map(|t| {
+                let total = t.cells + self.core_cells;
+                let dice = if total == 0 { 0.0 } else { 2.0 * t.both as f64 / total as f64 };
+                let centroid_distance_mm = if t.cells == 0 {
+                    f64::INFINITY
+                } else {
+                    let mm = grid.voxel_to_patient_mm(t.sum.map(|s| s / t.cells as f64));
+                    (0..3).map(|a| (mm[a] - self.centroid_mm[a]).powi(2)).sum::<f64>().sqrt()
+                };
+                Localization { dice, centroid_distance_mm, hit: t.hit }
+            })
+            .collect()
     }
 }
 
@@ -129,7 +148,8 @@ fn axis_mm(g: &Geometry, a: usize, i: f64) -> f64 {
 }
 
 fn check_axis_aligned(g: &Geometry, what: &'static str) -> Result<(), LocalizationError> {
-    let aligned = (0..3).all(|a| (0..3).all(|b| if a == b { g.direction[a][b].abs() == 1.0 } else { g.direction[a][b] == 0.0 }));
+    let aligned =
+        (0..3).all(|a| (0..3).all(|b| if a == b { g.direction[a][b].abs() == 1.0 } else { g.direction[a][b] == 0.0 }));
     if aligned {
         Ok(())
     } else {

@@ -55,7 +55,8 @@ impl Stage for Grid {
         };
         let mask = mask.map(|nodes| AlphaMask::from_nodes(nodes, meta.grid));
         let geometry = lattice_geometry(meta.grid, &meta.aabb, &set.frame);
-        let density = Volume { geometry: geometry.clone(), data: renderer.node_density(&field.compose(), mask.as_ref()) };
+        let density =
+            Volume { geometry: geometry.clone(), data: renderer.node_density(&field.compose(), mask.as_ref()) };
         let uncertainty = Volume { geometry, data: gradient_magnitude_unit(&density) };
         let vdb_bytes = vdb::encode(&[
             vdb_grid("density", &density, GridClass::FogVolume),
@@ -118,7 +119,8 @@ pub fn gradient_magnitude_unit(volume: &Volume<f32>) -> Vec<f32> {
                     let (mut p, mut q) = (at, at);
                     p[a] = lo;
                     q[a] = hi;
-                    let d = (v(q[0], q[1], q[2]) - v(p[0], p[1], p[2])) / ((hi - lo) as f64 * volume.geometry.spacing_mm[a]);
+                    let d = (v(q[0], q[1], q[2]) - v(p[0], p[1], p[2]))
+                        / ((hi - lo) as f64 * volume.geometry.spacing_mm[a]);
                     sum += d * d;
                 }
                 magnitude[x + nx * (y + ny * z)] = sum.sqrt();

@@ -8,6 +8,8 @@ pub mod grid;
 pub mod hu;
 pub mod ingest;
 pub mod phantom;
+pub mod select;
+pub mod sweep;
 pub mod train;
 
 use crate::config::{Config, DatasetKind};
@@ -32,6 +34,8 @@ pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
     stages.push(Box::new(drr::Drr { params: config.drr.clone() }));
     stages.push(Box::new(train::Train { params: config.train.clone() }));
     stages.push(Box::new(grid::Grid { params: config.grid.clone() }));
+    stages.push(Box::new(sweep::Sweep { params: config.sweep.clone() }));
+    stages.push(Box::new(select::Select { params: config.select.clone() }));
     StageGraph::new(stages)
 }
 
