@@ -2,7 +2,9 @@
 //!
 //! [`consensus`] turns radiologist contours into pylidc-exact nodule ground truth (its public
 //! API, re-exporting what it needs from [`annotation`], [`cluster`] and [`mask`]); [`polygon`]
-//! is the matplotlib-exact point-in-polygon the annotation masks use.
+//! is the matplotlib-exact point-in-polygon the annotation masks use. The sweep/select kernels —
+//! [`components`], [`morphology`], [`stats`] percentiles, [`marching_cubes`] and [`mesh`] — are
+//! described, with what each equals, in `docs/kernels.md`.
 pub mod annotation;
 pub mod cluster;
 pub mod components;

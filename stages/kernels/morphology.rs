@@ -10,7 +10,7 @@
 //! per voxel.
 
 /// The offsets `[dx, dy, dz]` of the ball of radius `radius`, x fastest: what scipy's
-/// `structure` holds, for reference and tests (the kernels use [`disk_rows`]).
+/// `structure` holds, for reference and tests (the kernels use its x-segments).
 pub fn ball_offsets(radius: usize) -> Vec<[i64; 3]> {
     let r = radius as i64;
     let mut out = Vec::new();
