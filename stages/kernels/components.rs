@@ -44,6 +44,13 @@ impl From<Connectivity> for u32 {
     }
 }
 
+/// 26, the SPEC's (§3 sweep).
+impl Default for Connectivity {
+    fn default() -> Self {
+        Self::TwentySix
+    }
+}
+
 impl std::fmt::Display for Connectivity {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "{}", u32::from(*self))
@@ -297,6 +304,7 @@ mod tests {
     fn connectivity_is_validated() {
         assert_eq!(Connectivity::try_from(26), Ok(Connectivity::TwentySix));
         assert_eq!(u32::from(Connectivity::Eighteen), 18);
+        assert_eq!(Connectivity::default(), Connectivity::TwentySix);
         let err = Connectivity::try_from(8).unwrap_err();
         assert_eq!(
             err.to_string(),
