@@ -352,7 +352,8 @@ fn border_labels(c: &Components) -> Vec<bool> {
     touches
 }
 
-fn verdict(primary: Option<&Selection>, has_truth: bool) -> String {
+/// One line saying whether `primary` can be trusted: "hit", or why not ("MISS: …").
+pub fn verdict(primary: Option<&Selection>, has_truth: bool) -> String {
     match (primary, has_truth) {
         (None, _) => "MISS: no candidate survived the sweep".into(),
         (Some(_), false) => "unverified: no ground truth to localise against".into(),

@@ -51,7 +51,8 @@ impl Params {
         if self.percentiles.is_empty() || self.percentiles.iter().any(|p| !(0.0..=100.0).contains(p)) {
             bail!("[sweep] percentiles must be a non-empty list of numbers in [0, 100]");
         }
-        if !(self.diameter_mm[0] <= self.diameter_mm[1]) {
+        let [lo, hi] = self.diameter_mm;
+        if lo.is_nan() || hi.is_nan() || lo > hi {
             bail!("[sweep] diameter_mm must be [min, max] with min ≤ max");
         }
         Ok(())
