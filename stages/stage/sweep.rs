@@ -12,6 +12,7 @@ use crate::kernels::components::{label, Components, Connectivity};
 use crate::kernels::{morphology, stats};
 use crate::volume::{Geometry, Volume};
 use anyhow::bail;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 
@@ -94,9 +95,10 @@ pub fn levels(density: &Volume<f32>, params: &Params) -> anyhow::Result<Vec<Leve
         bail!("the density is zero everywhere: nothing to threshold (did training fail?)");
     }
     let thresholds = stats::percentiles(&nonzero, &params.percentiles)?;
+    // Levels are independent: one task each (collected in percentile order).
     Ok(params
         .percentiles
-        .iter()
+        .par_iter()
         .zip(thresholds)
         .map(|(&percentile, threshold)| level(density, params, percentile, threshold))
         .collect())
