@@ -41,6 +41,15 @@ impl Geometry {
         p
     }
 
+    /// The voxel whose centre is nearest to patient point `p_mm` (clamped into the volume;
+    /// the direction is orthonormal).
+    pub fn nearest_voxel(&self, p_mm: [f64; 3]) -> [usize; 3] {
+        std::array::from_fn(|axis| {
+            let along: f64 = (0..3).map(|c| (p_mm[c] - self.origin_mm[c]) * self.direction[axis][c]).sum();
+            (along / self.spacing_mm[axis]).round().clamp(0.0, (self.dims[axis] - 1) as f64) as usize
+        })
+    }
+
     /// Linear index of voxel `(i, j, k)` in the `[slice][row][col]` layout.
     pub fn index(&self, i: usize, j: usize, k: usize) -> usize {
         i + self.dims[0] * (j + self.dims[1] * k)

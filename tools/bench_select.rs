@@ -40,7 +40,8 @@ fn main() -> anyhow::Result<()> {
     for _ in 0..runs {
         let t = Instant::now();
         let geometry = lattice_geometry(meta.grid, &meta.aabb, &set.frame);
-        let density = Volume { geometry: geometry.clone(), data: renderer.node_density(&field.compose(), mask.as_ref()) };
+        let density =
+            Volume { geometry: geometry.clone(), data: renderer.node_density(&field.compose(), mask.as_ref()) };
         let uncertainty = gradient_magnitude_unit(&density);
         let grid = |name, values| vdb::FloatGrid {
             name,
@@ -64,7 +65,10 @@ fn main() -> anyhow::Result<()> {
         let t_select = t.elapsed().as_secs_f64();
         let (_, (i, label), _) = picks.first().expect("a candidate");
         let mesh = mesh_mask(&levels[*i].components.mask_of(*label), &density.geometry);
-        std::hint::black_box((enclosed_volume_mm3(&mesh), obj::encode(&mesh.vertices, Some(&vertex_normals(&mesh)), &mesh.triangles, &[])));
+        std::hint::black_box((
+            enclosed_volume_mm3(&mesh),
+            obj::encode(&mesh.vertices, Some(&vertex_normals(&mesh)), &mesh.triangles, &[]),
+        ));
         let t_mesh = t.elapsed().as_secs_f64();
         phases.push([t_grid, t_sweep - t_grid, t_select - t_sweep, t_mesh - t_select]);
     }

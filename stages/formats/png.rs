@@ -53,15 +53,24 @@ impl Window {
 
 /// PNG bytes of an 8-bit grayscale image, row-major.
 pub fn encode_gray8(width: usize, height: usize, pixels: &[u8]) -> Vec<u8> {
-    assert_eq!(pixels.len(), width * height, "pixel count");
+    encode_8bit(width, height, ::png::ColorType::Grayscale, pixels)
+}
+
+/// PNG bytes of an 8-bit RGB image, row-major, three bytes a pixel.
+pub fn encode_rgb8(width: usize, height: usize, rgb: &[u8]) -> Vec<u8> {
+    encode_8bit(width, height, ::png::ColorType::Rgb, rgb)
+}
+
+fn encode_8bit(width: usize, height: usize, color: ::png::ColorType, bytes: &[u8]) -> Vec<u8> {
+    assert_eq!(bytes.len(), color.samples() * width * height, "byte count");
     let mut out = Vec::new();
     {
         let mut encoder = ::png::Encoder::new(&mut out, width as u32, height as u32);
-        encoder.set_color(::png::ColorType::Grayscale);
+        encoder.set_color(color);
         encoder.set_depth(::png::BitDepth::Eight);
         encoder.set_compression(::png::Compression::Best);
         let mut writer = encoder.write_header().expect("PNG header to memory");
-        writer.write_image_data(pixels).expect("PNG data to memory");
+        writer.write_image_data(bytes).expect("PNG data to memory");
     }
     out
 }

@@ -2,8 +2,8 @@
 //! the density grid as per-cell coverage, and the Dice, centroid distance and hit of a
 //! selected set of cells.
 //!
-//! A cell's coverage is the fraction of the CT voxels whose centres fall in it that are in
-//! the consensus mask (counted exactly, not supersampled). Dice uses the cells with coverage
+//! A cell's coverage is the fraction of its volume covered by the consensus mask's voxels
+//! (exact box overlaps, so cells thinner than the CT's slice spacing are covered too). Dice uses the cells with coverage
 //! ≥ 0.5; a selection is a hit when it holds at least one cell with coverage > 0 (it touches
 //! the nodule's footprint).
 
@@ -36,31 +36,34 @@ pub enum LocalizationError {
     EmptyMask,
 }
 
-/// Resamples the consensus `mask` (non-zero = inside) onto `grid`.
+/// Resamples the consensus `mask` (non-zero = inside) onto `grid`: each cell's coverage is
+/// the volume of the mask's voxels (boxes around their centres) inside the cell over the
+/// cell's volume. Axis-aligned grids make the overlap of two boxes a product of per-axis
+/// overlaps, so a CT voxel touches only the few cells its extent spans on each axis.
 pub fn ground_truth_on_grid(mask: &Volume<u8>, grid: &Geometry) -> Result<GroundTruthOnGrid, LocalizationError> {
     check_axis_aligned(&mask.geometry, "the ground-truth mask")?;
     check_axis_aligned(grid, "the density grid")?;
-    // Axis-aligned: the cell of CT index i along axis a depends on i alone, so per-axis maps
-    // give every voxel's cell and every cell's voxel count (a product of per-axis counts).
-    let cell_of_index: [Vec<Option<usize>>; 3] = std::array::from_fn(|a| {
+    // overlaps[a][i]: (cell, overlap length in cell units) for CT index i along axis a.
+    let overlaps: [Vec<Vec<(usize, f64)>>; 3] = std::array::from_fn(|a| {
+        let cell_mm = grid.spacing_mm[a];
         (0..mask.geometry.dims[a])
             .map(|i| {
-                let mm = axis_mm(&mask.geometry, a, i as f64);
-                let c = ((mm - grid.origin_mm[a]) / (grid.spacing_mm[a] * grid.direction[a][a])).round();
-                (c >= 0.0 && c < grid.dims[a] as f64).then_some(c as usize)
+                // The CT voxel's extent in continuous cell coordinates (cell c spans [c − ½, c + ½]).
+                let centre = (axis_mm(&mask.geometry, a, i as f64) - grid.origin_mm[a]) * grid.direction[a][a] / cell_mm;
+                let half = 0.5 * mask.geometry.spacing_mm[a] / cell_mm;
+                let (lo, hi) = (centre - half, centre + half);
+                let first = ((lo + 0.5).floor() as isize).max(0);
+                let last = ((hi + 0.5).ceil() as isize - 1).min(grid.dims[a] as isize - 1);
+                (first..=last)
+                    .map(|c| (c as usize, hi.min(c as f64 + 0.5) - lo.max(c as f64 - 0.5)))
+                    .filter(|&(_, len)| len > 0.0)
+                    .collect()
             })
             .collect()
     });
-    let per_axis_counts: [Vec<usize>; 3] = std::array::from_fn(|a| {
-        let mut counts = vec![0; grid.dims[a]];
-        for c in cell_of_index[a].iter().flatten() {
-            counts[*c] += 1;
-        }
-        counts
-    });
     let [nx, ny, _] = grid.dims;
     let [mx, my, mz] = mask.geometry.dims;
-    let mut inside = vec![0u32; grid.len()];
+    let mut coverage_sum = vec![0f64; grid.len()];
     let (mut sum_mm, mut count) = ([0f64; 3], 0usize);
     for k in 0..mz {
         for j in 0..my {
@@ -71,9 +74,12 @@ pub fn ground_truth_on_grid(mask: &Volume<u8>, grid: &Geometry) -> Result<Ground
                     sum_mm[a] += axis_mm(&mask.geometry, a, ijk[a] as f64);
                 }
                 count += 1;
-                if let (Some(cx), Some(cy), Some(cz)) = (cell_of_index[0][i], cell_of_index[1][j], cell_of_index[2][k])
-                {
-                    inside[cx + nx * (cy + ny * cz)] += 1;
+                for &(cz, wz) in &overlaps[2][k] {
+                    for &(cy, wy) in &overlaps[1][j] {
+                        for &(cx, wx) in &overlaps[0][i] {
+                            coverage_sum[cx + nx * (cy + ny * cz)] += wx * wy * wz;
+                        }
+                    }
                 }
             }
         }
@@ -81,18 +87,8 @@ pub fn ground_truth_on_grid(mask: &Volume<u8>, grid: &Geometry) -> Result<Ground
     if count == 0 {
         return Err(LocalizationError::EmptyMask);
     }
-    let coverage: Vec<f32> = inside
-        .iter()
-        .enumerate()
-        .map(|(c, &n_in)| {
-            if n_in == 0 {
-                return 0.0;
-            }
-            let (cx, cy, cz) = (c % nx, (c / nx) % ny, c / (nx * ny));
-            let total = per_axis_counts[0][cx] * per_axis_counts[1][cy] * per_axis_counts[2][cz];
-            n_in as f32 / total as f32
-        })
-        .collect();
+    // Sums of overlap fractions can exceed 1 by rounding only.
+    let coverage: Vec<f32> = coverage_sum.iter().map(|&c| c.min(1.0) as f32).collect();
     let core_cells = coverage.iter().filter(|&&c| c >= 0.5).count();
     Ok(GroundTruthOnGrid { coverage, centroid_mm: sum_mm.map(|s| s / count as f64), core_cells })
 }
@@ -163,6 +159,19 @@ mod tests {
 
     fn geometry(dims: [usize; 3], spacing_mm: [f64; 3], origin_mm: [f64; 3]) -> Geometry {
         Geometry { dims, spacing_mm, origin_mm, direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] }
+    }
+
+    #[test]
+    fn cells_thinner_than_the_slice_spacing_are_covered() {
+        // CT slices 2.5 mm apart, one slice in the mask; density cells 1 mm thick along z: the
+        // slab [1.25, 3.75] mm covers cells 2 (fully) and 1, 3 (by a quarter each).
+        let ct = geometry([2, 2, 3], [1.0, 1.0, 2.5], [0.0; 3]);
+        let mut data = vec![0u8; 12];
+        data[4..8].fill(1); // slice k = 1, at z = 2.5 mm
+        let grid = geometry([1, 1, 6], [2.0, 2.0, 1.0], [0.5, 0.5, 0.0]);
+        let gt = ground_truth_on_grid(&Volume { geometry: ct, data }, &grid).unwrap();
+        let expected = [0.0, 0.25, 1.0, 1.0, 0.25, 0.0];
+        assert!(gt.coverage.iter().zip(expected).all(|(&c, e)| (c - e).abs() < 1e-6), "{:?}", gt.coverage);
     }
 
     #[test]
