@@ -49,7 +49,8 @@ pub fn ground_truth_on_grid(mask: &Volume<u8>, grid: &Geometry) -> Result<Ground
         (0..mask.geometry.dims[a])
             .map(|i| {
                 // The CT voxel's extent in continuous cell coordinates (cell c spans [c − ½, c + ½]).
-                let centre = (axis_mm(&mask.geometry, a, i as f64) - grid.origin_mm[a]) * grid.direction[a][a] / cell_mm;
+                let centre =
+                    (axis_mm(&mask.geometry, a, i as f64) - grid.origin_mm[a]) * grid.direction[a][a] / cell_mm;
                 let half = 0.5 * mask.geometry.spacing_mm[a] / cell_mm;
                 let (lo, hi) = (centre - half, centre + half);
                 let first = ((lo + 0.5).floor() as isize).max(0);

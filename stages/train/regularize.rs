@@ -17,14 +17,12 @@ pub enum TvNorm {
     L2,
 }
 
+/// −1, 0 or 1, branch-free (selects, so loops over it vectorise).
+#[inline]
 fn sign<T: Float>(x: T) -> T {
-    if x > T::zero() {
-        T::one()
-    } else if x < T::zero() {
-        -T::one()
-    } else {
-        T::zero()
-    }
+    let positive = if x > T::zero() { T::one() } else { T::zero() };
+    let negative = if x < T::zero() { T::one() } else { T::zero() };
+    positive - negative
 }
 
 /// Entries per parallel task; fixed, so sums run in one order whatever the thread count.
@@ -42,7 +40,7 @@ pub fn l1<T: Float + Send + Sync>(field: &VmField<T>, weight: T, grad: &mut VmFi
                 for (gi, &xi) in g.iter_mut().zip(x) {
                     *gi = *gi + per_entry * sign(xi);
                 }
-                lane_sum(x.iter().map(|v| v.abs()))
+                lane_sum(x, |v| v.abs())
             })
             .collect();
         let sum = partial.into_iter().fold(T::zero(), |a, b| a + b);
@@ -76,19 +74,22 @@ pub fn tv<T: Float + Send + Sync>(field: &VmField<T>, norm: TvNorm, weight: T, g
 fn tv_component<T: Float>(comp: &[T], g: &mut [T], n: usize, norm: TvNorm, scale: T) -> T {
     // Each difference d_k = b_k − a_k adds |d| (or d²); ∂/∂d_k, scaled, goes to b_k with + and
     // to a_k with −. Differences run between contiguous slices (a row and itself shifted by
-    // one; the plane and itself shifted by one row), the gradient in two passes after.
+    // one; the plane and itself shifted by one row) into `step`, which then becomes the
+    // scaled derivative and is applied in two passes. Slice loops only: they vectorise.
     let mut step = vec![T::zero(); n * (n - 1)];
     let mut value = T::zero();
     let mut penalise = |a: &[T], b: &[T], step: &mut [T]| {
-        let diffs = a.iter().zip(b).map(|(&x, &y)| y - x);
+        for ((s, &x), &y) in step.iter_mut().zip(a).zip(b) {
+            *s = y - x;
+        }
         match norm {
             TvNorm::L1 => {
-                value = value + lane_sum(diffs.clone().map(|d| d.abs()));
-                step.iter_mut().zip(diffs).for_each(|(s, d)| *s = scale * sign(d));
+                value = value + lane_sum(step, |d| d.abs());
+                step.iter_mut().for_each(|s| *s = scale * sign(*s));
             }
             TvNorm::L2 => {
-                value = value + lane_sum(diffs.clone().map(|d| d * d));
-                step.iter_mut().zip(diffs).for_each(|(s, d)| *s = scale * (d + d));
+                value = value + lane_sum(step, |d| d * d);
+                step.iter_mut().for_each(|s| *s = scale * (*s + *s));
             }
         }
     };
@@ -109,12 +110,16 @@ fn tv_component<T: Float>(comp: &[T], g: &mut [T], n: usize, norm: TvNorm, scale
     value
 }
 
-/// `Σ values` in eight interleaved partial sums (so the loop vectorises), then the partials
-/// pairwise: one fixed order.
-fn lane_sum<T: Float>(values: impl Iterator<Item = T>) -> T {
+/// `Σ f(x)` over `values` in eight interleaved partial sums (so the loop vectorises), then
+/// the remainder, then the partials pairwise: one fixed order.
+fn lane_sum<T: Float>(values: &[T], f: impl Fn(T) -> T) -> T {
     let mut lanes = [T::zero(); 8];
-    for (k, v) in values.enumerate() {
-        lanes[k & 7] = lanes[k & 7] + v;
+    let chunks = values.chunks_exact(8);
+    let tail = chunks.remainder().iter().fold(T::zero(), |t, &v| t + f(v));
+    for chunk in chunks {
+        for k in 0..8 {
+            lanes[k] = lanes[k] + f(chunk[k]);
+        }
     }
-    ((lanes[0] + lanes[4]) + (lanes[1] + lanes[5])) + ((lanes[2] + lanes[6]) + (lanes[3] + lanes[7]))
+    ((lanes[0] + lanes[4]) + (lanes[1] + lanes[5])) + ((lanes[2] + lanes[6]) + (lanes[3] + lanes[7])) + tail
 }
