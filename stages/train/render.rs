@@ -110,12 +110,11 @@ const RAYS_PER_TASK: usize = 32;
 /// Lattice z-planes per scatter task.
 const PLANES_PER_SLAB: usize = 4;
 
-/// One task's traced rays: predictions, and its active samples ordered by cell z-plane
-/// (stable, so ray order holds within a plane), `by_plane[z]..by_plane[z + 1]` at plane z.
+/// One task's traced rays: predictions, and its active samples by the z-plane of their cell
+/// (`by_plane[z]`, in ray order within a plane).
 struct Traced<T> {
     predicted: Vec<f64>,
-    active: Vec<Active<T>>,
-    by_plane: Vec<usize>,
+    by_plane: Vec<Vec<Active<T>>>,
 }
 
 impl Renderer {
@@ -140,7 +139,7 @@ impl Renderer {
         mask: Option<&AlphaMask>,
         ray: &Ray,
         offset: f64,
-        mut active: Option<(&mut Vec<Active<T>>, u32)>,
+        mut active: Option<(&mut [Vec<Active<T>>], u32)>,
     ) -> f64 {
         let (q0, dq, count) = self.samples(ray, offset);
         let (q0, dq) = (q0.map(|v| T::from(v).expect("finite")), dq.map(|v| T::from(v).expect("finite")));
@@ -149,9 +148,6 @@ impl Renderer {
         let (last_node, last_cell) = (T::from(n - 1).expect("small"), n - 2);
         let shift = T::from(self.shift).expect("finite");
         let mut optical_depth = T::zero();
-        if let Some((list, _)) = active.as_mut() {
-            list.reserve(count);
-        }
         let mut k = T::zero();
         for _ in 0..count {
             // The cell and position in it, clamped to the outermost nodes (kernels::trilinear's
@@ -179,9 +175,10 @@ impl Renderer {
             );
             let sigma = f + shift;
             optical_depth = optical_depth + sigma.max(T::zero());
-            if let Some((list, ray)) = active.as_mut() {
+            if let Some((by_plane, ray)) = active.as_mut() {
                 // Pushed, then dropped unless active: no branch on the sign of σ, which would
                 // mispredict on a field near zero.
+                let list = &mut by_plane[base[2]];
                 list.push(Active { cell_and_ray: cell as u32 | *ray << CELL_BITS, frac: [fx, fy, fz] });
                 list.truncate(list.len() - usize::from(sigma <= T::zero()));
             }
@@ -197,7 +194,7 @@ impl Renderer {
     /// Renders `rays` (with their per-ray `offsets`), returns predictions and MSE, and when
     /// `grad` is given adds `dMSE/dF` to it.
     ///
-    /// Rays trace in parallel, in fixed groups that record their active samples sorted by
+    /// Rays trace in parallel, in fixed groups that record their active samples bucketed by
     /// z-plane; the scatter then runs in parallel over z-slabs of the lattice, each adding the
     /// groups' samples in group, then plane, then ray order. Every gradient element is summed
     /// in one fixed order: the result is bit-identical whatever the thread count.
@@ -215,17 +212,16 @@ impl Renderer {
             .par_chunks(RAYS_PER_TASK)
             .zip(offsets.par_chunks(RAYS_PER_TASK))
             .map(|(rays, offsets)| {
-                let mut active = Vec::new();
+                let mut by_plane = vec![Vec::new(); if want_grad { n } else { 0 }];
                 let predicted = rays
                     .iter()
                     .zip(offsets)
                     .enumerate()
                     .map(|(i, (ray, &off))| {
-                        self.trace(dense, mask, ray, off, want_grad.then_some((&mut active, i as u32)))
+                        self.trace(dense, mask, ray, off, want_grad.then_some((by_plane.as_mut_slice(), i as u32)))
                     })
                     .collect();
-                let (active, by_plane) = sort_by_plane(active, n);
-                Traced { predicted, active, by_plane }
+                Traced { predicted, by_plane }
             })
             .collect();
         let predicted: Vec<f64> = traced.iter().flat_map(|t| t.predicted.iter().copied()).collect();
@@ -252,8 +248,7 @@ impl Renderer {
             let base = z0 * sz;
             for (t, d_sigma) in traced.iter().zip(d_sigma.chunks(RAYS_PER_TASK)) {
                 // Cells on plane z0 − 1 reach into this slab with their upper corners.
-                let range = t.by_plane[z0.saturating_sub(1)]..t.by_plane[z1];
-                for a in &t.active[range] {
+                for a in t.by_plane[z0.saturating_sub(1)..z1].iter().flatten() {
                     let g = d_sigma[a.ray_in_task()];
                     if g == T::zero() {
                         continue;
@@ -321,25 +316,4 @@ impl Renderer {
         }
         AlphaMask::from_nodes(keep, n)
     }
-}
-
-/// Stable counting sort of `active` by the z-plane of its cell; returns the sorted samples and
-/// the start of each plane (`n + 1` entries).
-fn sort_by_plane<T: Copy + Default>(active: Vec<Active<T>>, n: usize) -> (Vec<Active<T>>, Vec<usize>) {
-    let plane = |a: &Active<T>| a.cell() / (n * n);
-    let mut start = vec![0usize; n + 1];
-    for a in &active {
-        start[plane(a) + 1] += 1;
-    }
-    for z in 0..n {
-        start[z + 1] += start[z];
-    }
-    let mut next = start.clone();
-    let mut sorted = vec![Active::default(); active.len()];
-    for a in active {
-        let z = plane(&a);
-        sorted[next[z]] = a;
-        next[z] += 1;
-    }
-    (sorted, start)
 }
