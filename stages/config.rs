@@ -3,7 +3,7 @@
 //! Each stage's table deserialises straight into that stage's `Params`; unknown keys and wrong
 //! types are errors. Relative paths are taken relative to the configuration file's folder.
 
-use crate::stage::{drr, grid, hu, ingest, select, sweep, train};
+use crate::stage::{drr, grid, hu, ingest, metrics, select, sweep, train};
 use anyhow::{anyhow, bail, Context as _};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -29,16 +29,11 @@ pub struct Config {
     #[serde(default)]
     pub select: select::Params,
     #[serde(default)]
-    pub metrics: NotYet,
+    pub metrics: metrics::Params,
     /// The folder relative paths are resolved against (the config file's folder).
     #[serde(skip)]
     pub base_dir: PathBuf,
 }
-
-/// A stage table that takes no keys yet (the stage arrives in a later release).
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct NotYet {}
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -142,7 +142,15 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
         } else {
             progress.started(stage.name(), COHORT);
             let inputs = plan::cohort_inputs(stage, &patients, &cohort_finished, &failed);
-            let ctx = Context { stage, unit: COHORT, store, sources: &[], inputs: &cohort_finished, cohort: &patients };
+            let ctx = Context {
+                stage,
+                unit: COHORT,
+                store,
+                sources: &[],
+                inputs: &cohort_finished,
+                cohort: &patients,
+                failed: &failed,
+            };
             let (outcome, outputs) = run_stage(&shared, stage, COHORT, inputs, &ctx, &options.out_dir);
             match outputs {
                 Some(outputs) => drop(cohort_finished.insert(stage.name(), outputs)),
@@ -215,6 +223,7 @@ fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
                     sources,
                     inputs: &job.finished,
                     cohort: &no_cohort,
+                    failed: &[],
                 };
                 let dir = shared.options.out_dir.join(&job.unit.id);
                 let (outcome, outputs) = run_stage(shared, stage, &job.unit.id, inputs, &ctx, &dir);

@@ -133,6 +133,8 @@ pub struct Context<'a> {
     pub(crate) sources: &'a [SourceFile],
     pub(crate) inputs: &'a Finished,
     pub(crate) cohort: &'a BTreeMap<String, Finished>,
+    /// Patients that failed before a cohort stage (it reports them; they are in its key).
+    pub(crate) failed: &'a [String],
 }
 
 impl<'a> Context<'a> {
@@ -149,6 +151,11 @@ impl<'a> Context<'a> {
     /// Bytes of output `name` of upstream stage `stage` for this patient.
     pub fn read(&self, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
         self.read_from(self.inputs, stage, name)
+    }
+
+    /// The patients that failed before this cohort stage, in order.
+    pub fn failed_patients(&self) -> &[String] {
+        self.failed
     }
 
     /// The patients that reached a cohort stage, in order.

@@ -7,6 +7,7 @@ pub mod drr;
 pub mod grid;
 pub mod hu;
 pub mod ingest;
+pub mod metrics;
 pub mod phantom;
 pub mod select;
 pub mod sweep;
@@ -36,6 +37,7 @@ pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
     stages.push(Box::new(grid::Grid { params: config.grid.clone() }));
     stages.push(Box::new(sweep::Sweep { params: config.sweep.clone() }));
     stages.push(Box::new(select::Select { params: config.select.clone() }));
+    stages.push(Box::new(metrics::Metrics { params: config.metrics.clone() }));
     StageGraph::new(stages)
 }
 

@@ -100,6 +100,17 @@ pub struct SelectResult {
     pub candidates: usize,
 }
 
+impl SelectResult {
+    /// The report of `rule`'s choice, if it chose.
+    pub fn selection(&self, rule: Rule) -> Option<&Selection> {
+        match rule {
+            Rule::Guided => self.guided.as_ref(),
+            Rule::BlindLargest => self.blind_largest.as_ref(),
+            Rule::BlindPersistent => self.blind_persistent.as_ref(),
+        }
+    }
+}
+
 pub struct Select {
     pub params: Params,
 }

@@ -1,0 +1,175 @@
+//! One row per patient of `results.csv` (SPEC §4, columns in order), from its `result.json`
+//! and training log.
+
+use crate::stage::select::{SelectResult, Selection};
+use serde::Serialize;
+use std::fmt::Write as _;
+
+/// SPEC §3 metrics: S < 10 mm ≤ M ≤ 20 mm < L, by the annotated diameter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SizeClass {
+    Small,
+    Medium,
+    Large,
+}
+
+impl SizeClass {
+    pub fn of(diameter_mm: f64) -> SizeClass {
+        if diameter_mm < 10.0 {
+            SizeClass::Small
+        } else if diameter_mm <= 20.0 {
+            SizeClass::Medium
+        } else {
+            SizeClass::Large
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            SizeClass::Small => "small",
+            SizeClass::Medium => "medium",
+            SizeClass::Large => "large",
+        }
+    }
+}
+
+/// A selection's volume and localization, as the table reports it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Measured {
+    pub volume_mm3: f64,
+    pub ape_pct: f64,
+    pub hit: bool,
+    pub dice: f64,
+    pub centroid_dist_mm: f64,
+}
+
+/// One patient with a ground-truth target.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PatientRow {
+    pub patient: String,
+    pub size_class: SizeClass,
+    pub gt_volume_mm3: f64,
+    pub gt_diameter_mm: f64,
+    /// The primary (guided by default) selection; `None` when no candidate survived.
+    pub ours: Option<Measured>,
+    pub mesh_volume_mm3: Option<f64>,
+    pub percentile: Option<f64>,
+    pub blind: Option<Measured>,
+    pub sphere_volume_mm3: f64,
+    pub sphere_ape_pct: f64,
+    pub oracle_hit: bool,
+    pub train_seconds: f64,
+}
+
+/// Absolute percentage error of `predicted` against `truth`.
+pub fn ape_pct(predicted: f64, truth: f64) -> f64 {
+    (predicted - truth).abs() / truth * 100.0
+}
+
+impl PatientRow {
+    /// The row of `result`, or `None` when the patient has no ground-truth target.
+    pub fn new(result: &SelectResult, train_seconds: f64) -> Option<PatientRow> {
+        let (gt, d) = (result.gt_volume_mm3?, result.annotated_diameter_mm?);
+        let measured = |s: &Selection| {
+            let l = s.localization.expect("a patient with a target has localization");
+            Measured {
+                volume_mm3: s.candidate.volume_mm3,
+                ape_pct: ape_pct(s.candidate.volume_mm3, gt),
+                hit: l.hit,
+                dice: l.dice,
+                centroid_dist_mm: l.centroid_distance_mm,
+            }
+        };
+        let sphere = std::f64::consts::PI / 6.0 * d.powi(3);
+        let primary = result.selection(result.primary);
+        Some(PatientRow {
+            patient: result.patient.clone(),
+            size_class: SizeClass::of(d),
+            gt_volume_mm3: gt,
+            gt_diameter_mm: d,
+            ours: primary.map(measured),
+            mesh_volume_mm3: result.mesh_volume_mm3,
+            percentile: primary.map(|s| s.candidate.percentile),
+            blind: result.selection(result.blind_rule).map(measured),
+            sphere_volume_mm3: sphere,
+            sphere_ape_pct: ape_pct(sphere, gt),
+            oracle_hit: result.oracle.as_ref().is_some_and(|o| o.any_hit),
+            train_seconds,
+        })
+    }
+}
+
+pub const RESULTS_HEADER: &str = "patient,size_class,gt_volume_mm3,gt_diameter_mm,pred_volume_mm3,ape_pct,\
+hit,dice,centroid_dist_mm,mesh_volume_mm3,percentile,blind_volume_mm3,blind_ape_pct,blind_hit,blind_dice,\
+sphere_volume_mm3,sphere_ape_pct,oracle_hit,train_seconds";
+
+/// `results.csv`: the SPEC's columns in order; an empty field where there is no value (no
+/// candidate survived), a non-finite distance as empty too.
+pub fn results_csv(rows: &[PatientRow]) -> String {
+    let mut s = format!("{RESULTS_HEADER}\n");
+    let num = |v: Option<f64>| v.filter(|v| v.is_finite()).map(|v| format!("{v:.4}")).unwrap_or_default();
+    let flag = |v: Option<bool>| v.map(|b| u8::from(b).to_string()).unwrap_or_default();
+    for r in rows {
+        let (o, b) = (r.ours.as_ref(), r.blind.as_ref());
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            r.patient,
+            r.size_class.name(),
+            num(Some(r.gt_volume_mm3)),
+            num(Some(r.gt_diameter_mm)),
+            num(o.map(|m| m.volume_mm3)),
+            num(o.map(|m| m.ape_pct)),
+            flag(o.map(|m| m.hit)),
+            num(o.map(|m| m.dice)),
+            num(o.map(|m| m.centroid_dist_mm)),
+            num(r.mesh_volume_mm3),
+            num(r.percentile),
+            num(b.map(|m| m.volume_mm3)),
+            num(b.map(|m| m.ape_pct)),
+            flag(b.map(|m| m.hit)),
+            num(b.map(|m| m.dice)),
+            num(Some(r.sphere_volume_mm3)),
+            num(Some(r.sphere_ape_pct)),
+            flag(Some(r.oracle_hit)),
+            num(Some(r.train_seconds)),
+        );
+    }
+    s
+}
+
+/// The `seconds` of the last row of a `train_log.csv`.
+pub fn train_seconds(log_csv: &str) -> Option<f64> {
+    let mut lines = log_csv.lines();
+    let column = lines.next()?.split(',').position(|c| c == "seconds")?;
+    lines.rfind(|l| !l.is_empty())?.split(',').nth(column)?.parse().ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn size_classes_follow_the_spec() {
+        assert_eq!(SizeClass::of(9.99), SizeClass::Small);
+        assert_eq!(SizeClass::of(10.0), SizeClass::Medium);
+        assert_eq!(SizeClass::of(20.0), SizeClass::Medium);
+        assert_eq!(SizeClass::of(20.01), SizeClass::Large);
+    }
+
+    #[test]
+    fn train_seconds_is_the_last_logged_time() {
+        let log = "iteration,loss,lr,seconds\n0,1,0.02,0.1\n100,0.5,0.01,12.5\n";
+        assert_eq!(train_seconds(log), Some(12.5));
+        assert_eq!(train_seconds("iteration\n1\n"), None);
+    }
+
+    #[test]
+    fn the_header_has_the_specs_nineteen_columns() {
+        assert_eq!(RESULTS_HEADER.split(',').count(), 19);
+        assert!(
+            RESULTS_HEADER.starts_with("patient,size_class,") && RESULTS_HEADER.ends_with(",oracle_hit,train_seconds")
+        );
+    }
+}
