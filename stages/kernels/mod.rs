@@ -17,5 +17,6 @@ pub mod mesh;
 pub mod morphology;
 pub mod polygon;
 pub mod raymarch;
+pub mod statistics;
 pub mod stats;
 pub mod trilinear;
