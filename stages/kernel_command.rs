@@ -2,10 +2,12 @@
 //! developers and for the cross-checks in `tests/py` (scipy, cc3d, numpy, trimesh, pyvista,
 //! pymeshlab read what this writes). Hidden from `--help`: it is a test entry point, not part
 //! of the pipeline. Inputs and outputs are MetaImage (`.mhd` + `.raw`); a mask is MET_UCHAR,
-//! non-zero meaning set. A JSON summary goes to stdout. See `docs/kernels.md`.
+//! non-zero meaning set. A JSON summary goes to stdout. `statistics` instead reads paired
+//! samples as JSON and prints every cohort statistic of them. See `docs/kernels.md`.
 
 use crate::formats::{mhd, obj};
 use crate::kernels::components::{label, Connectivity};
+use crate::kernels::statistics::{self as st, StatisticsError};
 use crate::kernels::{marching_cubes, mesh, morphology, stats};
 use crate::volume::Volume;
 use anyhow::{bail, Context as _};
@@ -65,6 +67,18 @@ pub enum KernelCommand {
         #[arg(long)]
         normals: bool,
     },
+    /// The cohort statistics of paired samples read from a JSON file (`-` for stdin):
+    /// {"x": [...], "y": [...]} (x is the prediction, y the truth). Prints every statistic of
+    /// kernels::statistics; one that is undefined for this input is {"error": "..."}.
+    Statistics {
+        input: PathBuf,
+        #[arg(long, default_value_t = 10_000)]
+        resamples: usize,
+        #[arg(long, default_value_t = 0.95)]
+        confidence: f64,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
 }
 
 /// Runs `command`; returns the JSON summary to print.
@@ -102,8 +116,54 @@ pub fn run(command: &KernelCommand) -> anyhow::Result<String> {
                 "closed_and_oriented": mesh::check_edges(&surface).is_closed_and_oriented(),
             })
         }
+        KernelCommand::Statistics { input, resamples, confidence, seed } => {
+            statistics(input, *resamples, *confidence, *seed)?
+        }
     };
     Ok(format!("{summary}\n"))
+}
+
+/// Every statistic of `kernels::statistics` on the pairs in `input`, each as its value or
+/// {"error"}: the cross-check compares each with scipy, and the errors with scipy's nan.
+fn statistics(input: &Path, resamples: usize, confidence: f64, seed: u64) -> anyhow::Result<serde_json::Value> {
+    #[derive(serde::Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct Pairs {
+        x: Vec<f64>,
+        y: Vec<f64>,
+    }
+    let text = if input == Path::new("-") {
+        std::io::read_to_string(std::io::stdin()).context("reading stdin")?
+    } else {
+        std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?
+    };
+    let Pairs { x, y } = serde_json::from_str(&text).with_context(|| format!("parsing {}", input.display()))?;
+    let or_error =
+        |r: Result<serde_json::Value, StatisticsError>| r.unwrap_or_else(|e| json!({ "error": e.to_string() }));
+    let correlation = |c: st::Correlation| json!({ "r": c.r, "p": c.p_two_sided });
+    let ci = |c: st::BootstrapCi| json!({ "lo": c.lo, "hi": c.hi, "undefined": c.undefined });
+    let mean_of = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let r_of = |x: &[f64], y: &[f64]| st::pearson(x, y).map_or(f64::NAN, |c| c.r);
+    let rho_of = |x: &[f64], y: &[f64]| st::spearman(x, y).map_or(f64::NAN, |c| c.r);
+    Ok(json!({
+        "n": x.len(),
+        "mean_x": or_error(st::mean(&x).map(|m| json!(m))),
+        "median_x": or_error(st::median(&x).map(|m| json!(m))),
+        "pearson": or_error(st::pearson(&x, &y).map(correlation)),
+        "spearman": or_error(st::spearman(&x, &y).map(correlation)),
+        "wilcoxon": or_error(st::wilcoxon_signed_rank(&x, &y).map(|w| json!({
+            "w": w.w, "p": w.p_two_sided, "method": w.method, "n_nonzero": w.n_nonzero,
+        }))),
+        "bland_altman": or_error(st::bland_altman(&x, &y).map(|b| json!({
+            "bias": b.bias, "sd": b.sd, "loa": b.loa, "bias_ci": b.bias_ci,
+        }))),
+        "bootstrap": {
+            "mean_x": or_error(st::bootstrap_ci(&x, mean_of, resamples, confidence, seed).map(ci)),
+            "median_x": or_error(st::bootstrap_ci(&x, stats::median, resamples, confidence, seed).map(ci)),
+            "pearson_r": or_error(st::bootstrap_ci_paired(&x, &y, r_of, resamples, confidence, seed).map(ci)),
+            "spearman_r": or_error(st::bootstrap_ci_paired(&x, &y, rho_of, resamples, confidence, seed).map(ci)),
+        },
+    }))
 }
 
 fn morph(mask: &Path, out: &Path, f: impl Fn(&[bool], [usize; 3]) -> Vec<bool>) -> anyhow::Result<serde_json::Value> {

@@ -16,7 +16,7 @@ use statrs::function::{beta::beta_reg, erf::erfc};
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum StatisticsError {
-    #[error("{what} needs at least {min} values, got {len}")]
+    #[error("{what} needs {min} or more values, got {len}")]
     TooFew { what: &'static str, min: usize, len: usize },
     #[error("paired values differ in length: {x} and {y}")]
     LengthMismatch { x: usize, y: usize },
@@ -339,13 +339,16 @@ pub fn bland_altman(pred: &[f64], truth: &[f64]) -> Result<BlandAltman, Statisti
     Ok(BlandAltman { bias, sd, loa: [bias - 1.96 * sd, bias + 1.96 * sd], bias_ci: [bias - half, bias + half] })
 }
 
-/// r of two equally long, non-constant, finite samples, as scipy's pearsonr forms it: the dot
-/// product of the centred vectors, each first scaled to unit length.
+/// r of two equally long, non-constant, finite samples, formed operation by operation as
+/// scipy's pearsonr forms it (centred vectors scaled by their largest magnitude for the norm,
+/// then each divided by its norm, then dotted): near |r| = 1 the p-value of a small sample
+/// depends on r's last bits (p ∝ √(1 − |r|) for n = 3), so the rounding must be scipy's too.
 fn pearson_r(x: &[f64], y: &[f64]) -> f64 {
     let unit = |v: &[f64]| {
         let m = v.iter().sum::<f64>() / v.len() as f64;
         let centred: Vec<f64> = v.iter().map(|a| a - m).collect();
-        let norm = centred.iter().map(|a| a * a).sum::<f64>().sqrt();
+        let max = centred.iter().fold(0.0f64, |acc, a| acc.max(a.abs()));
+        let norm = max * centred.iter().map(|a| (a / max) * (a / max)).sum::<f64>().sqrt();
         centred.into_iter().map(|a| a / norm).collect::<Vec<f64>>()
     };
     unit(x).iter().zip(unit(y)).map(|(a, b)| a * b).sum()
@@ -426,7 +429,7 @@ mod tests {
     fn correlations_reject_what_scipy_answers_nan_for() {
         let e = pearson(&[1.0, 2.0], &[1.0, 2.0]).unwrap_err();
         assert_eq!(e, StatisticsError::TooFew { what: "a correlation", min: 3, len: 2 });
-        assert_eq!(e.to_string(), "a correlation needs at least 3 values, got 2");
+        assert_eq!(e.to_string(), "a correlation needs 3 or more values, got 2");
         let e = spearman(&[1.0, 2.0, 3.0], &[4.0, 4.0, 4.0]).unwrap_err();
         assert_eq!(e.to_string(), "y is constant (every value is 4): the correlation is undefined");
         let e = pearson(&[1.0, f64::NAN, 3.0], &[1.0, 2.0, 3.0]).unwrap_err();
@@ -513,10 +516,7 @@ mod tests {
         assert!(close(b.loa[0], 0.6 - 1.96 * 1.140175425099138, 1e-14));
         let half = 2.7764451051977934 * 1.140175425099138 / 5f64.sqrt();
         assert!(close(b.bias_ci[0], 0.6 - half, 1e-10) && close(b.bias_ci[1], 0.6 + half, 1e-10), "{b:?}");
-        assert_eq!(
-            bland_altman(&[1.0], &[2.0]).unwrap_err().to_string(),
-            "Bland–Altman needs at least 2 values, got 1"
-        );
+        assert_eq!(bland_altman(&[1.0], &[2.0]).unwrap_err().to_string(), "Bland–Altman needs 2 or more values, got 1");
     }
 
     #[test]
