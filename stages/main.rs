@@ -76,7 +76,7 @@ enum Command {
         #[arg(long, value_enum)]
         class: Vec<ClassArg>,
     },
-    /// Developer entry point: one sweep/select kernel on MetaImage files (docs/kernels.md).
+    /// Developer entry point: one numeric kernel on MetaImage or JSON files (docs/kernels.md).
     #[command(hide = true)]
     Kernel {
         #[command(subcommand)]

@@ -4,7 +4,8 @@
 //! API, re-exporting what it needs from [`annotation`], [`cluster`] and [`mask`]); [`polygon`]
 //! is the matplotlib-exact point-in-polygon the annotation masks use. The sweep/select kernels —
 //! [`components`], [`morphology`], [`stats`] percentiles, [`marching_cubes`] and [`mesh`] — are
-//! described, with what each equals, in `docs/kernels.md`.
+//! described, with what each equals, in `docs/kernels.md`, as are the cohort metrics'
+//! [`statistics`] (correlations, Wilcoxon, bootstrap CIs, Bland–Altman, as scipy computes them).
 pub mod annotation;
 pub mod cluster;
 pub mod components;

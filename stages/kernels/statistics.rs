@@ -156,8 +156,8 @@ pub fn rank_average(values: &[f64]) -> Vec<f64> {
 
 /// The Wilcoxon signed-rank test of the differences `x − y`, two-sided, as
 /// `scipy.stats.wilcoxon(x, y)` with its defaults (`zero_method='wilcox'`, `correction=False`,
-/// `method='auto'`, scipy ≥ 1.15): zero differences are dropped, |differences| ranked with
-/// average ties, and the p-value is
+/// `method='auto'`, as scipy 1.17 decides it): zero differences are dropped, |differences|
+/// ranked with average ties, and the p-value is
 /// - exact (the null distribution of W+ over ranks 1..m) when n ≤ 50 and there are no ties
 ///   and no zeros;
 /// - an exhaustive sign-flip permutation test when n ≤ 13 with ties or zeros;
