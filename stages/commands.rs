@@ -69,6 +69,14 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     drop(progress);
     print!("{}", progress::table(&summary, &p.graph.names()));
     write_report(&options.out_dir, &summary)?;
+    let metrics_done = summary.records.iter().any(|r| {
+        r.stage == "metrics" && matches!(r.outcome, run::Outcome::Cached { .. } | run::Outcome::Computed { .. })
+    });
+    if metrics_done {
+        if let Ok(json) = std::fs::read(options.out_dir.join("summary.json")) {
+            print!("{}", crate::stage::metrics::summary::headline(&json)?);
+        }
+    }
     Ok(if summary.failures().next().is_some() { 1 } else { 0 })
 }
 

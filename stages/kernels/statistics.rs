@@ -35,7 +35,7 @@ pub enum StatisticsError {
 }
 
 /// A correlation coefficient and its two-sided p-value for "no correlation".
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct Correlation {
     pub r: f64,
     pub p_two_sided: f64,
@@ -55,7 +55,7 @@ pub enum WilcoxonMethod {
 }
 
 /// The Wilcoxon signed-rank test of paired samples, two-sided.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct Wilcoxon {
     /// min(W+, W−), the statistic scipy reports for the two-sided test.
     pub w: f64,
@@ -66,7 +66,7 @@ pub struct Wilcoxon {
 }
 
 /// A percentile bootstrap confidence interval.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct BootstrapCi {
     pub lo: f64,
     pub hi: f64,
@@ -75,7 +75,7 @@ pub struct BootstrapCi {
 }
 
 /// Bland–Altman agreement of a measurement with a reference.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct BlandAltman {
     /// Mean of the differences `pred − truth`.
     pub bias: f64,

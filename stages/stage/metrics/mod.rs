@@ -16,7 +16,7 @@ pub mod summary;
 
 pub use rows::{PatientRow, SizeClass};
 
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]

@@ -6,6 +6,7 @@
 
 use super::rows::{Measured, PatientRow, SizeClass};
 use super::Params;
+use crate::kernels::statistics::{self, BlandAltman, StatisticsError, Wilcoxon};
 use crate::kernels::stats;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -49,16 +50,69 @@ pub struct Localization {
 #[derive(Debug, Clone, Serialize)]
 pub struct Volumes {
     pub hits: usize,
-    pub all: Ape,
-    pub over_hits: Ape,
+    pub all: Agreement,
+    pub over_hits: Agreement,
 }
 
-/// Absolute percentage errors of a set of patients.
+/// How a set of predicted volumes agrees with the consensus volumes.
+#[derive(Debug, Clone, Serialize)]
+pub struct Agreement {
+    pub n: usize,
+    pub mean_ape_pct: Stat<Estimate>,
+    pub median_ape_pct: Stat<Estimate>,
+    /// Predicted vs consensus volume.
+    pub pearson: Stat<CorrelationEstimate>,
+    pub spearman: Stat<CorrelationEstimate>,
+    /// Predicted − consensus (mm³).
+    pub bland_altman: Stat<BlandAltman>,
+    /// Our APE against the sphere baseline's APE on the same patients (paired).
+    pub wilcoxon_vs_sphere: Stat<Wilcoxon>,
+}
+
+/// A value, or why it is undefined here (e.g. "needs at least 3 values").
+#[derive(Debug, Clone, Serialize)]
+#[serde(untagged)]
+pub enum Stat<T> {
+    Value(T),
+    Undefined { undefined: String },
+}
+
+impl<T> Stat<T> {
+    fn from(result: Result<T, StatisticsError>) -> Stat<T> {
+        match result {
+            Ok(v) => Stat::Value(v),
+            Err(e) => Stat::Undefined { undefined: e.to_string() },
+        }
+    }
+
+    pub fn value(&self) -> Option<&T> {
+        match self {
+            Stat::Value(v) => Some(v),
+            Stat::Undefined { .. } => None,
+        }
+    }
+}
+
+/// A statistic with its bootstrap confidence interval.
+#[derive(Debug, Clone, Serialize)]
+pub struct Estimate {
+    pub value: f64,
+    pub ci95: [f64; 2],
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct CorrelationEstimate {
+    pub value: f64,
+    pub p_two_sided: f64,
+    pub ci95: [f64; 2],
+}
+
+/// Absolute percentage errors of a set of patients (the sphere baseline).
 #[derive(Debug, Clone, Serialize)]
 pub struct Ape {
     pub n: usize,
-    pub mean_pct: Option<f64>,
-    pub median_pct: Option<f64>,
+    pub mean_pct: Stat<Estimate>,
+    pub median_pct: Stat<Estimate>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -89,8 +143,10 @@ pub const PAPER: Paper = Paper {
 /// A named subset of the cohort.
 type Subset = (&'static str, fn(&PatientRow) -> bool);
 
+const CONFIDENCE: f64 = 0.95;
+
 /// The summary of `rows`.
-pub fn summarize(rows: &[PatientRow], failed: &[String], unscored: &[String], _params: &Params) -> Summary {
+pub fn summarize(rows: &[PatientRow], failed: &[String], unscored: &[String], params: &Params) -> Summary {
     let subsets: [Subset; 5] = [
         ("all", |_| true),
         ("ge10mm", |r| r.gt_diameter_mm >= 10.0),
@@ -102,7 +158,7 @@ pub fn summarize(rows: &[PatientRow], failed: &[String], unscored: &[String], _p
         .into_iter()
         .map(|(name, keep)| {
             let members: Vec<&PatientRow> = rows.iter().filter(|r| keep(r)).collect();
-            (name, group(&members))
+            (name, group(&members, params))
         })
         .collect();
     Summary { scored: rows.len(), failed: failed.to_vec(), unscored: unscored.to_vec(), groups, paper: PAPER }
@@ -116,14 +172,15 @@ fn blind(r: &PatientRow) -> Option<&Measured> {
     r.blind.as_ref()
 }
 
-fn group(rows: &[&PatientRow]) -> Group {
+fn group(rows: &[&PatientRow], params: &Params) -> Group {
     let n = rows.len();
     let rate = |count: usize| (n > 0).then(|| count as f64 / n as f64);
     let hits =
         |pick: fn(&PatientRow) -> Option<&Measured>| rows.iter().filter(|r| pick(r).is_some_and(|m| m.hit)).count();
     let median_dice = |pick: fn(&PatientRow) -> Option<&Measured>| {
         // A patient without a selection has Dice 0: nothing overlaps.
-        median(&rows.iter().map(|r| pick(r).map_or(0.0, |m| m.dice)).collect::<Vec<_>>())
+        let dice: Vec<f64> = rows.iter().map(|r| pick(r).map_or(0.0, |m| m.dice)).collect();
+        (!dice.is_empty()).then(|| stats::median(&dice))
     };
     Group {
         n,
@@ -134,24 +191,93 @@ fn group(rows: &[&PatientRow]) -> Group {
             median_dice_ours: median_dice(ours),
             median_dice_blind: median_dice(blind),
         },
-        ours: volumes(rows, ours),
-        blind: volumes(rows, blind),
-        sphere: ape(&rows.iter().map(|r| r.sphere_ape_pct).collect::<Vec<_>>()),
+        ours: volumes(rows, ours, params),
+        blind: volumes(rows, blind, params),
+        sphere: {
+            let apes: Vec<f64> = rows.iter().map(|r| r.sphere_ape_pct).collect();
+            Ape { n, mean_pct: estimate(&apes, mean_of, params), median_pct: estimate(&apes, median_of, params) }
+        },
     }
 }
 
-fn volumes(rows: &[&PatientRow], pick: fn(&PatientRow) -> Option<&Measured>) -> Volumes {
-    let chosen: Vec<&Measured> = rows.iter().filter_map(|r| pick(r)).collect();
-    let all: Vec<f64> = chosen.iter().map(|m| m.ape_pct).collect();
-    let over_hits: Vec<f64> = chosen.iter().filter(|m| m.hit).map(|m| m.ape_pct).collect();
-    Volumes { hits: over_hits.len(), all: ape(&all), over_hits: ape(&over_hits) }
+fn volumes(rows: &[&PatientRow], pick: fn(&PatientRow) -> Option<&Measured>, params: &Params) -> Volumes {
+    let chosen: Vec<(&PatientRow, &Measured)> = rows.iter().filter_map(|r| pick(r).map(|m| (*r, m))).collect();
+    let over_hits: Vec<(&PatientRow, &Measured)> = chosen.iter().copied().filter(|(_, m)| m.hit).collect();
+    Volumes { hits: over_hits.len(), all: agreement(&chosen, params), over_hits: agreement(&over_hits, params) }
 }
 
-fn ape(values: &[f64]) -> Ape {
-    let mean = (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64);
-    Ape { n: values.len(), mean_pct: mean, median_pct: median(values) }
+fn agreement(pairs: &[(&PatientRow, &Measured)], params: &Params) -> Agreement {
+    let apes: Vec<f64> = pairs.iter().map(|(_, m)| m.ape_pct).collect();
+    let predicted: Vec<f64> = pairs.iter().map(|(_, m)| m.volume_mm3).collect();
+    let truth: Vec<f64> = pairs.iter().map(|(r, _)| r.gt_volume_mm3).collect();
+    let sphere: Vec<f64> = pairs.iter().map(|(r, _)| r.sphere_ape_pct).collect();
+    let correlation = |f: fn(&[f64], &[f64]) -> Result<statistics::Correlation, StatisticsError>| {
+        Stat::from(f(&predicted, &truth).and_then(|c| {
+            let ci = statistics::bootstrap_ci_paired(
+                &predicted,
+                &truth,
+                |x, y| f(x, y).map_or(f64::NAN, |c| c.r),
+                params.bootstrap_resamples,
+                CONFIDENCE,
+                params.seed,
+            )?;
+            Ok(CorrelationEstimate { value: c.r, p_two_sided: c.p_two_sided, ci95: [ci.lo, ci.hi] })
+        }))
+    };
+    Agreement {
+        n: pairs.len(),
+        mean_ape_pct: estimate(&apes, mean_of, params),
+        median_ape_pct: estimate(&apes, median_of, params),
+        pearson: correlation(statistics::pearson),
+        spearman: correlation(statistics::spearman),
+        bland_altman: Stat::from(statistics::bland_altman(&predicted, &truth)),
+        wilcoxon_vs_sphere: Stat::from(statistics::wilcoxon_signed_rank(&apes, &sphere)),
+    }
 }
 
-fn median(values: &[f64]) -> Option<f64> {
-    (!values.is_empty()).then(|| stats::median(values))
+fn mean_of(v: &[f64]) -> f64 {
+    statistics::mean(v).unwrap_or(f64::NAN)
+}
+
+fn median_of(v: &[f64]) -> f64 {
+    statistics::median(v).unwrap_or(f64::NAN)
+}
+
+/// `statistic` of `values` with its seeded percentile-bootstrap interval.
+fn estimate(values: &[f64], statistic: fn(&[f64]) -> f64, params: &Params) -> Stat<Estimate> {
+    Stat::from(statistics::mean(values).and_then(|_| {
+        let ci = statistics::bootstrap_ci(values, statistic, params.bootstrap_resamples, CONFIDENCE, params.seed)?;
+        Ok(Estimate { value: statistic(values), ci95: [ci.lo, ci.hi] })
+    }))
+}
+
+/// The lines `aret-pipe run` ends with: per group, n, hit rates, and the median APE, Pearson r
+/// and Bland–Altman bias of our selection — the APE always beside its hit rate.
+pub fn headline(summary_json: &[u8]) -> anyhow::Result<String> {
+    let s: serde_json::Value = serde_json::from_slice(summary_json)?;
+    let pct = |v: &serde_json::Value| v.as_f64().map_or("–".to_string(), |x| format!("{:.0}%", 100.0 * x));
+    let num = |v: &serde_json::Value, digits: usize| v.as_f64().map_or("–".to_string(), |x| format!("{x:.digits$}"));
+    let mut out = format!(
+        "cohort: {} scored, {} failed, {} without ground truth\n",
+        s["scored"],
+        s["failed"].as_array().map_or(0, Vec::len),
+        s["unscored"].as_array().map_or(0, Vec::len)
+    );
+    for name in ["ge10mm", "all"] {
+        let g = &s["groups"][name];
+        let (loc, all) = (&g["localization"], &g["ours"]["all"]);
+        out += &format!(
+            "  {name:<6} n={:<3} hit {} (blind {}, oracle {}) | median APE {} (over {} hits: {}) | Pearson r {} | bias {} mm³\n",
+            g["n"],
+            pct(&loc["hit_rate_ours"]),
+            pct(&loc["hit_rate_blind"]),
+            pct(&loc["hit_rate_oracle"]),
+            num(&all["median_ape_pct"]["value"], 1) + "%",
+            g["ours"]["hits"],
+            num(&g["ours"]["over_hits"]["median_ape_pct"]["value"], 1),
+            num(&all["pearson"]["value"], 3),
+            num(&all["bland_altman"]["bias"], 0),
+        );
+    }
+    Ok(out)
 }
