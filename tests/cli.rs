@@ -153,6 +153,14 @@ fn a_bad_patient_fails_alone_with_a_clear_message() {
     let r = p.report("out");
     assert_eq!(count(&r, "hu", "computed"), 1);
     assert_eq!(count(&r, "hu", "skipped"), 1);
+    // The cohort metrics still run: the failed patient reported and counted, the patient
+    // without annotations listed as unscored, nothing scored.
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(p.path("out/summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["failed"], serde_json::json!(["P2"]));
+    assert_eq!(summary["unscored"], serde_json::json!(["P1"]));
+    assert_eq!(summary["scored"], 0);
+    assert_eq!(std::fs::read_to_string(p.path("out/results.csv")).unwrap().lines().count(), 1, "header only");
 }
 
 #[test]

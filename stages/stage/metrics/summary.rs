@@ -281,3 +281,61 @@ pub fn headline(summary_json: &[u8]) -> anyhow::Result<String> {
     }
     Ok(out)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(patient: &str, gt: f64, d: f64, predicted: f64, hit: bool) -> PatientRow {
+        let m = Measured {
+            volume_mm3: predicted,
+            ape_pct: super::super::rows::ape_pct(predicted, gt),
+            hit,
+            dice: if hit { 0.6 } else { 0.0 },
+            centroid_dist_mm: 1.0,
+        };
+        let sphere = std::f64::consts::PI / 6.0 * d.powi(3);
+        PatientRow {
+            patient: patient.into(),
+            size_class: SizeClass::of(d),
+            gt_volume_mm3: gt,
+            gt_diameter_mm: d,
+            ours: Some(m),
+            mesh_volume_mm3: None,
+            percentile: Some(90.0),
+            blind: None,
+            sphere_volume_mm3: sphere,
+            sphere_ape_pct: super::super::rows::ape_pct(sphere, gt),
+            oracle_hit: hit,
+            train_seconds: 1.0,
+        }
+    }
+
+    #[test]
+    fn hits_and_misses_are_counted_and_small_groups_say_why_a_statistic_is_undefined() {
+        let params = Params { bootstrap_resamples: 200, seed: 1 };
+        let rows = [
+            row("A", 1000.0, 14.0, 1100.0, true),
+            row("B", 500.0, 12.0, 2000.0, false),
+            row("C", 50.0, 5.0, 60.0, true),
+        ];
+        let s = summarize(&rows, &["F".into()], &[], &params);
+        assert_eq!((s.scored, s.failed.len()), (3, 1));
+        let all = &s.groups["all"];
+        assert_eq!(all.localization.hit_rate_ours, Some(2.0 / 3.0));
+        assert_eq!(all.localization.median_dice_ours, Some(0.6));
+        assert_eq!(all.ours.hits, 2);
+        // Over hits only (A, C): APE 10% and 20%.
+        assert_eq!(all.ours.over_hits.median_ape_pct.value().unwrap().value, 15.0);
+        // n = 2: no correlation, a clear reason instead.
+        let ge10 = &s.groups["ge10mm"];
+        assert_eq!(ge10.n, 2);
+        assert!(matches!(&ge10.ours.all.pearson, Stat::Undefined { undefined } if undefined.contains('3')));
+        // The blind rule chose nothing anywhere: zero hits, Dice 0, statistics undefined.
+        assert_eq!(all.localization.hit_rate_blind, Some(0.0));
+        assert!(all.blind.all.mean_ape_pct.value().is_none());
+        // An empty class is reported, not dropped.
+        assert_eq!(s.groups["large"].n, 0);
+        assert_eq!(s.groups["large"].localization.hit_rate_ours, None);
+    }
+}
