@@ -66,3 +66,129 @@ pub fn log_plot(title: &str, x_label: &str, series: &[Series]) -> String {
     s.push_str("</svg>\n");
     s
 }
+
+/// A set of markers in one colour; `hollow` draws rings (e.g. misses) instead of discs.
+pub struct PointSet<'a> {
+    pub name: &'a str,
+    pub colour: &'a str,
+    pub hollow: bool,
+    pub points: Vec<(f64, f64)>,
+}
+
+/// A straight reference line from `from` to `to` (data coordinates), optionally dashed.
+pub struct RefLine<'a> {
+    pub label: &'a str,
+    pub colour: &'a str,
+    pub dashed: bool,
+    pub from: (f64, f64),
+    pub to: (f64, f64),
+}
+
+/// A scatter plot with linear axes, reference lines and a legend.
+pub fn scatter_plot(title: &str, x_label: &str, y_label: &str, sets: &[PointSet], lines: &[RefLine]) -> String {
+    let (w, h, left, right, top, bottom) = (640.0, 440.0, 80.0, 170.0, 40.0, 50.0);
+    let all: Vec<(f64, f64)> = sets
+        .iter()
+        .flat_map(|s| s.points.iter().copied())
+        .chain(lines.iter().flat_map(|l| [l.from, l.to]))
+        .filter(|p| p.0.is_finite() && p.1.is_finite())
+        .collect();
+    let range = |f: fn(&(f64, f64)) -> f64| {
+        let (lo, hi) = all.iter().map(f).fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
+        if hi > lo {
+            let pad = 0.05 * (hi - lo);
+            (lo - pad, hi + pad)
+        } else if lo.is_finite() {
+            (lo - 1.0, lo + 1.0)
+        } else {
+            (0.0, 1.0)
+        }
+    };
+    let ((x0, x1), (y0, y1)) = (range(|p| p.0), range(|p| p.1));
+    let (px0, px1, py0, py1) = (left, w - right, top, h - bottom);
+    let sx = |x: f64| px0 + (x - x0) / (x1 - x0) * (px1 - px0);
+    let sy = |y: f64| py1 - (y - y0) / (y1 - y0) * (py1 - py0);
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif" font-size="12">"#
+    );
+    let _ = writeln!(s, r#"<rect width="{w}" height="{h}" fill="white"/>"#);
+    let _ = writeln!(s, r#"<text x="{}" y="22" text-anchor="middle" font-size="15">{title}</text>"#, (px0 + px1) / 2.0);
+    let _ = writeln!(s, r#"<text x="{}" y="{}" text-anchor="middle">{x_label}</text>"#, (px0 + px1) / 2.0, h - 12.0);
+    let _ = writeln!(
+        s,
+        r#"<text transform="translate(16 {}) rotate(-90)" text-anchor="middle">{y_label}</text>"#,
+        (py0 + py1) / 2.0
+    );
+    for k in 0..=4 {
+        let (x, y) = (x0 + (x1 - x0) * k as f64 / 4.0, y0 + (y1 - y0) * k as f64 / 4.0);
+        let _ = writeln!(
+            s,
+            r##"<path d="M{:.1} {py0} V{py1}" stroke="#eee"/><text x="{:.1}" y="{}" text-anchor="middle">{}</text>"##,
+            sx(x),
+            sx(x),
+            py1 + 16.0,
+            tick(x)
+        );
+        let _ = writeln!(
+            s,
+            r##"<path d="M{px0} {:.1} H{px1}" stroke="#eee"/><text x="{}" y="{:.1}" text-anchor="end">{}</text>"##,
+            sy(y),
+            px0 - 6.0,
+            sy(y) + 4.0,
+            tick(y)
+        );
+    }
+    let _ = writeln!(s, r#"<path d="M{px0} {py0} V{py1} H{px1}" fill="none" stroke="black"/>"#);
+    let mut legend = 0.0;
+    let mut legend_entry = |s: &mut String, swatch: String, label: &str| {
+        let ly = top + 10.0 + 18.0 * legend;
+        let _ = writeln!(
+            s,
+            r#"<g transform="translate({} {ly})">{swatch}<text x="22" y="4">{label}</text></g>"#,
+            px1 + 14.0
+        );
+        legend += 1.0;
+    };
+    for l in lines {
+        let dash = if l.dashed { r#" stroke-dasharray="6 4""# } else { "" };
+        let _ = writeln!(
+            s,
+            r#"<path d="M{:.1} {:.1} L{:.1} {:.1}" stroke="{}" stroke-width="1.5"{dash}/>"#,
+            sx(l.from.0),
+            sy(l.from.1),
+            sx(l.to.0),
+            sy(l.to.1),
+            l.colour
+        );
+        legend_entry(&mut s, format!(r#"<path d="M0 0 h16" stroke="{}" stroke-width="2"{dash}/>"#, l.colour), l.label);
+    }
+    for set in sets.iter().filter(|s| !s.points.is_empty()) {
+        let fill = |c: &str| {
+            if set.hollow {
+                format!(r#"fill="white" stroke="{c}" stroke-width="2""#)
+            } else {
+                format!(r#"fill="{c}""#)
+            }
+        };
+        for &(x, y) in set.points.iter().filter(|p| p.0.is_finite() && p.1.is_finite()) {
+            let _ = writeln!(s, r#"<circle cx="{:.1}" cy="{:.1}" r="5" {}/>"#, sx(x), sy(y), fill(set.colour));
+        }
+        legend_entry(&mut s, format!(r#"<circle cx="8" cy="0" r="5" {}/>"#, fill(set.colour)), set.name);
+    }
+    s.push_str("</svg>\n");
+    s
+}
+
+/// A tick label with a sensible number of digits.
+fn tick(v: f64) -> String {
+    let a = v.abs();
+    if a >= 100.0 || v == 0.0 {
+        format!("{v:.0}")
+    } else if a >= 1.0 {
+        format!("{v:.1}")
+    } else {
+        format!("{v:.3}")
+    }
+}

@@ -4,19 +4,22 @@
 //! Inputs, per patient: `select/result.json` and `train/train_log.csv`. Patients without a
 //! ground-truth target are listed but not scored; patients that failed upstream are reported,
 //! excluded and counted. Outputs: `results.csv` (SPEC §4 columns, in order) and `summary.json`
-//! (see [`summary`]).
+//! (see [`summary`]), and `report.html` with `scatter.svg` and `bland_altman.svg` (see
+//! [`report`]).
 
 use crate::engine::{Context, Output, Stage};
+use crate::formats::model;
 use crate::stage::select::SelectResult;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
 
+pub mod report;
 pub mod rows;
 pub mod summary;
 
 pub use rows::{PatientRow, SizeClass};
 
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -45,7 +48,7 @@ impl Stage for Metrics {
         VERSION
     }
     fn inputs(&self) -> &'static [&'static str] {
-        &["train", "select"]
+        &["drr", "train", "select"]
     }
     fn is_cohort(&self) -> bool {
         true
@@ -54,25 +57,66 @@ impl Stage for Metrics {
         super::params_json(&self.params)
     }
     fn reads(&self, stage: &str, output: &str) -> bool {
-        (stage, output) == ("select", "result.json") || (stage, output) == ("train", "train_log.csv")
+        matches!(
+            (stage, output),
+            ("select", "result.json" | "nodule.png")
+                | ("train", "train_log.csv" | "model.safetensors")
+                | ("drr", "drr_coronal.png")
+        )
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let mut rows = Vec::new();
+        let mut thumbs = Vec::new();
         let mut unscored = Vec::new();
+        let mut info = report::RunInfo { lines: Vec::new() };
         for patient in ctx.cohort_patients() {
             let result: SelectResult = serde_json::from_slice(&ctx.read_patient(patient, "select", "result.json")?)
                 .with_context(|| format!("{patient}: select/result.json"))?;
             let log = String::from_utf8(ctx.read_patient(patient, "train", "train_log.csv")?)?;
             let seconds = rows::train_seconds(&log).with_context(|| format!("{patient}: train_log.csv has no time"))?;
+            if info.lines.is_empty() {
+                let (_, _, meta) = model::decode(&ctx.read_patient(patient, "train", "model.safetensors")?)?;
+                info.lines = vec![
+                    (
+                        "field".into(),
+                        format!("{}³ lattice, rank {} per pair, {} parameters", meta.grid, meta.rank, meta.parameters),
+                    ),
+                    (
+                        "training".into(),
+                        format!(
+                            "{} iterations, Δ = {}, s = {}, seed {}, backend {}",
+                            meta.iterations, meta.shift, meta.scale, meta.seed, meta.backend
+                        ),
+                    ),
+                    ("scene box (units)".into(), format!("{:?} – {:?}", meta.aabb.min, meta.aabb.max)),
+                    ("selection".into(), format!("primary {:?}, blind {:?}", result.primary, result.blind_rule)),
+                    (
+                        "bootstrap".into(),
+                        format!("{} resamples, seed {}", self.params.bootstrap_resamples, self.params.seed),
+                    ),
+                ];
+            }
             match PatientRow::new(&result, seconds) {
-                Some(row) => rows.push(row),
+                Some(row) => {
+                    rows.push(row);
+                    thumbs.push(report::Thumbnails {
+                        drr_coronal: ctx.read_patient(patient, "drr", "drr_coronal.png").ok(),
+                        nodule: ctx.read_patient(patient, "select", "nodule.png").ok(),
+                    });
+                }
                 None => unscored.push(patient.to_string()),
             }
         }
         let summary = summary::summarize(&rows, ctx.failed_patients(), &unscored, &self.params);
+        let scatter = report::scatter_svg(&rows);
+        let bland_altman = report::bland_altman_svg(&rows, &summary.groups["all"].ours.all);
+        let html = report::html(&summary, &rows, &thumbs, &scatter, &bland_altman, &info);
         Ok(vec![
             Output::new("results.csv", rows::results_csv(&rows)),
             Output::new("summary.json", serde_json::to_vec_pretty(&summary)?),
+            Output::new("scatter.svg", scatter),
+            Output::new("bland_altman.svg", bland_altman),
+            Output::new("report.html", html),
         ])
     }
 }

@@ -1,0 +1,292 @@
+//! `report.html` with `scatter.svg` and `bland_altman.svg`: one self-contained page (SVGs and
+//! thumbnails inline, no network) a reader can open from the out folder.
+//!
+//! Localization leads: every table that shows an APE shows the hit rate beside it, and a miss
+//! is marked in red in the per-patient table, with its `nodule.png` (selection in red, truth in
+//! green) as the thumbnail.
+
+use super::rows::{PatientRow, SizeClass};
+use super::summary::{Agreement, Group, Summary, PAPER};
+use crate::formats::svg::{scatter_plot, PointSet, RefLine};
+use base64::Engine as _;
+use std::fmt::Write as _;
+
+/// Per-patient images shown in the table (PNG bytes).
+pub struct Thumbnails {
+    pub drr_coronal: Option<Vec<u8>>,
+    pub nodule: Option<Vec<u8>>,
+}
+
+/// What the run was configured with, shown at the end of the page.
+pub struct RunInfo {
+    pub lines: Vec<(String, String)>,
+}
+
+const CLASS_COLOURS: [(SizeClass, &str); 3] =
+    [(SizeClass::Small, "#2ca02c"), (SizeClass::Medium, "#1f77b4"), (SizeClass::Large, "#d62728")];
+
+/// Predicted against consensus volume, coloured by size class, misses hollow, identity line.
+pub fn scatter_svg(rows: &[PatientRow]) -> String {
+    let mut sets = Vec::new();
+    for (class, colour) in CLASS_COLOURS {
+        for hit in [true, false] {
+            let points: Vec<(f64, f64)> = rows
+                .iter()
+                .filter(|r| r.size_class == class)
+                .filter_map(|r| r.ours.as_ref().filter(|m| m.hit == hit).map(|m| (r.gt_volume_mm3, m.volume_mm3)))
+                .collect();
+            if !points.is_empty() {
+                let name = match (class, hit) {
+                    (SizeClass::Small, true) => "small (< 10 mm), hit",
+                    (SizeClass::Small, false) => "small, MISS",
+                    (SizeClass::Medium, true) => "medium (10–20 mm), hit",
+                    (SizeClass::Medium, false) => "medium, MISS",
+                    (SizeClass::Large, true) => "large (> 20 mm), hit",
+                    (SizeClass::Large, false) => "large, MISS",
+                };
+                sets.push(PointSet { name, colour, hollow: !hit, points });
+            }
+        }
+    }
+    let top = rows
+        .iter()
+        .flat_map(|r| [Some(r.gt_volume_mm3), r.ours.as_ref().map(|m| m.volume_mm3)])
+        .flatten()
+        .fold(1.0, f64::max);
+    let identity = RefLine { label: "identity", colour: "#555", dashed: true, from: (0.0, 0.0), to: (top, top) };
+    scatter_plot(
+        "Predicted vs consensus volume",
+        "consensus volume (mm³)",
+        "predicted volume (mm³)",
+        &sets,
+        &[identity],
+    )
+}
+
+/// Bland–Altman: the mean of predicted and consensus against their difference, with the bias
+/// and 95% limits of agreement.
+pub fn bland_altman_svg(rows: &[PatientRow], all: &Agreement) -> String {
+    let points = |hit: bool| -> Vec<(f64, f64)> {
+        rows.iter()
+            .filter_map(|r| {
+                r.ours
+                    .as_ref()
+                    .filter(|m| m.hit == hit)
+                    .map(|m| ((m.volume_mm3 + r.gt_volume_mm3) / 2.0, m.volume_mm3 - r.gt_volume_mm3))
+            })
+            .collect()
+    };
+    let sets = [
+        PointSet { name: "hit", colour: "#1f77b4", hollow: false, points: points(true) },
+        PointSet { name: "MISS", colour: "#d62728", hollow: true, points: points(false) },
+    ];
+    let xs: Vec<f64> = sets.iter().flat_map(|s| s.points.iter().map(|p| p.0)).collect();
+    let (lo, hi) = xs.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
+    let (lo, hi) = if lo.is_finite() { (lo, hi) } else { (0.0, 1.0) };
+    let mut lines = Vec::new();
+    if let Some(ba) = all.bland_altman.value() {
+        lines.push(RefLine { label: "bias", colour: "#000", dashed: false, from: (lo, ba.bias), to: (hi, ba.bias) });
+        for (label, y) in [("+1.96 SD", ba.loa[1]), ("−1.96 SD", ba.loa[0])] {
+            lines.push(RefLine { label, colour: "#888", dashed: true, from: (lo, y), to: (hi, y) });
+        }
+    }
+    scatter_plot(
+        "Bland–Altman (all scored patients)",
+        "mean of predicted and consensus (mm³)",
+        "predicted − consensus (mm³)",
+        &sets,
+        &lines,
+    )
+}
+
+/// The whole page.
+pub fn html(
+    summary: &Summary,
+    rows: &[PatientRow],
+    thumbs: &[Thumbnails],
+    scatter: &str,
+    bland_altman: &str,
+    info: &RunInfo,
+) -> String {
+    let mut h = String::from(
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>aret-pipe cohort report</title>\n<style>\
+         body{font-family:sans-serif;margin:24px;max-width:1280px;color:#222}table{border-collapse:collapse;margin:12px 0}\
+         td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}th{background:#f3f3f3}td.l,th.l{text-align:left}\
+         .miss{color:#c00;font-weight:bold}.hit{color:#080}.note{color:#555;font-size:90%}img{image-rendering:pixelated}\
+         .plots{display:flex;gap:16px;flex-wrap:wrap}</style></head><body>\n<h1>aret-pipe cohort report</h1>\n",
+    );
+    let _ = writeln!(
+        h,
+        "<p>{} patients scored, {} failed upstream{}, {} without ground truth{}. A volume is only as good as its \
+         localization: every APE below stands beside the hit rate of the selections it comes from, and APE over hits \
+         counts only selections that touch the nodule.</p>",
+        summary.scored,
+        summary.failed.len(),
+        list(&summary.failed),
+        summary.unscored.len(),
+        list(&summary.unscored)
+    );
+    h.push_str("<h2>Cohort</h2>\n<table><tr><th class=l>group</th><th>n</th><th>hit rate (ours)</th><th>blind</th><th>oracle</th><th>median Dice</th><th>median APE, all (95% CI)</th><th>median APE over hits</th><th>mean APE, all</th><th>Pearson r</th><th>Spearman ρ</th><th>Bland–Altman bias (mm³)</th><th>sphere median APE</th><th>Wilcoxon vs sphere (W, p)</th></tr>\n");
+    for (name, g) in &summary.groups {
+        cohort_row(&mut h, name, g);
+    }
+    h.push_str("</table>\n");
+    let _ = writeln!(
+        h,
+        "<h2>The paper's numbers beside ours</h2>\n<p class=note>The paper's numbers come from its 19 real LIDC CTs with guided selection (SPEC §5); it reports no localization.</p>\n<table><tr><th class=l>statistic</th><th>paper</th><th>ours</th></tr>\n{}</table>",
+        paper_rows(summary)
+    );
+    h.push_str("<h2>Guided vs blind selection</h2>\n<table><tr><th class=l>group</th><th>rule</th><th>hit rate</th><th>median Dice</th><th>median APE, all</th><th>median APE over hits</th></tr>\n");
+    for (name, g) in &summary.groups {
+        for (rule, hit_rate, dice, v) in [
+            ("ours (primary)", g.localization.hit_rate_ours, g.localization.median_dice_ours, &g.ours),
+            ("blind", g.localization.hit_rate_blind, g.localization.median_dice_blind, &g.blind),
+        ] {
+            let _ = writeln!(
+                h,
+                "<tr><td class=l>{name}</td><td class=l>{rule}</td><td>{}</td><td>{}</td><td>{}</td><td>{} ({} hits)</td></tr>",
+                pct(hit_rate),
+                num(dice, 2),
+                estimate(&v.all.median_ape_pct),
+                estimate(&v.over_hits.median_ape_pct),
+                v.hits
+            );
+        }
+    }
+    h.push_str("</table>\n<h2>Agreement</h2>\n<div class=plots>\n");
+    h.push_str(scatter);
+    h.push_str(bland_altman);
+    h.push_str("</div>\n<h2>Patients</h2>\n<table><tr><th class=l>patient</th><th>class</th><th>GT (mm³)</th><th>d (mm)</th><th>predicted</th><th>APE</th><th>localization</th><th>Dice</th><th>centroid (mm)</th><th>percentile</th><th>blind</th><th>blind APE</th><th>blind hit</th><th>sphere APE</th><th>oracle</th><th>train (s)</th><th>DRR</th><th>nodule.png</th></tr>\n");
+    for (r, t) in rows.iter().zip(thumbs) {
+        patient_row(&mut h, r, t);
+    }
+    h.push_str("</table>\n<h2>Configuration and timings</h2>\n<table>\n");
+    for (k, v) in &info.lines {
+        let _ = writeln!(h, "<tr><td class=l>{}</td><td class=l>{}</td></tr>", escape(k), escape(v));
+    }
+    let train_total: f64 = rows.iter().map(|r| r.train_seconds).sum();
+    let _ =
+        writeln!(h, "<tr><td class=l>training time, all scored patients</td><td class=l>{train_total:.1} s</td></tr>");
+    h.push_str("</table>\n</body></html>\n");
+    h
+}
+
+fn cohort_row(h: &mut String, name: &str, g: &Group) {
+    let all = &g.ours.all;
+    let corr = |c: &super::summary::Stat<super::summary::CorrelationEstimate>| match c.value() {
+        Some(c) => format!("{:.3} [{:.3}, {:.3}]", c.value, c.ci95[0], c.ci95[1]),
+        None => "–".into(),
+    };
+    let _ = writeln!(
+        h,
+        "<tr><td class=l>{name}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{} ({} hits)</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+        g.n,
+        pct(g.localization.hit_rate_ours),
+        pct(g.localization.hit_rate_blind),
+        pct(g.localization.hit_rate_oracle),
+        num(g.localization.median_dice_ours, 2),
+        estimate(&all.median_ape_pct),
+        estimate(&g.ours.over_hits.median_ape_pct),
+        g.ours.hits,
+        estimate(&all.mean_ape_pct),
+        corr(&all.pearson),
+        corr(&all.spearman),
+        all.bland_altman.value().map_or("–".into(), |b| format!("{:.0} [{:.0}, {:.0}]", b.bias, b.bias_ci[0], b.bias_ci[1])),
+        estimate(&g.sphere.median_pct),
+        all.wilcoxon_vs_sphere.value().map_or("–".into(), |w| format!("{:.0}, {:.3}", w.w, w.p_two_sided)),
+    );
+}
+
+fn paper_rows(summary: &Summary) -> String {
+    let (ge, all) = (&summary.groups["ge10mm"], &summary.groups["all"]);
+    let med = |g: &Group| g.ours.all.median_ape_pct.value().map(|e| e.value);
+    let mean = |g: &Group| g.ours.all.mean_ape_pct.value().map(|e| e.value);
+    let hits = |g: &Group| format!(" (hit rate {})", pct(g.localization.hit_rate_ours));
+    let rows = [
+        ("≥10 mm: n", PAPER.ge10mm_n as f64, Some(ge.n as f64), String::new(), 0),
+        ("≥10 mm: median APE %", PAPER.ge10mm_median_ape_pct, med(ge), hits(ge), 1),
+        ("≥10 mm: mean APE %", PAPER.ge10mm_mean_ape_pct, mean(ge), hits(ge), 1),
+        ("≥10 mm: Pearson r", PAPER.ge10mm_pearson_r, ge.ours.all.pearson.value().map(|c| c.value), hits(ge), 3),
+        ("≥10 mm: Spearman ρ", PAPER.ge10mm_spearman_rho, ge.ours.all.spearman.value().map(|c| c.value), hits(ge), 3),
+        ("all: median APE %", PAPER.all_median_ape_pct, med(all), hits(all), 1),
+        ("all: mean APE %", PAPER.all_mean_ape_pct, mean(all), hits(all), 1),
+        (
+            "all: Bland–Altman bias mm³",
+            PAPER.all_bland_altman_bias_mm3,
+            all.ours.all.bland_altman.value().map(|b| b.bias),
+            hits(all),
+            1,
+        ),
+    ];
+    rows.iter()
+        .map(|(k, paper, ours, note, digits)| {
+            format!("<tr><td class=l>{k}</td><td>{paper}</td><td>{}{note}</td></tr>\n", num(*ours, *digits))
+        })
+        .collect()
+}
+
+fn patient_row(h: &mut String, r: &PatientRow, t: &Thumbnails) {
+    let o = r.ours.as_ref();
+    let loc = match o {
+        Some(m) if m.hit => "<span class=hit>hit</span>".to_string(),
+        Some(_) => "<span class=miss>MISS</span>".to_string(),
+        None => "<span class=miss>no candidate</span>".to_string(),
+    };
+    let b = r.blind.as_ref();
+    let img = |png: &Option<Vec<u8>>, height: u32| {
+        png.as_ref().map_or(String::new(), |bytes| {
+            format!(
+                "<img height={height} alt=\"\" src=\"data:image/png;base64,{}\">",
+                base64::engine::general_purpose::STANDARD.encode(bytes)
+            )
+        })
+    };
+    let _ = writeln!(
+        h,
+        "<tr><td class=l>{}</td><td>{}</td><td>{:.0}</td><td>{:.1}</td><td>{}</td><td>{}</td><td>{loc}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{}</td></tr>",
+        escape(&r.patient),
+        r.size_class.name(),
+        r.gt_volume_mm3,
+        r.gt_diameter_mm,
+        num(o.map(|m| m.volume_mm3), 0),
+        num(o.map(|m| m.ape_pct), 1),
+        num(o.map(|m| m.dice), 2),
+        num(o.map(|m| m.centroid_dist_mm), 1),
+        num(r.percentile, 0),
+        num(b.map(|m| m.volume_mm3), 0),
+        num(b.map(|m| m.ape_pct), 1),
+        b.map_or("–", |m| if m.hit { "hit" } else { "MISS" }),
+        r.sphere_ape_pct,
+        if r.oracle_hit { "yes" } else { "no" },
+        r.train_seconds,
+        img(&t.drr_coronal, 64),
+        img(&t.nodule, 64),
+    );
+}
+
+fn estimate(e: &super::summary::Stat<super::summary::Estimate>) -> String {
+    match e.value() {
+        Some(e) => format!("{:.1}% [{:.1}, {:.1}]", e.value, e.ci95[0], e.ci95[1]),
+        None => "–".into(),
+    }
+}
+
+fn pct(v: Option<f64>) -> String {
+    v.map_or("–".into(), |x| format!("{:.0}%", 100.0 * x))
+}
+
+fn num(v: Option<f64>, digits: usize) -> String {
+    v.filter(|x| x.is_finite()).map_or("–".into(), |x| format!("{x:.digits$}"))
+}
+
+fn list(names: &[String]) -> String {
+    if names.is_empty() {
+        String::new()
+    } else {
+        format!(" ({})", escape(&names.join(", ")))
+    }
+}
+
+fn escape(s: &str) -> String {
+    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
+}
