@@ -15,7 +15,7 @@ use aret_pipe::stage::grid::{gradient_magnitude_unit, lattice_geometry};
 use aret_pipe::stage::ingest::truth::GroundTruth;
 use aret_pipe::stage::select::{Analysis, Rule};
 use aret_pipe::stage::sweep::{levels, Params};
-use aret_pipe::train::render::{AlphaMask, Lattice, Renderer};
+use aret_pipe::train::render::AlphaMask;
 use aret_pipe::volume::Volume;
 use std::time::Instant;
 
@@ -29,12 +29,7 @@ fn main() -> anyhow::Result<()> {
     let gt_mask: Volume<u8> = mhd::decode(&String::from_utf8(read("gt_mask.mhd")?)?, &read("gt_mask.raw")?)?;
     let truth: GroundTruth = serde_json::from_slice(&read("ground_truth.json")?)?;
     let annotated = truth.target.map(|t| truth.nodules[t].annotated_diameter_mm);
-    let renderer = Renderer {
-        lattice: Lattice { n: meta.grid, aabb: meta.aabb },
-        shift: meta.shift,
-        scale: meta.scale,
-        step: meta.step,
-    };
+    let renderer = meta.renderer();
     let mask = mask.map(|m| AlphaMask::from_nodes(m, meta.grid));
     let mut phases: Vec<[f64; 4]> = Vec::new();
     for _ in 0..runs {

@@ -9,6 +9,7 @@
 
 use crate::geometry::Aabb;
 use crate::train::field::VmField;
+use crate::train::render::{Lattice, Renderer};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -27,6 +28,18 @@ pub struct ModelMeta {
     pub iterations: usize,
     pub backend: String,
     pub parameters: usize,
+}
+
+impl ModelMeta {
+    /// The renderer the field was trained with (lattice, Δ, s, step).
+    pub fn renderer(&self) -> Renderer {
+        Renderer {
+            lattice: Lattice { n: self.grid, aabb: self.aabb },
+            shift: self.shift,
+            scale: self.scale,
+            step: self.step,
+        }
+    }
 }
 
 const PLANES: [&str; 3] = ["plane_xy", "plane_xz", "plane_yz"];

@@ -12,7 +12,7 @@ use crate::formats::vdb::{self, FloatGrid, GridClass};
 use crate::formats::{mhd, model};
 use crate::geometry::{Aabb, SceneFrame};
 use crate::stage::drr::CameraSet;
-use crate::train::render::{AlphaMask, Lattice, Renderer};
+use crate::train::render::AlphaMask;
 use crate::volume::{Geometry, Volume};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -47,12 +47,7 @@ impl Stage for Grid {
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let set: CameraSet = serde_json::from_slice(&ctx.read("drr", "cameras.json")?)?;
         let (field, mask, meta) = model::decode(&ctx.read("train", "model.safetensors")?)?;
-        let renderer = Renderer {
-            lattice: Lattice { n: meta.grid, aabb: meta.aabb },
-            shift: meta.shift,
-            scale: meta.scale,
-            step: meta.step,
-        };
+        let renderer = meta.renderer();
         let mask = mask.map(|nodes| AlphaMask::from_nodes(nodes, meta.grid));
         let geometry = lattice_geometry(meta.grid, &meta.aabb, &set.frame);
         let density =
