@@ -32,7 +32,7 @@ mod rules;
 
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 3;
+pub const VERSION: u32 = 4;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -168,7 +168,12 @@ impl Stage for Select {
         let mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
         let result = SelectResult {
             patient: ctx.patient().to_string(),
-            verdict: verdict(primary_sel.as_ref(), gt.is_some()),
+            verdict: if self.params.primary == Rule::Guided && annotated.is_none() {
+                "unverified: no annotated diameter, so the guided rule cannot choose (set [select] primary to a blind rule)"
+                    .into()
+            } else {
+                verdict(primary_sel.as_ref(), gt.is_some())
+            },
             primary: self.params.primary,
             blind_rule: self.params.blind,
             gt_volume_mm3: target.map(|t| t.volume_mm3),
