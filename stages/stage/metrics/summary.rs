@@ -28,7 +28,7 @@ pub struct Summary {
 #[derive(Debug, Clone, Serialize)]
 pub struct Group {
     pub n: usize,
-    pub localization: Localization,
+    pub localization: HitRates,
     /// The primary (guided by default) selection's volumes.
     pub ours: Volumes,
     /// The configured blind rule's volumes.
@@ -38,7 +38,7 @@ pub struct Group {
 }
 
 #[derive(Debug, Clone, Serialize)]
-pub struct Localization {
+pub struct HitRates {
     pub hit_rate_ours: Option<f64>,
     pub hit_rate_blind: Option<f64>,
     pub hit_rate_oracle: Option<f64>,
@@ -184,7 +184,7 @@ fn group(rows: &[&PatientRow], params: &Params) -> Group {
     };
     Group {
         n,
-        localization: Localization {
+        localization: HitRates {
             hit_rate_ours: rate(hits(ours)),
             hit_rate_blind: rate(hits(blind)),
             hit_rate_oracle: rate(rows.iter().filter(|r| r.oracle_hit).count()),

@@ -159,21 +159,12 @@ impl Stage for Select {
             (report(Rule::Guided), report(Rule::BlindLargest), report(Rule::BlindPersistent));
         let primary_at = analysis.choose(self.params.primary, annotated);
         let primary_mask = primary_at.map(|(i, label)| levels[i].components.mask_of(label));
-        let primary_sel = [&guided, &blind_largest, &blind_persistent]
-            .into_iter()
-            .flatten()
-            .find(|s| s.rule == self.params.primary)
-            .cloned();
+        let primary_sel = primary_at.map(|at| analysis.describe(self.params.primary, at));
         let mesh = primary_mask.as_ref().map(|m| mesh_mask(m, &density.geometry));
         let mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
         let result = SelectResult {
             patient: ctx.patient().to_string(),
-            verdict: if self.params.primary == Rule::Guided && annotated.is_none() {
-                "unverified: no annotated diameter, so the guided rule cannot choose (set [select] primary to a blind rule)"
-                    .into()
-            } else {
-                verdict(primary_sel.as_ref(), gt.is_some())
-            },
+            verdict: verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some()),
             primary: self.params.primary,
             blind_rule: self.params.blind,
             gt_volume_mm3: target.map(|t| t.volume_mm3),
@@ -226,8 +217,12 @@ impl Stage for Select {
 }
 
 /// One line saying whether `primary` can be trusted: "hit", or why not ("MISS: …").
-pub fn verdict(primary: Option<&Selection>, has_truth: bool) -> String {
+pub fn verdict(rule: Rule, primary: Option<&Selection>, has_truth: bool, has_diameter: bool) -> String {
     match (primary, has_truth) {
+        (None, _) if rule == Rule::Guided && !has_diameter => {
+            "unverified: no annotated diameter, so the guided rule cannot choose (set [select] primary to a blind rule)"
+                .into()
+        }
         (None, _) => "MISS: no candidate survived the sweep".into(),
         (Some(_), false) => "unverified: no ground truth to localise against".into(),
         (Some(s), true) => match s.localization {
