@@ -12,7 +12,7 @@ use crate::train::fit::{fit, LogRow, Views};
 use anyhow::bail;
 use std::fmt::Write as _;
 
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 
 /// `[train]` is the fit's own parameter table.
 pub use crate::train::fit::{Backend, TrainParams as Params};
@@ -98,13 +98,13 @@ impl Stage for Train {
 }
 
 fn log_csv(log: &[LogRow], views: &[&str]) -> String {
-    let mut s = String::from("iteration,loss,photo,l1,tv");
+    let mut s = String::from("iteration,loss,photo,l1,tv,tv3d");
     for v in views {
         let _ = write!(s, ",psnr_{v}_db");
     }
     s.push_str(",lr,seconds\n");
     for r in log {
-        let _ = write!(s, "{},{:e},{:e},{:e},{:e}", r.iteration, r.loss, r.photo, r.l1, r.tv);
+        let _ = write!(s, "{},{:e},{:e},{:e},{:e},{:e}", r.iteration, r.loss, r.photo, r.l1, r.tv, r.tv3d);
         for p in &r.psnr_db {
             let _ = write!(s, ",{p:.4}");
         }
@@ -127,6 +127,7 @@ fn loss_svg(log: &[LogRow]) -> String {
             series("photometric (MSE)", "#d62728", |r| r.photo),
             series("L1 (before λ1)", "#2ca02c", |r| r.l1),
             series("TV (before λ2)", "#9467bd", |r| r.tv),
+            series("3-D TV (before λ3)", "#8c564b", |r| r.tv3d),
         ],
     )
 }

@@ -30,6 +30,8 @@ pub struct TrainParams {
     pub lambda_l1: f64,
     pub lambda_tv: f64,
     pub tv_norm: TvNorm,
+    /// Weight of the 3-D TV of the composed field F (0: off, as in the paper).
+    pub lambda_tv3d: f64,
     /// Factors start as `init_scale · N(0, 1)`.
     pub init_scale: f64,
     /// Iterations after which the alpha mask is (re)computed.
@@ -82,6 +84,7 @@ impl Default for TrainParams {
             lambda_l1: 1e-4,
             lambda_tv: 1e-5,
             tv_norm: TvNorm::L1,
+            lambda_tv3d: 0.0,
             init_scale: 0.1,
             alpha_mask_iterations: vec![1500, 2500],
             alpha_threshold: 1e-3,
@@ -101,6 +104,8 @@ pub struct LogRow {
     pub photo: f64,
     pub l1: f64,
     pub tv: f64,
+    /// 3-D TV of the composed field (before its weight).
+    pub tv3d: f64,
     /// PSNR (dB) of each view rendered in full with midpoint samples, in camera order.
     /// (`photo` is the batch MSE, except at iteration 0: the mean full-view MSE.)
     pub psnr_db: Vec<f64>,
@@ -184,12 +189,14 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     let mut scratch = VmField::zeros(field.n, field.rank);
     let (l1, tv) =
         (regularize::l1(&field, 0.0, &mut scratch), regularize::tv(&field, params.tv_norm, 0.0, &mut scratch));
+    let tv3d = tv_dense_value(&field.compose(), field.n);
     let initial = LogRow {
         iteration: 0,
-        loss: photo + params.lambda_l1 * l1 + params.lambda_tv * tv,
+        loss: photo + params.lambda_l1 * l1 + params.lambda_tv * tv + params.lambda_tv3d * tv3d,
         photo,
         l1,
         tv,
+        tv3d,
         psnr_db: initial_mse.iter().map(|&m| psnr_db(m)).collect(),
         lr: params.lr,
         seconds: started.elapsed().as_secs_f64(),
@@ -219,6 +226,9 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
         let dense = field.compose();
         let mut grad_dense = vec![0f32; dense.len()];
         let result = renderer.batch(&dense, mask.as_ref(), &batch, &offsets, Some(&mut grad_dense));
+        // The 3-D TV acts on F itself: its gradient joins dL/dF before the contraction.
+        let tv3d = (params.lambda_tv3d > 0.0)
+            .then(|| regularize::tv_dense(&dense, field.n, params.lambda_tv3d as f32, &mut grad_dense));
         let mut grad = field.contract(&grad_dense);
         let l1 = regularize::l1(&field, params.lambda_l1 as f32, &mut grad);
         let tv = regularize::tv(&field, params.tv_norm, params.lambda_tv as f32, &mut grad);
@@ -227,12 +237,15 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
             mask = Some(renderer.alpha_mask(&field.compose(), params.alpha_threshold));
         }
         if (it + 1) % params.log_every.max(1) == 0 || it + 1 == params.iterations {
+            // F before this update, as the other terms; computed here only when it is not trained.
+            let tv3d = tv3d.unwrap_or_else(|| tv_dense_value(&dense, field.n));
             let row = LogRow {
                 iteration: it + 1,
-                loss: result.mse + params.lambda_l1 * l1 + params.lambda_tv * tv,
+                loss: result.mse + params.lambda_l1 * l1 + params.lambda_tv * tv + params.lambda_tv3d * tv3d,
                 photo: result.mse,
                 l1,
                 tv,
+                tv3d,
                 psnr_db: view_mse(&renderer, &field, mask.as_ref(), &per_view).into_iter().map(psnr_db).collect(),
                 lr,
                 seconds: started.elapsed().as_secs_f64(),
@@ -242,6 +255,11 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
         }
     }
     Fitted { field, log, mask, renderer }
+}
+
+/// The 3-D TV of a composed F, unweighted.
+fn tv_dense_value(dense: &[f32], n: usize) -> f64 {
+    regularize::tv_dense(dense, n, 0.0, &mut vec![0.0; dense.len()])
 }
 
 /// Mean squared error of each view rendered in full with midpoint samples.

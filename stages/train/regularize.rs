@@ -3,7 +3,8 @@
 //! L1 = Σ over the three planes and three lines of the mean |value|. TV = Σ over the three
 //! density planes of the mean absolute horizontal plus the mean absolute vertical finite
 //! difference (`tv_norm = "l1"`, as the paper writes it), or of their squares (`"l2"`, as
-//! TensoRF's own TV). At a kink (|0|) the subgradient 0 is used.
+//! TensoRF's own TV). At a kink (|0|) the subgradient 0 is used. [`tv_dense`] is the same
+//! L1 TV on the composed 3-D field (not in the paper: an option of `[train]`, `lambda_tv3d`).
 
 use super::field::VmField;
 use num_traits::Float;
@@ -122,4 +123,70 @@ fn lane_sum<T: Float>(values: &[T], f: impl Fn(T) -> T) -> T {
         }
     }
     ((lanes[0] + lanes[4]) + (lanes[1] + lanes[5])) + ((lanes[2] + lanes[6]) + (lanes[3] + lanes[7])) + tail
+}
+
+/// 3-D TV of the composed field `F` (an `n³` lattice, index `x + n·(y + n·z)`): the sum over
+/// the three axes of the mean absolute forward difference — the same penalty as the plane TV,
+/// but on what the renderer actually sees, so a streak that the planes and lines compose into
+/// is penalised even when each factor is smooth. Its gradient, scaled by `weight`, is added to
+/// `grad_dense` (the dense gradient the contraction turns into factor gradients). Returns the
+/// unweighted value.
+pub fn tv_dense<T: Float + Send + Sync>(dense: &[T], n: usize, weight: T, grad_dense: &mut [T]) -> f64 {
+    let nn = n * n;
+    assert_eq!(dense.len(), nn * n, "dense field is not n³");
+    assert_eq!(grad_dense.len(), dense.len(), "gradient and field differ in size");
+    if n < 2 {
+        return 0.0;
+    }
+    let count = T::from(nn * (n - 1)).expect("count");
+    let scale = weight / count;
+    // Each z-slice owns its gradient slice: it takes the differences towards both neighbours
+    // (within the slice, and to the slices above and below) but adds only the forward ones
+    // (x, y, and z to the next slice) to the value, so every difference is counted once.
+    let per_slice: Vec<T> = grad_dense
+        .par_chunks_exact_mut(nn)
+        .enumerate()
+        .map(|(z, g)| {
+            let here = &dense[z * nn..(z + 1) * nn];
+            let mut value = T::zero();
+            let mut step = vec![T::zero(); nn];
+            let mut difference = |a: &[T], b: &[T], step: &mut [T], counted: bool| {
+                for ((s, &x), &y) in step.iter_mut().zip(a).zip(b) {
+                    *s = y - x;
+                }
+                if counted {
+                    value = value + lane_sum(step, |d| d.abs());
+                }
+                step.iter_mut().for_each(|s| *s = scale * sign(*s));
+            };
+            // Along x: rows of n, each with n − 1 differences.
+            for (row, grow) in here.chunks_exact(n).zip(g.chunks_exact_mut(n)) {
+                difference(&row[..n - 1], &row[1..], &mut step[..n - 1], true);
+                for (k, &s) in step[..n - 1].iter().enumerate() {
+                    grow[k] = grow[k] - s;
+                    grow[k + 1] = grow[k + 1] + s;
+                }
+            }
+            // Along y: the slice against itself shifted by one row.
+            difference(&here[..nn - n], &here[n..], &mut step[..nn - n], true);
+            for (gi, &s) in g[..nn - n].iter_mut().zip(&step[..nn - n]) {
+                *gi = *gi - s;
+            }
+            for (gi, &s) in g[n..].iter_mut().zip(&step[..nn - n]) {
+                *gi = *gi + s;
+            }
+            // Along z: to the next slice (counted here) and from the previous one.
+            if z + 1 < n {
+                difference(here, &dense[(z + 1) * nn..(z + 2) * nn], &mut step, true);
+                g.iter_mut().zip(&step).for_each(|(gi, &s)| *gi = *gi - s);
+            }
+            if z > 0 {
+                difference(&dense[(z - 1) * nn..z * nn], here, &mut step, false);
+                g.iter_mut().zip(&step).for_each(|(gi, &s)| *gi = *gi + s);
+            }
+            value
+        })
+        .collect();
+    let value = per_slice.into_iter().fold(T::zero(), |a, b| a + b);
+    (value / count).to_f64().expect("finite")
 }
