@@ -151,6 +151,8 @@ impl Config {
         self.drr.check()?;
         self.train.check()?;
         self.ingest.check()?;
+        self.sweep.check()?;
+        self.select.check()?;
         Ok(())
     }
 

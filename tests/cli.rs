@@ -36,12 +36,15 @@ impl Project {
         write_series(&dir, specs, default_name);
     }
 
+    /// A tiny run (8³ lattice, 3 iterations): the engine is under test, so it uses the paper's
+    /// sweep and selection, which need no lung field in the density.
     fn write_config(&self, name: &str, cache: &str, out: &str, extra: &str) {
         let text = format!(
             "[pipeline]\nname = \"test\"\ncache_dir = \"{cache}\"\nout_dir = \"{out}\"\nworkers = 2\n\
              [dataset]\nkind = \"dicom\"\nroot = \"data\"\n\
              [drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n\
-             [train]\niterations = 3\ngrid = 8\nrank = 2\nbatch_rays = 64\nlog_every = 1\n{extra}"
+             [train]\niterations = 3\ngrid = 8\nrank = 2\nbatch_rays = 64\nlog_every = 1\n\
+             [sweep]\nscore = \"density\"\nregion = \"box\"\n[select]\nlocalize = \"none\"\n{extra}"
         );
         std::fs::write(self.path(name), text).unwrap();
     }
@@ -191,7 +194,7 @@ fn config_errors_name_key_and_line_and_bad_patients_are_listed() {
     let out = p.aret(&["run", "pipeline.toml"]);
     assert_eq!(out.status.code(), Some(2));
     let err = text(&out.stderr);
-    assert!(err.contains("pipeline.toml") && err.contains("line 20") && err.contains("hu_mx"), "{err}");
+    assert!(err.contains("pipeline.toml") && err.contains("line 25") && err.contains("hu_mx"), "{err}");
 
     p.write_config("pipeline.toml", "cache", "out", "");
     let err = text(&p.aret(&["run", "pipeline.toml", "--patients", "P1,P7"]).stderr);

@@ -3,8 +3,8 @@
 //! one (Dice 0, no hit, a "MISS" verdict), and the oracle must still see the nodule.
 
 use aret_pipe::kernels::localization::ground_truth_on_grid;
-use aret_pipe::stage::select::{verdict, Analysis, Rule};
-use aret_pipe::stage::sweep::{equivalent_diameter_mm, levels, Params};
+use aret_pipe::stage::select::{verdict, Analysis, Localize, Rule};
+use aret_pipe::stage::sweep::{equivalent_diameter_mm, levels, Params, Region, Score};
 use aret_pipe::volume::{Geometry, Volume};
 
 fn geometry(dims: [usize; 3], spacing: f64, origin: f64) -> Geometry {
@@ -42,6 +42,11 @@ fn scene() -> Volume<f32> {
     Volume { geometry: g, data }
 }
 
+/// The paper's sweep: σ itself, percentiles of the whole box.
+fn paper_sweep() -> Params {
+    Params { score: Score::Density, region: Region::Box, ..Params::default() }
+}
+
 /// The consensus mask of the nodule on a 1 mm CT grid.
 fn nodule_mask() -> Volume<u8> {
     let g = geometry([82; 3], 1.0, 0.0);
@@ -57,24 +62,81 @@ fn nodule_mask() -> Volume<u8> {
 #[test]
 fn a_guided_match_on_the_body_wall_is_reported_as_a_miss() {
     let density = scene();
-    let levels = levels(&density, &Params::default()).unwrap();
+    let levels = levels(&density, &paper_sweep()).unwrap();
     let gt = ground_truth_on_grid(&nodule_mask(), &density.geometry).unwrap();
     let analysis = Analysis::new(&levels, Some(&gt), &density.geometry);
     // The annotated diameter is the nodule's (14 mm); the wall bulge has a size closer to it
     // than the nodule's blurred blob (22 mm), so the guided rule takes the wall.
-    let guided = analysis.describe(Rule::Guided, analysis.choose(Rule::Guided, Some(14.0)).unwrap());
+    let guided = analysis.describe(Rule::Guided, analysis.choose(Rule::Guided, Some(14.0), None).unwrap());
     assert!(guided.candidate.centroid_mm[0] < 15.0, "guided should land on the wall: {guided:?}");
     let l = guided.localization.unwrap();
     assert!(!l.hit && l.dice == 0.0 && l.centroid_distance_mm > 20.0, "{l:?}");
-    let line = verdict(Rule::Guided, Some(&guided), true, true);
+    let line = verdict(Rule::Guided, Some(&guided), true, true, Localize::None);
     assert!(line.starts_with("MISS") && line.contains("Dice 0.00"), "{line}");
     // The oracle still finds the nodule among the candidates (Dice of a 22 mm blob against a
     // 14 mm truth: 2·7³/(11³ + 7³) ≈ 0.41).
     let oracle = analysis.oracle().unwrap();
     assert!(oracle.any_hit && (oracle.best_dice - 0.41).abs() < 0.1, "{oracle:?}");
     // The blind persistence rule sets the face-touching wall aside and finds the nodule.
-    let blind = analysis.describe(Rule::BlindPersistent, analysis.persistent().unwrap());
+    let blind = analysis.describe(Rule::BlindPersistent, analysis.persistent(None).unwrap());
     assert!(blind.localization.unwrap().hit, "{blind:?}");
     let expected_d = equivalent_diameter_mm(4.0 / 3.0 * std::f64::consts::PI * 11f64.powi(3));
     assert!((blind.candidate.diameter_mm - expected_d).abs() < 3.0, "{blind:?}");
+}
+
+/// A chest cut by the box, on a 64 × 48 × 40 grid of 3 mm cells: mediastinum (0.7) for
+/// x < 3, chest wall (0.7) for 35 ≤ y < 38 with air (0) beyond it — both touch the box faces,
+/// as the lungs (0.12, with a ripple) do — a 10.5 mm radius nodule (0.7) in the lung, and a
+/// 7 mm radius decoy (0.7) in the air outside the chest, of the annotated diameter.
+fn chest() -> (Volume<f32>, [usize; 3]) {
+    let g = Geometry { dims: [64, 48, 40], ..geometry([1; 3], 3.0, 0.0) };
+    let nodule = [40usize, 20, 20];
+    let mut data = vec![0f32; g.len()];
+    for z in 0..40 {
+        for y in 0..48 {
+            for x in 0..64 {
+                let d = |c: [usize; 3]| {
+                    let sq = |a: usize, b: usize| (a as f64 - b as f64).powi(2);
+                    3.0 * (sq(x, c[0]) + sq(y, c[1]) + sq(z, c[2])).sqrt()
+                };
+                let ripple = 0.03 * ((x as f32 * 0.9).sin() * (y as f32 * 1.3).cos() * (z as f32 * 0.7).sin());
+                data[x + 64 * (y + 48 * z)] =
+                    if x < 3 || (35..38).contains(&y) || d(nodule) <= 10.5 || d([55, 44, 33]) <= 7.0 {
+                        0.7
+                    } else if y >= 38 {
+                        0.0
+                    } else {
+                        0.12 + ripple
+                    };
+            }
+        }
+    }
+    (Volume { geometry: g, data }, nodule)
+}
+
+#[test]
+fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
+    use aret_pipe::kernels::lung_mask::{lung_field, strongest_blob};
+    let (density, nodule) = chest();
+    let (dims, spacing) = (density.geometry.dims, density.geometry.spacing_mm);
+    let at = |v: [usize; 3]| v[0] + dims[0] * (v[1] + dims[1] * v[2]);
+    let lungs = lung_field(&density.data, dims, spacing).expect("a lung field");
+    assert!(lungs.field[at(nodule)], "the nodule lies in the (hole-filled) lung field");
+    assert!(!lungs.field[at([1, 20, 20])], "mediastinum is not lung");
+    assert!(!lungs.field[at([40, 42, 20])] && !lungs.field[at([55, 44, 33])], "outside air is not lung");
+    assert!(lungs.field[at([50, 10, 5])], "parenchyma touching the box faces is lung");
+    let peak = strongest_blob(&density.data, dims, spacing, &[6.0, 9.0, 13.0], &lungs.field, 8.0).expect("a blob");
+    let off: usize = (0..3).map(|a| peak.voxel[a].abs_diff(nodule[a])).sum();
+    assert!(off <= 1, "the blob centre {peak:?} is the nodule's {nodule:?}");
+    // The paper's guided rule takes the decoy (it touches nothing of the nodule); sized
+    // through the centre it takes the nodule.
+    let levels = levels(&density, &paper_sweep()).unwrap();
+    let analysis = Analysis::new(&levels, None, &density.geometry);
+    let holds_nodule = |sel: (usize, u32)| levels[sel.0].components.labels[at(nodule)] == sel.1;
+    let anywhere = analysis.choose(Rule::Guided, Some(14.0), None).unwrap();
+    assert!(!holds_nodule(anywhere), "the unlocalised guided rule should be fooled by the decoy");
+    let through = analysis.choose(Rule::Guided, Some(14.0), Some(at(peak.voxel))).unwrap();
+    assert!(holds_nodule(through));
+    let blind = analysis.persistent(Some(at(peak.voxel))).unwrap();
+    assert!(holds_nodule(blind));
 }

@@ -54,7 +54,7 @@ fn main() -> anyhow::Result<()> {
         let analysis = Analysis::new(&levels, Some(&gt), &density.geometry);
         let picks: Vec<_> = [Rule::Guided, Rule::BlindLargest, Rule::BlindPersistent]
             .into_iter()
-            .filter_map(|r| analysis.choose(r, annotated).map(|at| (r, at, analysis.describe(r, at))))
+            .filter_map(|r| analysis.choose(r, annotated, None).map(|at| (r, at, analysis.describe(r, at))))
             .collect();
         std::hint::black_box(analysis.oracle());
         let t_select = t.elapsed().as_secs_f64();

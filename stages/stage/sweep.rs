@@ -6,9 +6,15 @@
 //! those whose equivalent-sphere diameter is within `diameter_mm`. Outputs: `sweep.csv` (one
 //! row per threshold × candidate) and `sweep.json` (the same, with the parameters, for select,
 //! which regenerates candidate masks with [`levels`]).
+//!
+//! Two switches (issue 8; the paper's sweep is `score = "density"`, `region = "box"`): the
+//! thresholded `score` may be the local contrast σ − G(σ, `background_mm`) instead of σ, and
+//! the `region` may be the lung field found in σ itself ([`lung_field`]): percentiles are then
+//! taken over the region's values and candidates lie inside it.
 
 use crate::engine::{Context, Output, Stage};
 use crate::kernels::components::{label, Components, Connectivity};
+use crate::kernels::lung_mask::{local_contrast, lung_field};
 use crate::kernels::{morphology, stats};
 use crate::volume::{Geometry, Volume};
 use anyhow::bail;
@@ -31,6 +37,32 @@ pub struct Params {
     pub closing_radius: usize,
     /// Candidates keep an equivalent-sphere diameter within [min, max] mm.
     pub diameter_mm: [f64; 2],
+    /// What is thresholded.
+    pub score: Score,
+    /// Width (mm) of the Gaussian background subtracted by `score = "local_contrast"`.
+    pub background_mm: f64,
+    /// Where thresholds are measured and candidates may lie.
+    pub region: Region,
+}
+
+/// What the sweep thresholds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Score {
+    /// σ itself (the paper).
+    Density,
+    /// σ minus its Gaussian-blurred self: bright relative to the surroundings.
+    LocalContrast,
+}
+
+/// Where the sweep looks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Region {
+    /// The whole box; percentiles of the non-zero values (the paper).
+    Box,
+    /// The lung field found in σ; percentiles of the values inside it.
+    LungField,
 }
 
 impl Default for Params {
@@ -43,6 +75,9 @@ impl Default for Params {
             min_voxels: 10,
             closing_radius: 2,
             diameter_mm: [5.0, 80.0],
+            score: Score::LocalContrast,
+            background_mm: 10.0,
+            region: Region::LungField,
         }
     }
 }
@@ -55,6 +90,9 @@ impl Params {
         let [lo, hi] = self.diameter_mm;
         if lo.is_nan() || hi.is_nan() || lo > hi {
             bail!("[sweep] diameter_mm must be [min, max] with min ≤ max");
+        }
+        if !(self.background_mm.is_finite() && self.background_mm > 0.0) {
+            bail!("[sweep] background_mm must be positive (got {})", self.background_mm);
         }
         Ok(())
     }
@@ -88,26 +126,59 @@ pub struct SweepFile {
     pub candidates: Vec<Candidate>,
 }
 
+/// The scored volume and the region of a sweep.
+pub struct Scored {
+    pub score: Volume<f32>,
+    /// `None`: the whole box.
+    pub region: Option<Vec<bool>>,
+}
+
+/// What `params` thresholds, and where.
+pub fn scored(density: &Volume<f32>, params: &Params) -> anyhow::Result<Scored> {
+    let (dims, spacing) = (density.geometry.dims, density.geometry.spacing_mm);
+    let region = match params.region {
+        Region::Box => None,
+        Region::LungField => match lung_field(&density.data, dims, spacing) {
+            Some(lungs) if lungs.field.iter().any(|&b| b) => Some(lungs.field),
+            _ => bail!(
+                "no lung field found in the density (no band of parenchyma between air and tissue: \
+                 too coarse a grid or too short a fit?); use [sweep] region = \"box\" for such runs"
+            ),
+        },
+    };
+    let data = match params.score {
+        Score::Density => density.data.clone(),
+        Score::LocalContrast => local_contrast(&density.data, dims, spacing, params.background_mm),
+    };
+    Ok(Scored { score: Volume { geometry: density.geometry.clone(), data }, region })
+}
+
 /// Every threshold's candidates (pure: the same density and parameters give the same levels).
 pub fn levels(density: &Volume<f32>, params: &Params) -> anyhow::Result<Vec<Level>> {
-    let nonzero: Vec<f64> = density.data.iter().filter(|&&v| v != 0.0).map(|&v| f64::from(v)).collect();
-    if nonzero.is_empty() {
+    let Scored { score, region } = scored(density, params)?;
+    let values: Vec<f64> = match (&region, params.score) {
+        (None, Score::Density) => score.data.iter().filter(|&&v| v != 0.0).map(|&v| f64::from(v)).collect(),
+        (None, Score::LocalContrast) => score.data.iter().map(|&v| f64::from(v)).collect(),
+        (Some(r), _) => score.data.iter().zip(r).filter(|(_, &inside)| inside).map(|(&v, _)| f64::from(v)).collect(),
+    };
+    if values.is_empty() || (params.score == Score::Density && values.iter().all(|&v| v == 0.0)) {
         bail!("the density is zero everywhere: nothing to threshold (did training fail?)");
     }
-    let thresholds = stats::percentiles(&nonzero, &params.percentiles)?;
+    let thresholds = stats::percentiles(&values, &params.percentiles)?;
     // Levels are independent: one task each (collected in percentile order).
     Ok(params
         .percentiles
         .par_iter()
         .zip(thresholds)
-        .map(|(&percentile, threshold)| level(density, params, percentile, threshold))
+        .map(|(&percentile, threshold)| level(&score, region.as_deref(), params, percentile, threshold))
         .collect())
 }
 
-fn level(density: &Volume<f32>, params: &Params, percentile: f64, threshold: f64) -> Level {
-    let geometry = &density.geometry;
+fn level(score: &Volume<f32>, region: Option<&[bool]>, params: &Params, percentile: f64, threshold: f64) -> Level {
+    let geometry = &score.geometry;
     let dims = geometry.dims;
-    let mask: Vec<bool> = density.data.iter().map(|&v| f64::from(v) >= threshold).collect();
+    let inside = |i: usize| region.is_none_or(|r| r[i]);
+    let mask: Vec<bool> = score.data.iter().enumerate().map(|(i, &v)| f64::from(v) >= threshold && inside(i)).collect();
     let kept = label(&mask, dims, params.connectivity).without_small(params.min_voxels).mask();
     let closed = if params.closing_radius > 0 { morphology::close(&kept, dims, params.closing_radius) } else { kept };
     let all = label(&closed, dims, params.connectivity);

@@ -84,7 +84,7 @@ impl Default for TrainParams {
             lambda_l1: 1e-4,
             lambda_tv: 1e-5,
             tv_norm: TvNorm::L1,
-            lambda_tv3d: 0.0,
+            lambda_tv3d: 1e-4,
             init_scale: 0.1,
             alpha_mask_iterations: vec![1500, 2500],
             alpha_threshold: 1e-3,

@@ -30,7 +30,8 @@ CONFIG = (
     '[pipeline]\nname = "grid"\n[dataset]\nkind = "dicom"\nroot = "data"\n'
     "[drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n"
     "[train]\ngrid = 24\nrank = 4\niterations = 150\nbatch_rays = 512\nlog_every = 50\nseed = 3\n"
-    '[sweep]\nmin_voxels = 4\ndiameter_mm = [5.0, 400.0]\n[select]\nprimary = "blind_largest"\n'
+    '[sweep]\nmin_voxels = 4\ndiameter_mm = [5.0, 400.0]\nscore = "density"\nregion = "box"\n'
+    '[select]\nprimary = "blind_largest"\nlocalize = "none"\n'
 )
 
 

@@ -2,7 +2,11 @@
 //!
 //! Inputs: `grid/density` (the lattice), `sweep/sweep.json` (candidates and the parameters to
 //! regenerate their masks), `ingest/ground_truth.json` (the annotated diameter the guided rule
-//! uses) and `ingest/gt_mask` (localization only: never used to choose).
+//! uses), `ingest/gt_mask` (localization only: never used to choose) and `drr/cameras.json`
+//! (the scene origin, for `localize = "origin"`).
+//!
+//! With `localize` ([`localize`]), each rule first finds the nodule's centre and then chooses
+//! only among the candidates holding it.
 //!
 //! Three selections, all reported:
 //! - `guided` (the paper's, semi-assisted): the candidate whose equivalent diameter is closest
@@ -21,18 +25,21 @@ use crate::formats::obj;
 use crate::kernels::localization::{ground_truth_on_grid, Localization};
 use crate::kernels::marching_cubes::mesh_mask;
 use crate::kernels::mesh::{enclosed_volume_mm3, vertex_normals};
+use crate::stage::drr::CameraSet;
 use crate::stage::ingest::truth::GroundTruth;
 use crate::stage::sweep::{levels, Candidate, SweepFile};
 use crate::volume::Volume;
 use anyhow::{bail, Context as _};
 use serde::{Deserialize, Serialize};
 
+mod localize;
 mod preview;
 mod rules;
 
+pub use localize::{Centre, Centres, Localize};
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 4;
+pub const VERSION: u32 = 5;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -42,11 +49,35 @@ pub struct Params {
     pub primary: Rule,
     /// The blind rule reported beside the guided one in the cohort table.
     pub blind: Rule,
+    /// How the nodule is found before it is sized: "none", "origin" or "blob".
+    pub localize: Localize,
+    /// Scales (mm) of the blind rules' blob search.
+    pub blob_scales_mm: Vec<f64>,
+    /// A blob centre lies more than this (mm) inside the lung field.
+    pub inside_mm: f64,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { primary: Rule::Guided, blind: Rule::BlindPersistent }
+        Params {
+            primary: Rule::Guided,
+            blind: Rule::BlindPersistent,
+            localize: Localize::Blob,
+            blob_scales_mm: vec![6.0, 9.0, 13.0],
+            inside_mm: 8.0,
+        }
+    }
+}
+
+impl Params {
+    pub fn check(&self) -> anyhow::Result<()> {
+        if self.blob_scales_mm.is_empty() || self.blob_scales_mm.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            bail!("[select] blob_scales_mm must be a non-empty list of positive numbers");
+        }
+        if !(self.inside_mm.is_finite() && self.inside_mm >= 0.0) {
+            bail!("[select] inside_mm must be a number ≥ 0 (got {})", self.inside_mm);
+        }
+        Ok(())
     }
 }
 
@@ -98,6 +129,9 @@ pub struct SelectResult {
     pub mesh_volume_mm3: Option<f64>,
     pub mesh_triangles: usize,
     pub candidates: usize,
+    /// The centres the rules sized from (`localize`).
+    pub localize: Localize,
+    pub centres: Centres,
 }
 
 impl SelectResult {
@@ -123,7 +157,7 @@ impl Stage for Select {
         VERSION
     }
     fn inputs(&self) -> &'static [&'static str] {
-        &["ingest", "grid", "sweep"]
+        &["ingest", "drr", "grid", "sweep"]
     }
     fn params(&self) -> serde_json::Value {
         super::params_json(&self.params)
@@ -133,11 +167,14 @@ impl Stage for Select {
             "ingest" => output == "ground_truth.json" || output.starts_with("gt_mask."),
             "grid" => output == "density.mhd" || output == "density.raw",
             "sweep" => output == "sweep.json",
+            "drr" => output == "cameras.json",
             _ => false,
         }
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
+        self.params.check()?;
         let density: Volume<f32> = super::read_volume(ctx, "grid", "density")?;
+        let cameras: CameraSet = serde_json::from_slice(&ctx.read("drr", "cameras.json")?)?;
         let sweep: SweepFile = serde_json::from_slice(&ctx.read("sweep", "sweep.json")?)?;
         let truth: GroundTruth =
             serde_json::from_slice(&ctx.read("ingest", "ground_truth.json")?).context("ingest/ground_truth.json")?;
@@ -154,17 +191,38 @@ impl Stage for Select {
         }
         let analysis = Analysis::new(&levels, gt.as_ref(), &density.geometry);
         let annotated = target.map(|t| t.annotated_diameter_mm);
-        let report = |rule| analysis.choose(rule, annotated).map(|at| analysis.describe(rule, at));
+        let p = &self.params;
+        let centres = localize::centres(
+            p.localize,
+            &density,
+            cameras.frame.roi_center_mm,
+            annotated,
+            &p.blob_scales_mm,
+            p.inside_mm,
+            gt.as_ref().map(|g| g.coverage.as_slice()),
+        );
+        let dims = density.geometry.dims;
+        // Some(None): any candidate; Some(Some(cell)): those holding the centre; None: the
+        // rule's centre was not found, so it cannot choose.
+        let through = |rule: Rule| match p.localize {
+            Localize::None => Some(None),
+            _ => {
+                let centre = if rule == Rule::Guided { &centres.guided } else { &centres.blind };
+                centre.as_ref().map(|c| Some(c.linear(dims)))
+            }
+        };
+        let choose = |rule: Rule| through(rule).and_then(|cell| analysis.choose(rule, annotated, cell));
+        let report = |rule| choose(rule).map(|at| analysis.describe(rule, at));
         let (guided, blind_largest, blind_persistent) =
             (report(Rule::Guided), report(Rule::BlindLargest), report(Rule::BlindPersistent));
-        let primary_at = analysis.choose(self.params.primary, annotated);
+        let primary_at = choose(self.params.primary);
         let primary_mask = primary_at.map(|(i, label)| levels[i].components.mask_of(label));
         let primary_sel = primary_at.map(|at| analysis.describe(self.params.primary, at));
         let mesh = primary_mask.as_ref().map(|m| mesh_mask(m, &density.geometry));
         let mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
         let result = SelectResult {
             patient: ctx.patient().to_string(),
-            verdict: verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some()),
+            verdict: verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some(), p.localize),
             primary: self.params.primary,
             blind_rule: self.params.blind,
             gt_volume_mm3: target.map(|t| t.volume_mm3),
@@ -177,6 +235,8 @@ impl Stage for Select {
             mesh_volume_mm3,
             mesh_triangles: mesh.as_ref().map_or(0, |m| m.triangles.len()),
             candidates: found.len(),
+            localize: p.localize,
+            centres,
         };
         let mask_volume = Volume {
             geometry: density.geometry.clone(),
@@ -217,11 +277,20 @@ impl Stage for Select {
 }
 
 /// One line saying whether `primary` can be trusted: "hit", or why not ("MISS: …").
-pub fn verdict(rule: Rule, primary: Option<&Selection>, has_truth: bool, has_diameter: bool) -> String {
+pub fn verdict(
+    rule: Rule,
+    primary: Option<&Selection>,
+    has_truth: bool,
+    has_diameter: bool,
+    localize: Localize,
+) -> String {
     match (primary, has_truth) {
         (None, _) if rule == Rule::Guided && !has_diameter => {
             "unverified: no annotated diameter, so the guided rule cannot choose (set [select] primary to a blind rule)"
                 .into()
+        }
+        (None, _) if localize != Localize::None => {
+            "MISS: no nodule centre was found, or no candidate of the sweep holds it".into()
         }
         (None, _) => "MISS: no candidate survived the sweep".into(),
         (Some(_), false) => "unverified: no ground truth to localise against".into(),

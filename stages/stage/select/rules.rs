@@ -67,11 +67,23 @@ impl<'a> Analysis<'a> {
         self.levels.iter().enumerate().flat_map(|(i, l)| l.candidates.iter().map(move |c| (i, c.label)))
     }
 
-    /// (level index, label) of the candidate `rule` picks, if any candidate survived.
-    pub fn choose(&self, rule: Rule, annotated_diameter_mm: Option<f64>) -> Option<(usize, u32)> {
+    /// Whether the candidate holds lattice cell `voxel` (linear index); `None` holds everywhere.
+    fn holds(&self, (i, label): (usize, u32), voxel: Option<usize>) -> bool {
+        voxel.is_none_or(|v| self.levels[i].components.labels[v] == label)
+    }
+
+    /// (level index, label) of the candidate `rule` picks, if any candidate survived. With
+    /// `through = Some(cell)` (a localised nodule centre, linear index), only candidates that
+    /// hold that cell are considered: find first, then size.
+    pub fn choose(
+        &self,
+        rule: Rule,
+        annotated_diameter_mm: Option<f64>,
+        through: Option<usize>,
+    ) -> Option<(usize, u32)> {
         // Ties go to the first in sweep order (lowest percentile, then scipy label order).
         let first_min = |key: &dyn Fn(&Candidate) -> f64| {
-            self.all().fold(None, |best: Option<((usize, u32), f64)>, at| {
+            self.all().filter(|&at| self.holds(at, through)).fold(None, |best: Option<((usize, u32), f64)>, at| {
                 let k = key(self.candidate(at));
                 match best {
                     Some((_, bk)) if bk <= k => best,
@@ -85,7 +97,7 @@ impl<'a> Analysis<'a> {
                 first_min(&|c| (c.diameter_mm - d).abs())
             }
             Rule::BlindLargest => first_min(&|c| -(c.voxels as f64)),
-            Rule::BlindPersistent => return self.persistent(),
+            Rule::BlindPersistent => return self.persistent(through),
         };
         pick.map(|(at, _)| at)
     }
@@ -96,16 +108,17 @@ impl<'a> Analysis<'a> {
     /// are set aside; each other is chained to the candidate at the next threshold overlapping
     /// it most, while that one is interior too; the longest chain wins (ties: the larger mean
     /// volume, then sweep order), and within it the level whose volume changes least (relative)
-    /// to the next.
-    pub fn persistent(&self) -> Option<(usize, u32)> {
+    /// to the next. With `through`, chains run only through candidates holding that cell.
+    pub fn persistent(&self, through: Option<usize>) -> Option<(usize, u32)> {
+        let eligible = |at: (usize, u32)| self.interior(at) && self.holds(at, through);
         let mut best: Option<(usize, f64, (usize, u32))> = None;
-        for start in self.all().filter(|&at| self.interior(at)) {
-            // A candidate continuing an interior chain from the level before is not a start.
-            if self.previous(start).is_some_and(|p| self.interior(p) && self.next(p) == Some(start)) {
+        for start in self.all().filter(|&at| eligible(at)) {
+            // A candidate continuing an eligible chain from the level before is not a start.
+            if self.previous(start).is_some_and(|p| eligible(p) && self.next(p) == Some(start)) {
                 continue;
             }
             let mut chain = vec![start];
-            while let Some(next) = self.next(*chain.last().expect("non-empty")).filter(|&n| self.interior(n)) {
+            while let Some(next) = self.next(*chain.last().expect("non-empty")).filter(|&n| eligible(n)) {
                 chain.push(next);
             }
             let volume = |at: (usize, u32)| self.candidate(at).volume_mm3;

@@ -1,0 +1,160 @@
+#!/usr/bin/env python3
+"""Issue 8's experiment table: one row per configuration, re-run from the shared cache.
+
+    tools/experiments.py                 # run every configuration, then write docs/experiments.md
+    tools/experiments.py --only tv3d     # run the named rows only (the table keeps the others)
+    tools/experiments.py --no-run        # rebuild the table from the results already in out dirs
+
+Every configuration is a preset in presets/ (or pipeline.toml itself) run with
+`aret-pipe run`; presets share cache/, so a row that changes only a downstream stage recomputes
+only that stage. The numbers are read back from each run's summary.json and results.csv.
+Only the standard library is needed.
+"""
+import argparse
+import csv
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+import tomllib
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# (name, config, assistance level of the primary rule, assistance of the blind rule, what it is)
+ROWS = [
+    ("paper", "presets/paper.toml", "B", "C*",
+     "the paper as written: f = 1280, global percentile sweep, closest-diameter rule"),
+    ("faithful", "presets/faithful.toml", "B", "C*",
+     "the previous default: the paper's method with the fitted focal length"),
+    ("tv3d", "presets/tv3d.toml", "B", "C*",
+     "+ 3-D TV (λ = 1e-4) on the composed field during training"),
+    ("lungs-contrast", "presets/lungs_contrast.toml", "B", "C*",
+     "+ sweep of the local contrast inside the lung field found in σ"),
+    ("find-then-size", "pipeline.toml", "B", "C*",
+     "+ blob centre inside the lung field first, then the candidates holding it (the default)"),
+    ("find-then-size-A", "presets/origin.toml", "A", "A",
+     "the same, centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
+    ("blind", "presets/blind.toml", "C", "C",
+     "the default method, scene centred on the lungs (roi_center = \"lungs\"), blind rule primary"),
+]
+START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
+LEVELS = {
+    "A": "location and diameter known",
+    "B": "diameter known (the guided rule)",
+    "C": "blind: no annotation anywhere (roi_center = \"lungs\", blind rule)",
+    "C*": "blind rule, but the box is still centred on the nodule (roi_center = \"nodule\")",
+}
+
+
+def out_dir(config_path):
+    with open(config_path, "rb") as f:
+        cfg = tomllib.load(f)
+    out = cfg.get("pipeline", {}).get("out_dir", "out")
+    return os.path.normpath(os.path.join(os.path.dirname(config_path), out))
+
+
+def run(binary, config_path):
+    started = time.time()
+    subprocess.run([binary, "run", config_path], check=True, cwd=ROOT)
+    return time.time() - started
+
+
+def pct(x):
+    return "–" if x is None else f"{100 * x:.0f}%"
+
+
+def num(x, fmt="{:.1f}"):
+    return "–" if x is None else fmt.format(x)
+
+
+def value(stat):
+    return stat.get("value") if isinstance(stat, dict) else None
+
+
+def row_numbers(out):
+    summary = json.load(open(os.path.join(out, "summary.json")))
+    with open(os.path.join(out, "results.csv")) as f:
+        rows = list(csv.DictReader(f))
+    groups = summary["groups"]
+
+    def group(name):
+        g = groups[name]
+        loc = g["localization"]
+        return dict(
+            n=g["n"],
+            hit=loc["hit_rate_ours"],
+            blind=loc["hit_rate_blind"],
+            oracle=loc["hit_rate_oracle"],
+            dice=loc["median_dice_ours"],
+            ape_all=value(g["ours"]["all"]["median_ape_pct"]),
+            ape_hits=value(g["ours"]["over_hits"]["median_ape_pct"]),
+            blind_ape_hits=value(g["blind"]["over_hits"]["median_ape_pct"]),
+        )
+
+    hits = [r for r in rows if r["hit"] == "1"]
+    beats = sum(float(r["ape_pct"]) < float(r["sphere_ape_pct"]) for r in hits)
+    seconds = [float(r["train_seconds"]) for r in rows if r["train_seconds"]]
+    return dict(
+        ge10=group("ge10mm"),
+        all=group("all"),
+        hits_beating_sphere=f"{beats}/{len(hits)}",
+        train_s=statistics.median(seconds) if seconds else None,
+    )
+
+
+def table(results):
+    lines = [
+        "| row | config | level (primary / blind) | ≥10 mm hit: primary / blind / oracle | ≥10 mm median Dice"
+        " | median APE: all / ≥10 mm / ≥10 mm over hits | blind APE over hits (≥10 mm) | all 19: hit / blind"
+        " | hits beating the sphere | train s (median) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for name, config, level, blind_level, _ in ROWS:
+        r = results.get(name)
+        if r is None:
+            lines.append(f"| {name} | `{config}` | {level} / {blind_level} | not run | | | | | | |")
+            continue
+        g, a = r["ge10"], r["all"]
+        lines.append(
+            f"| {name} | `{config}` | {level} / {blind_level} | {pct(g['hit'])} / {pct(g['blind'])} / {pct(g['oracle'])}"
+            f" | {num(g['dice'], '{:.2f}')} | {num(a['ape_all'])}% / {num(g['ape_all'])}% / {num(g['ape_hits'])}%"
+            f" | {num(g['blind_ape_hits'])}% | {pct(a['hit'])} / {pct(a['blind'])} | {r['hits_beating_sphere']}"
+            f" | {num(r['train_s'])} |"
+        )
+    return "\n".join(lines)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", nargs="*", help="row names to (re)run")
+    ap.add_argument("--no-run", action="store_true", help="only rebuild the table")
+    ap.add_argument("--bin", default=os.path.join(ROOT, "target", "release", "aret-pipe"))
+    ap.add_argument("--doc", default=os.path.join(ROOT, "docs", "experiments.md"))
+    args = ap.parse_args()
+    results = {}
+    for name, config, *_ in ROWS:
+        path = os.path.join(ROOT, config)
+        if not args.no_run and (not args.only or name in args.only):
+            print(f"== {name}: aret-pipe run {config}", flush=True)
+            print(f"   {run(args.bin, path):.0f} s", flush=True)
+        out = out_dir(path)
+        if os.path.exists(os.path.join(out, "summary.json")):
+            results[name] = row_numbers(out)
+    text = table(results)
+    legend = "\n".join(f"- **{k}**: {v}" for k, v in LEVELS.items())
+    rows = "\n".join(f"- **{name}**: {what}" for name, _, _, _, what in ROWS)
+    block = f"{START}\n{text}\n\nRows:\n{rows}\n\nAssistance levels:\n{legend}\n{END}"
+    doc = open(args.doc).read()
+    if START not in doc or END not in doc:
+        sys.exit(f"{args.doc} has no {START} … {END} block to fill")
+    head, rest = doc.split(START, 1)
+    with open(args.doc, "w") as f:
+        f.write(head + block + rest.split(END, 1)[1])
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
