@@ -40,6 +40,16 @@ impl<'a> VolumeField<'a> {
         let origin_scene = frame.to_scene(DVec3::from(g.origin_mm));
         VolumeField { dims: g.dims, data: &volume.data, to_index, offset: -(to_index * origin_scene) }
     }
+
+    /// Voxels per axis (x fastest).
+    pub fn dims(&self) -> [usize; 3] {
+        self.dims
+    }
+
+    /// The values at the voxel centres, index `x + nx·(y + ny·z)`.
+    pub fn data(&self) -> &[f32] {
+        self.data
+    }
 }
 
 impl Field for VolumeField<'_> {
@@ -69,27 +79,48 @@ pub fn trilinear(data: &[f32], dims: [usize; 3], p: DVec3) -> f64 {
     super::trilinear::sample(data, dims, p.to_array())
 }
 
+/// Where a ray is integrated: `count` midpoint samples at `t0 + (s + ½)·delta`, s < count.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Segment {
+    pub t0: f64,
+    pub delta: f64,
+    pub count: usize,
+}
+
+/// The midpoint-rule samples of the ray `origin + t·dir` (unit `dir`, `ray` its prepared form)
+/// inside `aabb` and the field's support, in equal steps no longer than `max_step` (and than
+/// the field's half-voxel step); `None` when the ray misses either. The CPU march and the GPU
+/// backend's host (which uploads these per pixel) share it, so their sample counts agree.
+pub fn segment<F: Field>(
+    field: &F,
+    aabb: &Aabb,
+    ray: &F::Ray,
+    origin: DVec3,
+    dir: DVec3,
+    max_step: f64,
+) -> Option<Segment> {
+    let (a0, a1) = aabb.intersect(origin, dir)?;
+    let (f0, f1) = field.support(ray)?;
+    let (t0, t1) = (a0.max(f0), a1.min(f1));
+    if t1 <= t0 {
+        return None;
+    }
+    let step = max_step.min(field.max_step(ray));
+    // The span is often an exact multiple of the half-voxel step (rays leaving through the CT's
+    // faces): forgive rounding noise so the sample count does not hinge on the last ulp.
+    let count = ((t1 - t0) / step - 1e-9).ceil().max(1.0) as usize;
+    Some(Segment { t0, delta: (t1 - t0) / count as f64, count })
+}
+
 /// `∫ field ds` along the ray `origin + t·dir` (unit `dir`) inside `aabb`: midpoint rule with
 /// equal steps no longer than `max_step` (and than the field's half-voxel step).
 pub fn march_ray<F: Field>(field: &F, aabb: &Aabb, origin: DVec3, dir: DVec3, max_step: f64) -> f64 {
-    let Some((a0, a1)) = aabb.intersect(origin, dir) else {
-        return 0.0;
-    };
     let ray = field.prepare(origin, dir);
-    let Some((f0, f1)) = field.support(&ray) else {
+    let Some(Segment { t0, delta, count }) = segment(field, aabb, &ray, origin, dir, max_step) else {
         return 0.0;
     };
-    let (t0, t1) = (a0.max(f0), a1.min(f1));
-    if t1 <= t0 {
-        return 0.0;
-    }
-    let step = max_step.min(field.max_step(&ray));
-    // The span is often an exact multiple of the half-voxel step (rays leaving through the CT's
-    // faces): forgive rounding noise so the sample count does not hinge on the last ulp.
-    let n = ((t1 - t0) / step - 1e-9).ceil().max(1.0) as usize;
-    let delta = (t1 - t0) / n as f64;
     let mut sum = 0.0;
-    for s in 0..n {
+    for s in 0..count {
         sum += field.sample(&ray, t0 + (s as f64 + 0.5) * delta);
     }
     sum * delta

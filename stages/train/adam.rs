@@ -19,6 +19,24 @@ pub struct AdamParams {
     pub iterations: usize,
 }
 
+/// The scalars of one update: its learning rate, the bias-corrected step `lr / (1 − β1^t)` and
+/// `√(1 − β2^t)` (t the 1-based update count). The GPU backend's Adam kernel takes these too.
+#[derive(Debug, Clone, Copy)]
+pub struct AdamStep {
+    pub lr: f64,
+    pub lr_t: f64,
+    pub sqrt_bias2: f64,
+}
+
+impl AdamParams {
+    /// The scalars of update `step` (0-based).
+    pub fn step(&self, step: usize) -> AdamStep {
+        let lr = self.lr * self.decay_ratio.powf(step as f64 / self.iterations.max(1) as f64);
+        let t = (step + 1) as i32;
+        AdamStep { lr, lr_t: lr / (1.0 - self.beta1.powi(t)), sqrt_bias2: (1.0 - self.beta2.powi(t)).sqrt() }
+    }
+}
+
 pub struct Adam<T> {
     params: AdamParams,
     m: VmField<T>,
@@ -33,21 +51,18 @@ impl<T: Float + Send + Sync> Adam<T> {
 
     /// The learning rate of iteration `step` (0-based).
     pub fn lr(&self, step: usize) -> f64 {
-        let p = &self.params;
-        p.lr * p.decay_ratio.powf(step as f64 / p.iterations.max(1) as f64)
+        self.params.step(step).lr
     }
 
     /// One update of `field` by `grad`; returns the learning rate used.
     pub fn update(&mut self, field: &mut VmField<T>, grad: &VmField<T>) -> f64 {
-        let lr = self.lr(self.step);
+        let AdamStep { lr, lr_t, sqrt_bias2 } = self.params.step(self.step);
         self.step += 1;
         let p = self.params;
         let c = |x: f64| T::from(x).expect("finite");
         let (b1, b2) = (c(p.beta1), c(p.beta2));
-        let bias1 = 1.0 - p.beta1.powi(self.step as i32);
-        let bias2 = 1.0 - p.beta2.powi(self.step as i32);
-        let (lr_t, eps) = (c(lr / bias1), c(p.eps));
-        let sqrt_bias2 = c(bias2.sqrt());
+        let (lr_t, eps) = (c(lr_t), c(p.eps));
+        let sqrt_bias2 = c(sqrt_bias2);
         for (((x, g), m), v) in field.params_mut().zip(grad.params()).zip(self.m.params_mut()).zip(self.v.params_mut())
         {
             let chunks = x.par_chunks_mut(CHUNK).zip(m.par_chunks_mut(CHUNK)).zip(v.par_chunks_mut(CHUNK));

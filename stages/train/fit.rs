@@ -68,6 +68,28 @@ impl TrainParams {
         }
         Ok(())
     }
+
+    /// Whether the three views are evaluated and a row logged after `done` iterations.
+    pub fn logs_after(&self, done: usize) -> bool {
+        done.is_multiple_of(self.log_every.max(1)) || done == self.iterations
+    }
+
+    /// Whether the alpha mask is (re)computed after `done` iterations.
+    pub fn remasks_after(&self, done: usize) -> bool {
+        self.alpha_mask_iterations.contains(&done)
+    }
+
+    /// The optimiser: TensoRF's Adam with the configured rate and decay.
+    pub fn adam(&self) -> AdamParams {
+        AdamParams {
+            lr: self.lr,
+            beta1: 0.9,
+            beta2: 0.99,
+            eps: 1e-8,
+            decay_ratio: self.lr_decay_ratio,
+            iterations: self.iterations,
+        }
+    }
 }
 
 impl Default for TrainParams {
@@ -161,105 +183,178 @@ pub fn renderer(params: &TrainParams, aabb: Aabb) -> Renderer {
     }
 }
 
-/// Fits a field to `views`. `on_log` sees every logged row as it is made.
+/// The rays training draws from: those of `per_view` that meet the box (TensoRF's filtering).
+pub fn ray_pool(per_view: &[Vec<Ray>], aabb: &Aabb) -> Vec<Ray> {
+    per_view.iter().flatten().copied().filter(|r| aabb.intersect(r.origin, r.dir).is_some()).collect()
+}
+
+/// The seeded randomness of a fit, in the order it is drawn: the initial factors, then per
+/// iteration a batch (a seeded permutation of the pool, reshuffled each epoch) with one jitter
+/// offset per ray. Both backends draw from it, so they train on the same batches.
+pub struct Schedule {
+    rng: ChaCha8Rng,
+    order: Vec<usize>,
+    cursor: usize,
+    drawn: Vec<(usize, f64)>,
+}
+
+impl Schedule {
+    /// The initial field of `params` and the batch schedule over a pool of `pool_len` rays.
+    pub fn start(params: &TrainParams, pool_len: usize) -> (VmField<f32>, Schedule) {
+        let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
+        let field = VmField::random(params.grid, params.rank, params.init_scale, rng.gen());
+        let order: Vec<usize> = (0..pool_len).collect();
+        let cursor = order.len(); // reshuffle on first use
+        (field, Schedule { rng, order, cursor, drawn: Vec::with_capacity(params.batch_rays) })
+    }
+
+    /// The next batch: (pool index, offset in [0, step)) per ray, in pool order — neighbouring
+    /// rays share lattice cells, so tracing them in that order hits the cache. The drawn set
+    /// and its offsets do not depend on the sort.
+    pub fn next_batch(&mut self, batch_rays: usize, step: f64) -> &[(usize, f64)] {
+        self.drawn.clear();
+        while self.drawn.len() < batch_rays.min(self.order.len()) {
+            if self.cursor == self.order.len() {
+                self.order.shuffle(&mut self.rng);
+                self.cursor = 0;
+            }
+            self.drawn.push((self.order[self.cursor], self.rng.gen::<f64>() * step));
+            self.cursor += 1;
+        }
+        self.drawn.sort_unstable_by_key(|&(i, _)| i);
+        &self.drawn
+    }
+}
+
+/// The loss terms of one iteration, each before its weight.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Terms {
+    /// The batch MSE (the full-view MSE at iteration 0).
+    pub photo: f64,
+    pub l1: f64,
+    pub tv: f64,
+    pub tv3d: f64,
+}
+
+impl Terms {
+    /// The weighted sum: the loss.
+    pub fn loss(&self, params: &TrainParams) -> f64 {
+        self.photo + params.lambda_l1 * self.l1 + params.lambda_tv * self.tv + params.lambda_tv3d * self.tv3d
+    }
+}
+
+/// One iteration's loss terms and the gradient of the loss (before the optimiser).
+pub struct Step {
+    pub grad: VmField<f32>,
+    pub terms: Terms,
+}
+
+/// The CPU's gradient of one iteration: compose, render and scatter, 3-D TV, contract,
+/// regularisers. The 3-D TV's value is computed when it is trained or `logged` (else 0).
+pub fn gradient(
+    params: &TrainParams,
+    renderer: &Renderer,
+    field: &VmField<f32>,
+    mask: Option<&AlphaMask>,
+    batch: &[Ray],
+    offsets: &[f64],
+    logged: bool,
+) -> Step {
+    let dense = field.compose();
+    let mut grad_dense = vec![0f32; dense.len()];
+    let result = renderer.batch(&dense, mask, batch, offsets, Some(&mut grad_dense));
+    // The 3-D TV acts on F itself: its gradient joins dL/dF before the contraction.
+    let tv3d = if params.lambda_tv3d > 0.0 {
+        regularize::tv_dense(&dense, field.n, params.lambda_tv3d as f32, &mut grad_dense)
+    } else if logged {
+        tv_dense_value(&dense, field.n)
+    } else {
+        0.0
+    };
+    let mut grad = field.contract(&grad_dense);
+    let l1 = regularize::l1(field, params.lambda_l1 as f32, &mut grad);
+    let tv = regularize::tv(field, params.tv_norm, params.lambda_tv as f32, &mut grad);
+    Step { grad, terms: Terms { photo: result.mse, l1, tv, tv3d } }
+}
+
+/// The unweighted loss terms of `field` with `photo` as the photometric term (the initial row).
+pub fn terms_of(params: &TrainParams, field: &VmField<f32>, photo: f64) -> Terms {
+    let mut scratch = VmField::zeros(field.n, field.rank);
+    Terms {
+        photo,
+        l1: regularize::l1(field, 0.0, &mut scratch),
+        tv: regularize::tv(field, params.tv_norm, 0.0, &mut scratch),
+        tv3d: tv_dense_value(&field.compose(), field.n),
+    }
+}
+
+/// The 3-D TV of a composed F, unweighted.
+pub fn tv_dense_value(dense: &[f32], n: usize) -> f64 {
+    regularize::tv_dense(dense, n, 0.0, &mut vec![0.0; dense.len()])
+}
+
+/// The log row after `iteration` iterations; `view_mse` is the full views' MSE.
+pub fn log_row(
+    params: &TrainParams,
+    iteration: usize,
+    terms: Terms,
+    view_mse: &[f64],
+    lr: f64,
+    seconds: f64,
+) -> LogRow {
+    LogRow {
+        iteration,
+        loss: terms.loss(params),
+        photo: terms.photo,
+        l1: terms.l1,
+        tv: terms.tv,
+        tv3d: terms.tv3d,
+        psnr_db: view_mse.iter().map(|&m| psnr_db(m)).collect(),
+        lr,
+        seconds,
+    }
+}
+
+/// Fits a field to `views` on the CPU. `on_log` sees every logged row as it is made.
 pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow)) -> Fitted {
     let started = Instant::now();
     let renderer = renderer(params, views.aabb);
     let per_view = views.rays();
-    let hits = |r: &Ray| views.aabb.intersect(r.origin, r.dir).is_some();
-    let pool: Vec<Ray> = per_view.iter().flatten().copied().filter(hits).collect();
-    let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
-    let mut field: VmField<f32> = VmField::random(params.grid, params.rank, params.init_scale, rng.gen());
-    let adam_params = AdamParams {
-        lr: params.lr,
-        beta1: 0.9,
-        beta2: 0.99,
-        eps: 1e-8,
-        decay_ratio: params.lr_decay_ratio,
-        iterations: params.iterations,
-    };
-    let mut adam = Adam::new(adam_params, &field);
-    let mut order: Vec<usize> = (0..pool.len()).collect();
-    let mut cursor = order.len(); // reshuffle on first use
+    let pool = ray_pool(&per_view, &views.aabb);
+    let (mut field, mut schedule) = Schedule::start(params, pool.len());
+    let mut adam = Adam::new(params.adam(), &field);
     let mut mask: Option<AlphaMask> = None;
     let mut log = Vec::new();
     // Row 0: the initial field, before any update (its "photo" is the full-view MSE).
     let initial_mse = view_mse(&renderer, &field, None, &per_view);
     let photo = initial_mse.iter().sum::<f64>() / initial_mse.len() as f64;
-    let mut scratch = VmField::zeros(field.n, field.rank);
-    let (l1, tv) =
-        (regularize::l1(&field, 0.0, &mut scratch), regularize::tv(&field, params.tv_norm, 0.0, &mut scratch));
-    let tv3d = tv_dense_value(&field.compose(), field.n);
-    let initial = LogRow {
-        iteration: 0,
-        loss: photo + params.lambda_l1 * l1 + params.lambda_tv * tv + params.lambda_tv3d * tv3d,
-        photo,
-        l1,
-        tv,
-        tv3d,
-        psnr_db: initial_mse.iter().map(|&m| psnr_db(m)).collect(),
-        lr: params.lr,
-        seconds: started.elapsed().as_secs_f64(),
-    };
+    let terms = terms_of(params, &field, photo);
+    let initial = log_row(params, 0, terms, &initial_mse, params.lr, started.elapsed().as_secs_f64());
     on_log(&initial);
     log.push(initial);
     let mut batch = Vec::with_capacity(params.batch_rays);
     let mut offsets = Vec::with_capacity(params.batch_rays);
-    let mut drawn: Vec<(usize, f64)> = Vec::with_capacity(params.batch_rays);
     for it in 0..params.iterations {
-        drawn.clear();
-        while drawn.len() < params.batch_rays.min(pool.len()) {
-            if cursor == order.len() {
-                order.shuffle(&mut rng);
-                cursor = 0;
-            }
-            drawn.push((order[cursor], rng.gen::<f64>() * renderer.step));
-            cursor += 1;
-        }
-        // Trace in pool order (view, then pixel row): neighbouring rays share lattice cells,
-        // so they hit the cache. The drawn set and offsets are unchanged.
-        drawn.sort_unstable_by_key(|&(i, _)| i);
+        let drawn = schedule.next_batch(params.batch_rays, renderer.step);
         batch.clear();
         offsets.clear();
         batch.extend(drawn.iter().map(|&(i, _)| pool[i]));
         offsets.extend(drawn.iter().map(|&(_, o)| o));
-        let dense = field.compose();
-        let mut grad_dense = vec![0f32; dense.len()];
-        let result = renderer.batch(&dense, mask.as_ref(), &batch, &offsets, Some(&mut grad_dense));
-        // The 3-D TV acts on F itself: its gradient joins dL/dF before the contraction.
-        let tv3d = (params.lambda_tv3d > 0.0)
-            .then(|| regularize::tv_dense(&dense, field.n, params.lambda_tv3d as f32, &mut grad_dense));
-        let mut grad = field.contract(&grad_dense);
-        let l1 = regularize::l1(&field, params.lambda_l1 as f32, &mut grad);
-        let tv = regularize::tv(&field, params.tv_norm, params.lambda_tv as f32, &mut grad);
-        let lr = adam.update(&mut field, &grad);
-        if params.alpha_mask_iterations.contains(&(it + 1)) {
+        let logged = params.logs_after(it + 1);
+        let step = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, logged);
+        let lr = adam.update(&mut field, &step.grad);
+        if params.remasks_after(it + 1) {
             mask = Some(renderer.alpha_mask(&field.compose(), params.alpha_threshold));
         }
-        if (it + 1) % params.log_every.max(1) == 0 || it + 1 == params.iterations {
-            // F before this update, as the other terms; computed here only when it is not trained.
-            let tv3d = tv3d.unwrap_or_else(|| tv_dense_value(&dense, field.n));
-            let row = LogRow {
-                iteration: it + 1,
-                loss: result.mse + params.lambda_l1 * l1 + params.lambda_tv * tv + params.lambda_tv3d * tv3d,
-                photo: result.mse,
-                l1,
-                tv,
-                tv3d,
-                psnr_db: view_mse(&renderer, &field, mask.as_ref(), &per_view).into_iter().map(psnr_db).collect(),
-                lr,
-                seconds: started.elapsed().as_secs_f64(),
-            };
+        if logged {
+            let views_mse = view_mse(&renderer, &field, mask.as_ref(), &per_view);
+            let seconds = started.elapsed().as_secs_f64();
+            let row = log_row(params, it + 1, step.terms, &views_mse, lr, seconds);
             on_log(&row);
             log.push(row);
         }
     }
     Fitted { field, log, mask, renderer }
-}
-
-/// The 3-D TV of a composed F, unweighted.
-fn tv_dense_value(dense: &[f32], n: usize) -> f64 {
-    regularize::tv_dense(dense, n, 0.0, &mut vec![0.0; dense.len()])
 }
 
 /// Mean squared error of each view rendered in full with midpoint samples.

@@ -119,8 +119,9 @@ struct Traced<T> {
 
 impl Renderer {
     /// The continuous lattice index of the first sample of `ray` (offset `offset` ∈ [0, step)),
-    /// its increment per sample, and the number of samples inside the box.
-    fn samples(&self, ray: &Ray, offset: f64) -> ([f64; 3], [f64; 3], usize) {
+    /// its increment per sample, and the number of samples inside the box. (The GPU backend
+    /// uploads these per ray, so both backends walk the same samples.)
+    pub fn samples(&self, ray: &Ray, offset: f64) -> ([f64; 3], [f64; 3], usize) {
         let Some((t0, t1)) = self.lattice.aabb.intersect(ray.origin, ray.dir) else {
             return ([0.0; 3], [0.0; 3], 0);
         };
