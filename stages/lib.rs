@@ -1,7 +1,7 @@
 //! aret-pipe: measure lung nodules in 3D from only three X-rays.
 //!
 //! A streaming pipeline of cached stages (SPEC §3): DICOM CT ingest → HU normalisation → DRRs →
-//! TensoRF fit → density grid → threshold sweep → nodule selection → cohort metrics. The
+//! TensoRF fit (on the CPU, or the GPU through wgpu: [`gpu`]) → density grid → threshold sweep → nodule selection → cohort metrics. The
 //! [`engine`] runs any graph of pure [`engine::Stage`]s with content-hashed caching and knows
 //! nothing about CT; [`stage`] holds the stages; [`formats`] the file formats; [`config`] the
 //! `pipeline.toml` schema; [`commands`] what the CLI calls.
@@ -12,6 +12,7 @@ pub mod dataset;
 pub mod engine;
 pub mod formats;
 pub mod geometry;
+pub mod gpu;
 pub mod kernel_command;
 pub mod kernels;
 pub mod phantom;

@@ -12,6 +12,7 @@ use crate::engine::{Context, Output, Stage};
 use crate::formats::exr_image::{self, DrrImage};
 use crate::formats::png;
 use crate::geometry::{fit_focal_px, orbit, Aabb, Camera, SceneFrame, View};
+use crate::gpu::{self, Backend};
 use crate::kernels::lung_field::lung_field_centroid_mm;
 use crate::kernels::raymarch::{render, VolumeField};
 use crate::stage::ingest::truth::GroundTruth;
@@ -85,6 +86,8 @@ pub struct Params {
     pub view_angle_offsets_deg: [f64; 3],
     /// Seed of the noise and pose errors.
     pub seed: u64,
+    /// Where the rays are marched: "cpu", "gpu" or "auto" (resolved before the cache key).
+    pub backend: Backend,
 }
 
 impl Default for Params {
@@ -105,6 +108,7 @@ impl Default for Params {
             pose_error_mm: 0.0,
             view_angle_offsets_deg: [0.0; 3],
             seed: 0,
+            backend: Backend::Cpu,
         }
     }
 }
@@ -182,7 +186,7 @@ impl Stage for Drr {
         &["ingest", "hu"]
     }
     fn params(&self) -> serde_json::Value {
-        super::params_json(&self.params)
+        super::params_json(&Params { backend: self.params.backend.resolve("[drr]"), ..self.params.clone() })
     }
     /// The normalised CT, and from ingest only what the ROI centre needs.
     fn reads(&self, stage: &str, output: &str) -> bool {
@@ -272,14 +276,16 @@ pub fn render_views(
         cameras.clone()
     };
     let field = VolumeField::new(ct_unit, &frame);
-    let images = rendered
-        .iter()
-        .map(|cam| {
-            let mut pixels = render(&field, &aabb, cam, f64::INFINITY, params.attenuation_scale);
-            degrade(params, cam.view, &mut pixels);
-            pixels
-        })
-        .collect();
+    let mut images: Vec<Vec<f32>> = match params.backend.resolve("[drr]") {
+        Backend::Gpu => {
+            let device = gpu::require("[drr]")?;
+            gpu::drr_march::render(&device, &field, &aabb, &rendered, params.attenuation_scale)?
+        }
+        _ => rendered.iter().map(|cam| render(&field, &aabb, cam, f64::INFINITY, params.attenuation_scale)).collect(),
+    };
+    for (cam, pixels) in rendered.iter().zip(&mut images) {
+        degrade(params, cam.view, pixels);
+    }
     let set = CameraSet {
         frame,
         roi_center_mode: roi_center_mode.to_string(),

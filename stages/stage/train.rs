@@ -7,6 +7,7 @@
 use crate::engine::{Context, Output, Stage};
 use crate::formats::model::{self, ModelMeta};
 use crate::formats::{exr_image, svg};
+use crate::gpu;
 use crate::stage::drr::CameraSet;
 use crate::train::fit::{fit, LogRow, Views};
 use anyhow::bail;
@@ -21,6 +22,13 @@ pub struct Train {
     pub params: Params,
 }
 
+impl Train {
+    /// Where this stage runs: `auto` resolved to `cpu` or `gpu` (for the key and the run alike).
+    fn backend(&self) -> Backend {
+        self.params.backend.resolve("[train]")
+    }
+}
+
 impl Stage for Train {
     fn name(&self) -> &'static str {
         "train"
@@ -32,7 +40,8 @@ impl Stage for Train {
         &["drr"]
     }
     fn params(&self) -> serde_json::Value {
-        let mut json = super::params_json(&self.params);
+        let resolved = Params { backend: self.backend(), ..self.params.clone() };
+        let mut json = super::params_json(&resolved);
         json.as_object_mut().expect("params are a table").remove("threads");
         json
     }
@@ -40,14 +49,14 @@ impl Stage for Train {
         output == "cameras.json" || output.ends_with(".exr")
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        let backend = match self.params.backend {
-            Backend::Cpu => "cpu",
-            // The GPU backend arrives with its own issue; "auto" uses the CPU until then.
-            Backend::Auto => "cpu",
-            Backend::Gpu => bail!(
-                "[train] backend = \"gpu\" is not available in this build yet: use backend = \"cpu\" \
-                 (or \"auto\", which falls back to the CPU)"
-            ),
+        let backend = self.backend();
+        // Before reading anything: a missing adapter or an option the shaders lack fails fast.
+        let device = match backend {
+            Backend::Gpu => {
+                gpu::fit::check_supported(&self.params)?;
+                Some(gpu::require("[train]")?)
+            }
+            _ => None,
         };
         let set: CameraSet = serde_json::from_slice(&ctx.read("drr", "cameras.json")?)?;
         let mut images = Vec::new();
@@ -67,7 +76,9 @@ impl Stage for Train {
         }
         let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
         let params = &self.params;
-        let fitted = if self.params.threads > 0 {
+        let fitted = if let Some(device) = device {
+            gpu::fit::fit(&device, params, &views, |_| {})?
+        } else if self.params.threads > 0 {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(self.params.threads).build()?;
             pool.install(|| fit(params, &views, |_| {}))
         } else {
@@ -82,7 +93,7 @@ impl Stage for Train {
             step: fitted.renderer.step,
             seed: params.seed,
             iterations: params.iterations,
-            backend: backend.into(),
+            backend: backend.name().into(),
             parameters: fitted.field.len(),
         };
         let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();

@@ -46,15 +46,8 @@ pub struct TrainParams {
     pub threads: usize,
 }
 
-/// Where the training runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Backend {
-    Cpu,
-    Gpu,
-    /// The GPU when an adapter exists, else the CPU.
-    Auto,
-}
+/// Where the training runs (shared with `[drr] backend`).
+pub use crate::gpu::Backend;
 
 impl TrainParams {
     pub fn check(&self) -> anyhow::Result<()> {

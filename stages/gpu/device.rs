@@ -1,0 +1,121 @@
+//! The wgpu adapter and device: one per process, shared by every stage and worker.
+
+use std::sync::{Arc, Mutex, OnceLock};
+
+/// An open device and what the kernels need to know about it.
+pub struct Gpu {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub info: wgpu::AdapterInfo,
+    pub limits: wgpu::Limits,
+    /// Native `atomicAdd` on `atomic<f32>` (`SHADER_FLOAT32_ATOMIC`; lavapipe and NVIDIA's
+    /// Vulkan driver have it). Without it the gradient scatter uses a compare-exchange loop.
+    pub float_atomics: bool,
+    /// The first validation or device error wgpu reported since the last [`Gpu::check`]
+    /// (wgpu's default is to panic on them; we turn them into errors).
+    errors: Arc<Mutex<Option<String>>>,
+    kernels: OnceLock<Result<Arc<crate::gpu::fit::Kernels>, String>>,
+    drr: OnceLock<Result<Arc<crate::gpu::drr_march::DrrMarch>, String>>,
+}
+
+/// How to open a device.
+#[derive(Debug, Clone, Copy)]
+pub struct GpuOptions {
+    /// wgpu backends to look at (this build compiles Vulkan only).
+    pub backends: wgpu::Backends,
+    /// Use native float atomics when the adapter has them (false: always the CAS loop).
+    pub float_atomics: bool,
+}
+
+impl GpuOptions {
+    /// Vulkan, or what wgpu's `WGPU_BACKEND` environment variable names (e.g. `WGPU_BACKEND=gl`
+    /// in this Vulkan-only build: no adapter, which is how the tests force the CPU fallback).
+    pub fn from_env() -> GpuOptions {
+        GpuOptions { backends: wgpu::Backends::VULKAN.with_env(), float_atomics: true }
+    }
+}
+
+impl Gpu {
+    /// Opens the best adapter `options` allow (a discrete GPU before an integrated one before
+    /// a software renderer). The error says why none could be opened.
+    pub fn open(options: GpuOptions) -> Result<Gpu, String> {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = options.backends;
+        let instance = wgpu::Instance::new(desc);
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            ..Default::default()
+        }))
+        .map_err(|e| format!("{e} (wgpu backends tried: {:?})", options.backends))?;
+        let info = adapter.get_info();
+        let float_atomics = options.float_atomics && adapter.features().contains(wgpu::Features::SHADER_FLOAT32_ATOMIC);
+        let features = if float_atomics { wgpu::Features::SHADER_FLOAT32_ATOMIC } else { wgpu::Features::empty() };
+        // The adapter's own limits: a CT volume or a large lattice needs more than WebGPU's
+        // defaults, and the kernels check sizes against these before they allocate.
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("aret-pipe"),
+            required_features: features,
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .map_err(|e| format!("adapter {} would not open a device: {e}", info.name))?;
+        let errors = Arc::new(Mutex::new(None::<String>));
+        let sink = errors.clone();
+        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+            if let Ok(mut first) = sink.lock() {
+                first.get_or_insert_with(|| e.to_string());
+            }
+        }));
+        Ok(Gpu { device, queue, info, limits, float_atomics, errors, kernels: OnceLock::new(), drr: OnceLock::new() })
+    }
+
+    /// The process's device (opened on first use from [`GpuOptions::from_env`]), or why there is none.
+    pub fn shared() -> Result<Arc<Gpu>, String> {
+        static SHARED: OnceLock<Result<Arc<Gpu>, String>> = OnceLock::new();
+        SHARED.get_or_init(|| Gpu::open(GpuOptions::from_env()).map(Arc::new)).clone()
+    }
+
+    /// A software renderer (lavapipe/llvmpipe, SwiftShader): correct, but slower than the CPU backend.
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// The adapter in words, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan, Cpu, float atomics)`.
+    pub fn describe(&self) -> String {
+        let atomics = if self.float_atomics { "float atomics" } else { "CAS atomics" };
+        format!("{} ({:?}, {:?}, {atomics})", self.info.name, self.info.backend, self.info.device_type)
+    }
+
+    /// Fails with the first error wgpu reported since the last check.
+    pub fn check(&self) -> anyhow::Result<()> {
+        match self.errors.lock().ok().and_then(|mut e| e.take()) {
+            Some(e) => anyhow::bail!("GPU ({}): {e}", self.info.name),
+            None => Ok(()),
+        }
+    }
+
+    /// Blocks until the queue is idle, then [`Gpu::check`]s.
+    pub fn wait(&self) -> anyhow::Result<()> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| anyhow::anyhow!("GPU ({}): {e}", self.info.name))?;
+        self.check()
+    }
+
+    /// The training kernels, compiled once per device.
+    pub(crate) fn train_kernels(&self) -> anyhow::Result<Arc<crate::gpu::fit::Kernels>> {
+        let built = self
+            .kernels
+            .get_or_init(|| crate::gpu::fit::Kernels::new(self).map(Arc::new).map_err(|e| format!("{e:#}")));
+        built.clone().map_err(|e| anyhow::anyhow!(e))
+    }
+
+    /// The DRR kernel, compiled once per device.
+    pub(crate) fn drr_kernel(&self) -> anyhow::Result<Arc<crate::gpu::drr_march::DrrMarch>> {
+        let built = self
+            .drr
+            .get_or_init(|| crate::gpu::drr_march::DrrMarch::new(self).map(Arc::new).map_err(|e| format!("{e:#}")));
+        built.clone().map_err(|e| anyhow::anyhow!(e))
+    }
+}

@@ -1,0 +1,83 @@
+//! The GPU backend: the CPU's algorithms, kernel for kernel, as WGSL compute shaders
+//! (`shaders/`, one kernel per file) run through wgpu on Vulkan (lavapipe in CI, NVIDIA's
+//! driver on a real GPU). Each shader has one host file here that mirrors it — its bindings,
+//! uniform struct and dispatch size — and the table in `docs/gpu.md` pairs each with the CPU
+//! function it reproduces.
+//!
+//! - [`device`]: adapter and device, feature detection, errors that say what to do.
+//! - [`kernel`], [`buffers`]: pipelines and bind groups, buffers and read-back.
+//! - [`drr_march`]: the DRR stage's Beer–Lambert march through the CT.
+//! - [`compose`], [`render`], [`contract_planes`], [`contract_lines`], [`l1`], [`tv`], [`adam`],
+//!   [`alpha_mask`]: one training iteration, and [`fit`], the loop that keeps it on the device.
+
+pub mod adam;
+pub mod alpha_mask;
+pub mod buffers;
+pub mod compose;
+pub mod contract_lines;
+pub mod contract_planes;
+pub mod device;
+pub mod drr_march;
+pub mod fit;
+pub mod kernel;
+pub mod l1;
+pub mod render;
+pub mod tv;
+
+pub use device::Gpu;
+
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeSet;
+use std::sync::Mutex;
+
+/// Where a stage computes (`[drr] backend`, `[train] backend`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    Cpu,
+    Gpu,
+    /// A hardware GPU when one exists, else the CPU (a software adapter such as lavapipe is
+    /// slower than the CPU backend, so `auto` does not pick it; `gpu` does).
+    Auto,
+}
+
+impl Backend {
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Cpu => "cpu",
+            Backend::Gpu => "gpu",
+            Backend::Auto => "auto",
+        }
+    }
+
+    /// The concrete backend: `Auto` becomes `Gpu` when a hardware adapter opens, else `Cpu`
+    /// (said once per `table`, e.g. `"[train]"`, on stderr). Stages resolve before they name
+    /// their cache key, so a key never says `auto`.
+    pub fn resolve(self, table: &str) -> Backend {
+        if self != Backend::Auto {
+            return self;
+        }
+        let why_not = match Gpu::shared() {
+            Ok(gpu) if !gpu.is_software() => return Backend::Gpu,
+            Ok(gpu) => format!("only the software adapter {} was found", gpu.describe()),
+            Err(e) => format!("no GPU adapter found ({e})"),
+        };
+        static SAID: Mutex<BTreeSet<String>> = Mutex::new(BTreeSet::new());
+        if SAID.lock().map(|mut said| said.insert(table.to_string())).unwrap_or(false) {
+            eprintln!("{why_not}; {table} backend = \"auto\" runs on the CPU");
+        }
+        Backend::Cpu
+    }
+}
+
+/// The shared device for a stage whose `table` asked for `backend = "gpu"`, or an error that
+/// names the key and says what to do.
+pub fn require(table: &str) -> anyhow::Result<std::sync::Arc<Gpu>> {
+    Gpu::shared().map_err(|e| {
+        anyhow::anyhow!(
+            "{table} backend = \"gpu\", but no GPU adapter is usable: {e}. Install a Vulkan driver (Debian: \
+             `apt-get install mesa-vulkan-drivers libvulkan1`, which includes the lavapipe software renderer), \
+             or set {table} backend = \"cpu\" (or \"auto\": a GPU when there is one, else the CPU)"
+        )
+    })
+}
