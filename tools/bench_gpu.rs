@@ -11,9 +11,10 @@
 //! the coronal DRR as GPU | CPU | 1000× |difference| there, to look at.
 
 use aret_pipe::formats::{exr_image, mhd, png};
+use aret_pipe::gpu::fit::DeviceFit;
 use aret_pipe::gpu::{Backend, Gpu};
 use aret_pipe::stage::drr::{render_views, CameraSet, Focal, Params as DrrParams, RoiCenter};
-use aret_pipe::train::fit::{fit, TrainParams, Views};
+use aret_pipe::train::fit::{fit, ray_pool, renderer, Schedule, TrainParams, Views};
 use aret_pipe::volume::Volume;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -35,10 +36,29 @@ fn main() -> anyhow::Result<()> {
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
     let params = TrainParams { iterations, log_every: iterations, ..TrainParams::default() };
     let (mut on_gpu, mut on_cpu) = (Vec::new(), Vec::new());
+    let mut first_gpu_field = None;
     for run in 0..runs {
         let t = Instant::now();
         let g = aret_pipe::gpu::fit::fit(&gpu, &params, &views, |_| {})?;
         on_gpu.push(t.elapsed().as_secs_f64());
+        // Float atomics add in whatever order the device runs the rays: say whether that
+        // showed in the bits.
+        match &first_gpu_field {
+            None => first_gpu_field = Some(g.field.clone()),
+            Some(first) => {
+                let a: Vec<f32> = first.params().flatten().copied().collect();
+                let b: Vec<f32> = g.field.params().flatten().copied().collect();
+                let differ = a.iter().zip(&b).filter(|(x, y)| x != y).count();
+                let largest = a.iter().fold(0f32, |m, x| m.max(x.abs()));
+                let gap = a.iter().zip(&b).fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+                println!(
+                    "run {run}: GPU factors {} run 0's: {differ} of {} differ, by at most {:.1e} of the largest",
+                    if differ == 0 { "bit-identical to" } else { "differ from" },
+                    g.field.len(),
+                    gap / largest
+                );
+            }
+        }
         let t = Instant::now();
         let c = fit(&params, &views, |_| {});
         on_cpu.push(t.elapsed().as_secs_f64());
@@ -51,13 +71,35 @@ fn main() -> anyhow::Result<()> {
     let per_patient = |s: &mut Vec<f64>| median(s) / iterations as f64 * 3000.0;
     let (g, c) = (per_patient(&mut on_gpu), per_patient(&mut on_cpu));
     println!(
-        "train, paper configuration (3000 iterations, projected from {iterations}; median of {runs}): \
-         GPU {g:.1} s per patient, CPU ({} threads) {c:.1} s per patient: CPU / GPU = {:.2}",
+        "train, paper configuration (3000 iterations, projected from {iterations}, with the two full-view \
+         evaluations of a {iterations}-iteration log; median of {runs}): GPU {g:.1} s per patient \
+         ({:.1} ms per iteration), CPU ({} threads) {c:.1} s per patient ({:.1} ms): CPU / GPU = {:.3}",
+        g / 3.0,
         rayon::current_num_threads(),
+        c / 3.0,
         c / g
     );
+    profile_kernels(&gpu, &params, &views)?;
     if dir.join("ct_unit.mhd").exists() {
         bench_drr(&dir, &set, runs, png_path.as_deref())?;
+    }
+    Ok(())
+}
+
+/// Median time of each GPU kernel of one iteration, at the initial field of the paper
+/// configuration, on its first batch.
+fn profile_kernels(gpu: &Gpu, params: &TrainParams, views: &Views) -> anyhow::Result<()> {
+    let renderer = renderer(params, views.aabb);
+    let per_view = views.rays();
+    let pool = ray_pool(&per_view, &views.aabb);
+    let (field, mut schedule) = Schedule::start(params, pool.len());
+    let drawn = schedule.next_batch(params.batch_rays, renderer.step).to_vec();
+    let batch: Vec<_> = drawn.iter().map(|&(i, _)| pool[i]).collect();
+    let offsets: Vec<f64> = drawn.iter().map(|&(_, o)| o).collect();
+    let mut device = DeviceFit::new(gpu, params, &renderer, &field, batch.len(), &per_view)?;
+    println!("GPU kernel medians (ms, 5 repeats, each submitted and waited for alone):");
+    for (name, ms) in device.profile(&batch, &offsets, 5)? {
+        println!("  {name:<18} {ms:9.3}");
     }
     Ok(())
 }

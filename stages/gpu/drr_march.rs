@@ -9,6 +9,7 @@ use super::Gpu;
 use crate::geometry::{Aabb, Camera};
 use crate::kernels::raymarch::{segment, Field, Segment, VolumeField};
 use bytemuck::{Pod, Zeroable};
+use glam::DVec3;
 
 const SOURCE: &str = include_str!("../../shaders/drr_march.wgsl");
 
@@ -21,14 +22,37 @@ pub struct Uniforms {
     pub _pad: [u32; 2],
 }
 
-/// `struct Segment` of the shader: midpoint samples at `first + s·step` in voxel-index space.
+/// `struct Segment` of the shader: midpoint samples at `voxel + fraction + s·(step_hi + step_lo)`
+/// in voxel-index space (see the shader for why positions are split so).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 pub struct PixelSegment {
-    pub first: [f32; 3],
+    pub voxel: [i32; 3],
     pub count: u32,
-    pub step: [f32; 3],
+    pub fraction: [f32; 3],
     pub delta: f32,
+    pub step_hi: [f32; 3],
+    pub _pad0: u32,
+    pub step_lo: [f32; 3],
+    pub _pad1: u32,
+}
+
+impl PixelSegment {
+    /// The segment's first sample at `first` and the increment `step` (f64, voxel index).
+    fn new(first: DVec3, step: DVec3, count: usize, delta: f64) -> PixelSegment {
+        let voxel = first.floor();
+        let step_hi = step.as_vec3();
+        PixelSegment {
+            voxel: voxel.as_ivec3().to_array(),
+            count: count as u32,
+            fraction: (first - voxel).as_vec3().to_array(),
+            delta: delta as f32,
+            step_hi: step_hi.to_array(),
+            _pad0: 0,
+            step_lo: (step - step_hi.as_dvec3()).as_vec3().to_array(),
+            _pad1: 0,
+        }
+    }
 }
 
 pub struct DrrMarch(Kernel);
@@ -77,14 +101,7 @@ pub fn render(
                 segments.push(match segment(field, aabb, &ray, eye, dir, f64::INFINITY) {
                     Some(Segment { t0, delta, count }) => {
                         let (o, d) = ray;
-                        let first = o + d * (t0 + 0.5 * delta);
-                        let step = d * delta;
-                        PixelSegment {
-                            first: first.as_vec3().to_array(),
-                            count: count as u32,
-                            step: step.as_vec3().to_array(),
-                            delta: delta as f32,
-                        }
+                        PixelSegment::new(o + d * (t0 + 0.5 * delta), d * delta, count, delta)
                     }
                     None => PixelSegment::zeroed(),
                 });

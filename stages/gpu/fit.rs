@@ -363,6 +363,51 @@ impl<'g> DeviceFit<'g> {
         Ok(Step { grad: field, mse: mse(&predicted, &self.batch_targets), l1: sum(&l1), tv: sum(&tv) })
     }
 
+    /// Median wall time (ms) of each kernel of one iteration on `rays`, each submitted alone
+    /// and waited for `repeats` times (includes the submission overhead: what a real GPU pays
+    /// per kernel too). The factors are left as they were, bar Adam's moments.
+    pub fn profile(
+        &mut self,
+        rays: &[Ray],
+        offsets: &[f64],
+        repeats: usize,
+    ) -> anyhow::Result<Vec<(&'static str, f64)>> {
+        self.upload_batch(rays, offsets)?;
+        let k = self.kernels.clone();
+        type Record<'a> = &'a dyn Fn(&mut wgpu::CommandEncoder);
+        let rows: [(&'static str, Record); 9] = [
+            ("compose", &|e| k.compose.record(e, &self.compose_b)),
+            ("render + scatter", &|e| {
+                e.clear_buffer(&self.dense_grad, 0, None);
+                k.render.record(e, &self.render_batch_b)
+            }),
+            ("contract planes", &|e| k.contract_planes.record(e, &self.planes_b)),
+            ("contract lines", &|e| k.contract_lines.record(e, &self.lines_b)),
+            ("L1", &|e| k.l1.record(e, &self.l1_b)),
+            ("TV", &|e| k.tv.record(e, &self.tv_b)),
+            ("alpha mask", &|e| k.alpha_mask.record(e, &self.alpha_b)),
+            ("render 3 views", &|e| k.render.record(e, &self.render_eval_b)),
+            ("whole iteration", &|e| {
+                self.record_gradient(e);
+            }),
+        ];
+        let mut out = Vec::new();
+        for (name, record) in rows {
+            let mut ms = Vec::with_capacity(repeats);
+            for _ in 0..repeats.max(1) {
+                let t = Instant::now();
+                let mut encoder = self.encoder();
+                record(&mut encoder);
+                self.gpu.queue.submit([encoder.finish()]);
+                self.gpu.wait()?;
+                ms.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            ms.sort_by(f64::total_cmp);
+            out.push((name, ms[ms.len() / 2]));
+        }
+        Ok(out)
+    }
+
     /// Computes the alpha mask from the current factors; later samples need a kept node.
     pub fn remask(&mut self) -> anyhow::Result<()> {
         let mut encoder = self.encoder();
