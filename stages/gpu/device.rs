@@ -39,6 +39,11 @@ impl Gpu {
     /// Opens the best adapter `options` allow (a discrete GPU before an integrated one before
     /// a software renderer). The error says why none could be opened.
     pub fn open(options: GpuOptions) -> Result<Gpu, String> {
+        // wgpu panics on an instance with no compiled backend (this build has Vulkan only,
+        // which e.g. macOS lacks): say so instead.
+        if wgpu::Instance::enabled_backend_features().is_empty() {
+            return Err("this build has no wgpu backend for this platform (it compiles Vulkan only)".into());
+        }
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = options.backends;
         let instance = wgpu::Instance::new(desc);
