@@ -169,7 +169,7 @@ fn compare_step(gpu: &Gpu, params: &TrainParams, mask_percentile: Option<f64>) -
         assert_eq!(gpu_mask.nodes, cpu_mask.nodes, "alpha masks differ");
         mask = Some(cpu_mask);
     }
-    let cpu = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets);
+    let cpu = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, true);
     let gpu = device.gradient(&batch, &offsets).unwrap();
     (cpu, gpu)
 }
@@ -182,7 +182,8 @@ fn assert_gradients_agree(label: &str, cpu: &Step, gpu: &Step) {
         assert!(c.iter().any(|&x| x != 0.0), "{label}: {name}: the CPU gradient is zero");
         assert!(err <= 1e-4, "{label}: {name} gradients differ by {err:.2e} of their largest entry");
     }
-    for (term, c, g) in [("mse", cpu.mse, gpu.mse), ("l1", cpu.l1, gpu.l1), ("tv", cpu.tv, gpu.tv)] {
+    let (c, g) = (cpu.terms, gpu.terms);
+    for (term, c, g) in [("mse", c.photo, g.photo), ("l1", c.l1, g.l1), ("tv", c.tv, g.tv), ("tv3d", c.tv3d, g.tv3d)] {
         let err = (g - c).abs() / c.abs();
         eprintln!("{label}: {term} {c:.6e} (cpu) vs {g:.6e} (gpu): {err:.1e}");
         assert!(err <= 1e-5, "{label}: {term} differs by {err:.1e} relative");
@@ -194,16 +195,26 @@ fn one_step_factor_gradients_agree_within_1e_4_with_either_atomic_scatter() {
     let Some(native) = device() else { return };
     let Some(cas) = device_without_float_atomics() else { return };
     assert!(!cas.float_atomics);
-    // Paper weights; then heavy regularisers with squared TV, so their gradients matter.
-    let paper = small(TrainParams::default());
-    let heavy = small(TrainParams { lambda_l1: 0.05, lambda_tv: 0.05, tv_norm: TvNorm::L2, ..TrainParams::default() });
+    // The defaults (3-D TV 1e-4) and the paper's loss (no 3-D TV); then heavy regularisers
+    // with squared TV, so their gradients matter.
+    let defaults = small(TrainParams::default());
+    let paper = small(TrainParams { lambda_tv3d: 0.0, ..TrainParams::default() });
+    let heavy = small(TrainParams {
+        lambda_l1: 0.05,
+        lambda_tv: 0.05,
+        tv_norm: TvNorm::L2,
+        lambda_tv3d: 0.05,
+        ..TrainParams::default()
+    });
     for (gpu, atomics) in [(&native, "native atomics"), (&cas, "CAS atomics")] {
-        let (cpu, g) = compare_step(gpu, &paper, None);
-        assert_gradients_agree(&format!("{atomics}, paper"), &cpu, &g);
+        let (cpu, g) = compare_step(gpu, &defaults, None);
+        assert_gradients_agree(&format!("{atomics}, defaults"), &cpu, &g);
     }
+    let (cpu, g) = compare_step(&native, &paper, None);
+    assert_gradients_agree("paper (no 3-D TV)", &cpu, &g);
     let (cpu, g) = compare_step(&native, &heavy, None);
-    assert_gradients_agree("heavy regularisers, l2 TV", &cpu, &g);
-    let (cpu, g) = compare_step(&native, &paper, Some(0.97));
+    assert_gradients_agree("heavy regularisers, l2 TV, 3-D TV", &cpu, &g);
+    let (cpu, g) = compare_step(&native, &defaults, Some(0.97));
     assert_gradients_agree("alpha mask", &cpu, &g);
 }
 

@@ -1,9 +1,10 @@
 //! The training loop on the device (mirrors `train::fit::fit`): the factors, Adam's moments,
 //! the dense field, its gradient and the alpha mask live on the GPU for the whole fit. Per
 //! iteration the host draws the batch from the same seeded [`Schedule`] as the CPU, uploads
-//! its rays and Adam's step scalars, and submits compose → render + scatter → contract →
-//! L1 → TV → Adam; nothing comes back except at logged iterations (the batch predictions,
-//! the three full views and the regularisers' partial sums) and at the end (factors, mask).
+//! its rays and Adam's step scalars, and submits compose → render + scatter → 3-D TV →
+//! contract → L1 → TV → Adam; nothing comes back except at logged iterations (the batch
+//! predictions, the three full views and the regularisers' partial sums) and at the end
+//! (factors, mask).
 
 use super::adam::{self, Adam};
 use super::alpha_mask::{self, AlphaMask as AlphaMaskKernel};
@@ -15,10 +16,11 @@ use super::kernel::Bound;
 use super::l1::{self, L1};
 use super::render::{self, RaySamples, Render};
 use super::tv::{self, Tv};
+use super::tv_dense::{self, TvDense};
 use super::Gpu;
 use crate::train::adam::AdamParams;
 use crate::train::field::VmField;
-use crate::train::fit::{log_row, ray_pool, renderer, Fitted, LogRow, Schedule, Step, TrainParams, Views};
+use crate::train::fit::{self as cpu, log_row, ray_pool, renderer, Fitted, LogRow, Schedule, Step, TrainParams, Views};
 use crate::train::render::{AlphaMask, Ray, Renderer};
 use std::collections::VecDeque;
 use std::time::Instant;
@@ -35,6 +37,7 @@ pub struct Kernels {
     contract_lines: ContractLines,
     l1: L1,
     tv: Tv,
+    tv_dense: TvDense,
     adam: Adam,
     alpha_mask: AlphaMaskKernel,
 }
@@ -48,6 +51,7 @@ impl Kernels {
             contract_lines: ContractLines::new(gpu)?,
             l1: L1::new(gpu)?,
             tv: Tv::new(gpu)?,
+            tv_dense: TvDense::new(gpu)?,
             adam: Adam::new(gpu)?,
             alpha_mask: AlphaMaskKernel::new(gpu)?,
         })
@@ -72,6 +76,7 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         lambda_l1: _,
         lambda_tv: _,
         tv_norm: _,
+        lambda_tv3d: _,
         init_scale: _,
         alpha_mask_iterations: _,
         alpha_threshold: _,
@@ -99,7 +104,8 @@ pub fn fit(gpu: &Gpu, params: &TrainParams, views: &Views, mut on_log: impl FnMu
     let initial = device.initial_terms()?;
     let photo = initial.view_mse.iter().sum::<f64>() / initial.view_mse.len() as f64;
     let seconds = started.elapsed().as_secs_f64();
-    let row = log_row(params, 0, photo, initial.l1, initial.tv, &initial.view_mse, params.lr, seconds);
+    let terms = cpu::Terms { photo, l1: initial.l1, tv: initial.tv, tv3d: initial.tv3d };
+    let row = log_row(params, 0, terms, &initial.view_mse, params.lr, seconds);
     on_log(&row);
     log.push(row);
     let mut batch = Vec::with_capacity(batch_len);
@@ -117,7 +123,7 @@ pub fn fit(gpu: &Gpu, params: &TrainParams, views: &Views, mut on_log: impl FnMu
         if params.logs_after(it + 1) {
             let terms = device.logged_terms()?;
             let seconds = started.elapsed().as_secs_f64();
-            let row = log_row(params, it + 1, terms.batch_mse, terms.l1, terms.tv, &terms.view_mse, lr, seconds);
+            let row = log_row(params, it + 1, terms.loss_terms(), &terms.view_mse, lr, seconds);
             on_log(&row);
             log.push(row);
         }
@@ -132,8 +138,16 @@ pub struct Terms {
     /// Before their λ: the regularisers of the field the last gradient was taken at.
     pub l1: f64,
     pub tv: f64,
+    pub tv3d: f64,
     /// Full-view MSE of each view, midpoint samples, the current field and mask.
     pub view_mse: Vec<f64>,
+}
+
+impl Terms {
+    /// The row's loss terms (the batch's MSE as the photometric one).
+    pub fn loss_terms(&self) -> cpu::Terms {
+        cpu::Terms { photo: self.batch_mse, l1: self.l1, tv: self.tv, tv3d: self.tv3d }
+    }
 }
 
 /// A field being trained on the device: its buffers and the kernels bound to them.
@@ -158,8 +172,10 @@ pub struct DeviceFit<'g> {
     eval_targets: Vec<Vec<f64>>,
     l1_partials: (wgpu::Buffer, usize),
     tv_partials: (wgpu::Buffer, usize),
+    tv_dense_partials: (wgpu::Buffer, usize),
     l1_uniforms: (wgpu::Buffer, l1::Uniforms),
     tv_uniforms: (wgpu::Buffer, tv::Uniforms),
+    tv_dense_uniforms: (wgpu::Buffer, tv_dense::Uniforms),
     render_batch_uniforms: (wgpu::Buffer, render::Uniforms),
     render_eval_uniforms: (wgpu::Buffer, render::Uniforms),
     adam_uniforms: wgpu::Buffer,
@@ -170,6 +186,7 @@ pub struct DeviceFit<'g> {
     lines_b: Bound,
     l1_b: Bound,
     tv_b: Bound,
+    tv_dense_b: Bound,
     adam_b: Bound,
     alpha_b: Bound,
     in_flight: VecDeque<wgpu::SubmissionIndex>,
@@ -237,6 +254,12 @@ impl<'g> DeviceFit<'g> {
         let tv_count = l1::partials(gpu, tv_values.entries)?;
         let tv_partials = buffers::zeroed(gpu, "tv partials", bytes(tv_count))?;
         let tv_b = k.tv.bind(gpu, (&tv_u, tv_values), &factors, &grad, &tv_partials)?;
+        let tv_dense_values = tv_dense::Uniforms::new(n, params.lambda_tv3d);
+        let tv_dense_u = buffers::uniform(gpu, "tv dense", &tv_dense_values);
+        let tv_dense_count = l1::partials(gpu, tv_dense_values.nodes)?;
+        let tv_dense_partials = buffers::zeroed(gpu, "tv dense partials", bytes(tv_dense_count))?;
+        let tv_dense_b =
+            k.tv_dense.bind(gpu, (&tv_dense_u, tv_dense_values), &dense, &dense_grad, &tv_dense_partials)?;
         let adam_params = params.adam();
         let adam_u = buffers::uniform(gpu, "adam", &adam::Uniforms::new(entries, &adam_params, &adam_params.step(0)));
         let adam_b = k.adam.bind(gpu, &adam_u, &grad, &factors, [&moments[0], &moments[1]], entries)?;
@@ -265,8 +288,10 @@ impl<'g> DeviceFit<'g> {
             eval_targets,
             l1_partials: (l1_partials, l1_count),
             tv_partials: (tv_partials, tv_count),
+            tv_dense_partials: (tv_dense_partials, tv_dense_count),
             l1_uniforms: (l1_u, l1_values),
             tv_uniforms: (tv_u, tv_values),
+            tv_dense_uniforms: (tv_dense_u, tv_dense_values),
             render_batch_uniforms: (render_batch_u, render_batch),
             render_eval_uniforms: (render_eval_u, render_eval),
             adam_uniforms: adam_u,
@@ -277,6 +302,7 @@ impl<'g> DeviceFit<'g> {
             lines_b,
             l1_b,
             tv_b,
+            tv_dense_b,
             adam_b,
             alpha_b,
             in_flight: VecDeque::new(),
@@ -313,12 +339,14 @@ impl<'g> DeviceFit<'g> {
         Ok(())
     }
 
-    /// compose → clear dF → render + scatter → contract → L1 → TV: the loss gradient in `grad`.
+    /// compose → clear dF → render + scatter → 3-D TV → contract → L1 → TV: the loss gradient
+    /// in `grad`. (The 3-D TV runs at weight 0 too: its value is logged, as on the CPU.)
     fn record_gradient(&self, encoder: &mut wgpu::CommandEncoder) {
         let k = &self.kernels;
         k.compose.record(encoder, &self.compose_b);
         encoder.clear_buffer(&self.dense_grad, 0, None);
         k.render.record(encoder, &self.render_batch_b);
+        k.tv_dense.record(encoder, &self.tv_dense_b);
         k.contract_planes.record(encoder, &self.planes_b);
         k.contract_lines.record(encoder, &self.lines_b);
         k.l1.record(encoder, &self.l1_b);
@@ -347,11 +375,12 @@ impl<'g> DeviceFit<'g> {
         let mut encoder = self.encoder();
         self.record_gradient(&mut encoder);
         self.submit(encoder)?;
-        let [grad, predicted, l1, tv] = self.read([
+        let [grad, predicted, l1, tv, tv3d] = self.read([
             (&self.grad, self.entries),
             (&self.batch_predicted, self.batch_targets.len()),
             (&self.l1_partials.0, self.l1_partials.1),
             (&self.tv_partials.0, self.tv_partials.1),
+            (&self.tv_dense_partials.0, self.tv_dense_partials.1),
         ])?;
         let mut field = VmField::zeros(self.n, self.rank);
         let mut rest = grad.as_slice();
@@ -360,7 +389,9 @@ impl<'g> DeviceFit<'g> {
             factor.copy_from_slice(head);
             rest = tail;
         }
-        Ok(Step { grad: field, mse: mse(&predicted, &self.batch_targets), l1: sum(&l1), tv: sum(&tv) })
+        let terms =
+            cpu::Terms { photo: mse(&predicted, &self.batch_targets), l1: sum(&l1), tv: sum(&tv), tv3d: sum(&tv3d) };
+        Ok(Step { grad: field, terms })
     }
 
     /// Median wall time (ms) of each kernel of one iteration on `rays`, each submitted alone
@@ -375,7 +406,7 @@ impl<'g> DeviceFit<'g> {
         self.upload_batch(rays, offsets)?;
         let k = self.kernels.clone();
         type Record<'a> = &'a dyn Fn(&mut wgpu::CommandEncoder);
-        let rows: [(&'static str, Record); 9] = [
+        let rows: [(&'static str, Record); 10] = [
             ("compose", &|e| k.compose.record(e, &self.compose_b)),
             ("render + scatter", &|e| {
                 e.clear_buffer(&self.dense_grad, 0, None);
@@ -385,6 +416,7 @@ impl<'g> DeviceFit<'g> {
             ("contract lines", &|e| k.contract_lines.record(e, &self.lines_b)),
             ("L1", &|e| k.l1.record(e, &self.l1_b)),
             ("TV", &|e| k.tv.record(e, &self.tv_b)),
+            ("3-D TV", &|e| k.tv_dense.record(e, &self.tv_dense_b)),
             ("alpha mask", &|e| k.alpha_mask.record(e, &self.alpha_b)),
             ("render 3 views", &|e| k.render.record(e, &self.render_eval_b)),
             ("whole iteration", &|e| {
@@ -426,18 +458,22 @@ impl<'g> DeviceFit<'g> {
     /// The terms of the initial row: the full views and the regularisers (at weight 0: the
     /// gradient they add goes to a scratch that the first iteration overwrites).
     fn initial_terms(&mut self) -> anyhow::Result<Terms> {
-        let (mut l1, mut tv) = (self.l1_uniforms.1, self.tv_uniforms.1);
-        (l1.weight, tv.scale) = (0.0, 0.0);
+        let (mut l1, mut tv, mut tv3d) = (self.l1_uniforms.1, self.tv_uniforms.1, self.tv_dense_uniforms.1);
+        (l1.weight, tv.scale, tv3d.scale) = (0.0, 0.0, 0.0);
         self.gpu.queue.write_buffer(&self.l1_uniforms.0, 0, bytemuck::bytes_of(&l1));
         self.gpu.queue.write_buffer(&self.tv_uniforms.0, 0, bytemuck::bytes_of(&tv));
+        self.gpu.queue.write_buffer(&self.tv_dense_uniforms.0, 0, bytemuck::bytes_of(&tv3d));
         let mut encoder = self.encoder();
         self.kernels.l1.record(&mut encoder, &self.l1_b);
         self.kernels.tv.record(&mut encoder, &self.tv_b);
+        self.kernels.compose.record(&mut encoder, &self.compose_b);
+        self.kernels.tv_dense.record(&mut encoder, &self.tv_dense_b);
         self.submit(encoder)?;
         let terms = self.logged_terms()?;
-        let (l1, tv) = (self.l1_uniforms.1, self.tv_uniforms.1);
+        let (l1, tv, tv3d) = (self.l1_uniforms.1, self.tv_uniforms.1, self.tv_dense_uniforms.1);
         self.gpu.queue.write_buffer(&self.l1_uniforms.0, 0, bytemuck::bytes_of(&l1));
         self.gpu.queue.write_buffer(&self.tv_uniforms.0, 0, bytemuck::bytes_of(&tv));
+        self.gpu.queue.write_buffer(&self.tv_dense_uniforms.0, 0, bytemuck::bytes_of(&tv3d));
         Ok(terms)
     }
 
@@ -449,11 +485,12 @@ impl<'g> DeviceFit<'g> {
         self.kernels.render.record(&mut encoder, &self.render_eval_b);
         self.submit(encoder)?;
         let eval_len = self.render_eval_uniforms.1.rays as usize;
-        let [predicted, views, l1, tv] = self.read([
+        let [predicted, views, l1, tv, tv3d] = self.read([
             (&self.batch_predicted, self.batch_targets.len()),
             (&self.eval_predicted, eval_len),
             (&self.l1_partials.0, self.l1_partials.1),
             (&self.tv_partials.0, self.tv_partials.1),
+            (&self.tv_dense_partials.0, self.tv_dense_partials.1),
         ])?;
         let mut view_mse = Vec::with_capacity(self.eval_targets.len());
         let mut rest = views.as_slice();
@@ -462,7 +499,13 @@ impl<'g> DeviceFit<'g> {
             view_mse.push(mse(head, targets));
             rest = tail;
         }
-        Ok(Terms { batch_mse: mse(&predicted, &self.batch_targets), l1: sum(&l1), tv: sum(&tv), view_mse })
+        Ok(Terms {
+            batch_mse: mse(&predicted, &self.batch_targets),
+            l1: sum(&l1),
+            tv: sum(&tv),
+            tv3d: sum(&tv3d),
+            view_mse,
+        })
     }
 
     /// Waits for everything submitted, then copies `sources` back.

@@ -7,7 +7,7 @@
 //! - [`device`]: adapter and device, feature detection, errors that say what to do.
 //! - [`kernel`], [`buffers`]: pipelines and bind groups, buffers and read-back.
 //! - [`drr_march`]: the DRR stage's Beer–Lambert march through the CT.
-//! - [`compose`], [`render`], [`contract_planes`], [`contract_lines`], [`l1`], [`tv`], [`adam`],
+//! - [`compose`], [`render`], [`contract_planes`], [`contract_lines`], [`l1`], [`tv`], [`tv_dense`], [`adam`],
 //!   [`alpha_mask`]: one training iteration, and [`fit`], the loop that keeps it on the device.
 
 pub mod adam;
@@ -23,6 +23,7 @@ pub mod kernel;
 pub mod l1;
 pub mod render;
 pub mod tv;
+pub mod tv_dense;
 
 pub use device::Gpu;
 
