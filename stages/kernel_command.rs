@@ -3,12 +3,13 @@
 //! pymeshlab read what this writes). Hidden from `--help`: it is a test entry point, not part
 //! of the pipeline. Inputs and outputs are MetaImage (`.mhd` + `.raw`); a mask is MET_UCHAR,
 //! non-zero meaning set. A JSON summary goes to stdout. `statistics` instead reads paired
-//! samples as JSON and prints every cohort statistic of them. See `docs/kernels.md`.
+//! samples as JSON and prints every cohort statistic of them. The image filters (`gaussian`,
+//! `blob`, `edt`, `otsu`, `fill-holes`) take the spacing from the header. See `docs/kernels.md`.
 
 use crate::formats::{mhd, obj};
 use crate::kernels::components::{label, Connectivity};
 use crate::kernels::statistics::{self as st, StatisticsError};
-use crate::kernels::{marching_cubes, mesh, morphology, stats};
+use crate::kernels::{filters, marching_cubes, mesh, morphology, stats};
 use crate::volume::Volume;
 use anyhow::{bail, Context as _};
 use clap::Subcommand;
@@ -67,6 +68,37 @@ pub enum KernelCommand {
         #[arg(long)]
         normals: bool,
     },
+    /// scipy.ndimage.gaussian_filter (mode "nearest", truncate 4) of a MET_FLOAT volume with
+    /// σ = SIGMA_MM on every axis (σ/spacing voxels); MET_FLOAT out. Prints {"voxels"}.
+    Gaussian {
+        values: PathBuf,
+        out: PathBuf,
+        #[arg(long)]
+        sigma_mm: f64,
+    },
+    /// The scale-normalised negative Laplacian of Gaussian at scale S_MM of a MET_FLOAT volume
+    /// (kernels::filters::blob_response); MET_FLOAT out. Prints {"voxels"}.
+    Blob {
+        values: PathBuf,
+        out: PathBuf,
+        #[arg(long)]
+        s_mm: f64,
+    },
+    /// Euclidean distance in mm from every set voxel to the nearest unset one
+    /// (scipy.ndimage.distance_transform_edt with the header's spacing); MET_DOUBLE out, +inf
+    /// everywhere when no voxel is unset. Prints {"voxels", "max_mm"} (null when infinite).
+    Edt { mask: PathBuf, out: PathBuf },
+    /// Otsu's threshold (skimage.filters.threshold_otsu, 256 bins) of every value of a
+    /// MET_FLOAT volume; prints {"threshold"}, null without two distinct finite values.
+    Otsu { values: PathBuf },
+    /// scipy.ndimage.binary_fill_holes (4-connectivity) on every slice perpendicular to AXIS
+    /// (0 = x, 1 = y, 2 = z). Prints {"voxels"}.
+    FillHoles {
+        mask: PathBuf,
+        out: PathBuf,
+        #[arg(long)]
+        axis: usize,
+    },
     /// The cohort statistics of paired samples read from a JSON file (`-` for stdin):
     /// {"x": [...], "y": [...]} (x is the prediction, y the truth). Prints every statistic of
     /// kernels::statistics; one that is undefined for this input is {"error": "..."}.
@@ -115,6 +147,27 @@ pub fn run(command: &KernelCommand) -> anyhow::Result<String> {
                 "voxel_volume_mm3": voxel_volume,
                 "closed_and_oriented": mesh::check_edges(&surface).is_closed_and_oriented(),
             })
+        }
+        KernelCommand::Gaussian { values, out, sigma_mm } => {
+            filter(values, out, |v, d, s| filters::gaussian_mm(v, d, s, *sigma_mm))?
+        }
+        KernelCommand::Blob { values, out, s_mm } => {
+            filter(values, out, |v, d, s| filters::blob_response(v, d, s, *s_mm))?
+        }
+        KernelCommand::Edt { mask, out } => {
+            let m = read_mask(mask)?;
+            let d = filters::distance_inside_mm(&m.data, m.geometry.dims, m.geometry.spacing_mm);
+            let max = d.iter().copied().fold(0.0, f64::max);
+            write_volume(out, &Volume { geometry: m.geometry, data: d })?;
+            json!({ "voxels": m.data.iter().filter(|&&v| v).count(), "max_mm": max.is_finite().then_some(max) })
+        }
+        KernelCommand::Otsu { values } => {
+            let v = read_floats(values)?;
+            json!({ "threshold": filters::otsu_threshold(&v.data).map(f64::from) })
+        }
+        KernelCommand::FillHoles { mask, out, axis } => {
+            anyhow::ensure!(*axis < 3, "--axis must be 0 (x), 1 (y) or 2 (z), got {axis}");
+            morph(mask, out, |m, d| filters::fill_holes_per_slice(m, d, *axis))?
         }
         KernelCommand::Statistics { input, resamples, confidence, seed } => {
             statistics(input, *resamples, *confidence, *seed)?
@@ -172,6 +225,24 @@ fn morph(mask: &Path, out: &Path, f: impl Fn(&[bool], [usize; 3]) -> Vec<bool>) 
     let set = result.iter().filter(|&&v| v).count();
     write_volume(out, &Volume { geometry: m.geometry, data: result.iter().map(|&v| u8::from(v)).collect() })?;
     Ok(json!({ "voxels": set }))
+}
+
+/// A filter of a MET_FLOAT volume given its dims and spacing, written as MET_FLOAT.
+fn filter(
+    values: &Path,
+    out: &Path,
+    f: impl Fn(&[f32], [usize; 3], [f64; 3]) -> Vec<f32>,
+) -> anyhow::Result<serde_json::Value> {
+    let v = read_floats(values)?;
+    let result = f(&v.data, v.geometry.dims, v.geometry.spacing_mm);
+    write_volume(out, &Volume { geometry: v.geometry, data: result })?;
+    Ok(json!({ "voxels": v.data.len() }))
+}
+
+/// A MET_FLOAT MetaImage.
+fn read_floats(path: &Path) -> anyhow::Result<Volume<f32>> {
+    let (header, raw) = read_files(path)?;
+    mhd::decode(&header, &raw).with_context(|| format!("reading {} (MET_FLOAT expected)", path.display()))
 }
 
 /// A MET_UCHAR MetaImage as a mask (non-zero = set).

@@ -5,7 +5,9 @@
 //! is the matplotlib-exact point-in-polygon the annotation masks use. The sweep/select kernels —
 //! [`components`], [`morphology`], [`stats`] percentiles, [`marching_cubes`] and [`mesh`] — are
 //! described, with what each equals, in `docs/kernels.md`, as are the cohort metrics'
-//! [`statistics`] (correlations, Wilcoxon, bootstrap CIs, Bland–Altman, as scipy computes them).
+//! [`statistics`] (correlations, Wilcoxon, bootstrap CIs, Bland–Altman, as scipy computes them)
+//! and the 3-D image [`filters`] (Gaussian, blob response, distance transform, Otsu, per-slice
+//! hole filling, each equal to its scipy / scikit-image counterpart).
 pub mod annotation;
 pub mod cluster;
 pub mod components;
