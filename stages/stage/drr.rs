@@ -186,7 +186,14 @@ impl Stage for Drr {
         &["ingest", "hu"]
     }
     fn params(&self) -> serde_json::Value {
-        super::params_json(&Params { backend: self.params.backend.resolve("[drr]"), ..self.params.clone() })
+        let backend = self.params.backend.resolve("[drr]");
+        let mut json = super::params_json(&Params { backend, ..self.params.clone() });
+        // The key names the backend only when it is the GPU: DRRs cached before the GPU
+        // backend existed were the CPU's, and stay valid.
+        if backend == Backend::Cpu {
+            json.as_object_mut().expect("params are a table").remove("backend");
+        }
+        json
     }
     /// The normalised CT, and from ingest only what the ROI centre needs.
     fn reads(&self, stage: &str, output: &str) -> bool {

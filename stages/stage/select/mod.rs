@@ -39,7 +39,7 @@ mod rules;
 pub use localize::{Centre, Centres, Localize};
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 5;
+pub const VERSION: u32 = 6;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
