@@ -163,8 +163,8 @@ fn the_papers_failure_mode_never_moves_the_photometric_loss() {
     // Batches differ from one logged iteration to the next; the full-view error must not.
     assert_eq!(first.psnr_db, last.psnr_db, "full-view error unchanged after 100 iterations");
     assert!(last.l1 < first.l1, "the regularisers still shrink the factors");
-    // With λ1 = λ2 = 0 nothing at all changes.
-    let frozen = TrainParams { lambda_l1: 0.0, lambda_tv: 0.0, iterations: 20, ..broken.clone() };
+    // With every regulariser off (λ1 = λ2 = 0, and no 3-D TV) nothing at all changes.
+    let frozen = TrainParams { lambda_l1: 0.0, lambda_tv: 0.0, lambda_tv3d: 0.0, iterations: 20, ..broken.clone() };
     let a = fit(&frozen, &views, |_| {});
     let b = fit(&TrainParams { iterations: 1, ..frozen.clone() }, &views, |_| {});
     assert_eq!(a.field, b.field, "zero gradient: the factors stay at their initial values");
