@@ -113,20 +113,20 @@ const RAYS_PER_TASK: usize = 32;
 /// Lattice z-planes per scatter task.
 const PLANES_PER_SLAB: usize = 4;
 
-/// One task's traced rays: predictions, footprints, and the walk's scratch records (the
-/// open record is stored every sample).
+/// One task's traced rays: predictions and footprints.
 #[derive(Default)]
 struct Traced<T> {
     predicted: Vec<f64>,
     footprints: Footprints<T>,
-    slots: Vec<Footprint<T>>,
 }
 
 /// Rays' footprints, ray after ray, each ray's in ascending plane order (a straight ray's
-/// planes are monotone), indexed by plane.
+/// planes are monotone), indexed by plane. The walk writes a ray's records straight into
+/// `list` past the `used` ones (no copy); `list` only grows, and is reused batch to batch.
 #[derive(Default)]
 struct Footprints<T> {
     list: Vec<Footprint<T>>,
+    used: usize,
     rays: Vec<RayFootprints>,
     /// Per ray, where each of its planes starts in `list` (see [`RayFootprints`]).
     plane_starts: Vec<u32>,
@@ -144,38 +144,43 @@ struct RayFootprints {
 
 impl<T: Scalar> Footprints<T> {
     fn clear(&mut self) {
-        self.list.clear();
+        self.used = 0;
         self.rays.clear();
         self.plane_starts.clear();
     }
 
-    /// Appends one ray's footprints `records` (monotone in plane, either way), scaled by the
-    /// ray's `dL/dσ`, in ascending plane order, and indexes them by plane.
-    fn push_ray(&mut self, records: &[Footprint<T>], d_sigma: T) {
+    /// Makes room for the walk to write `count + 1` records after the used ones.
+    fn reserve_walk(&mut self, count: usize) {
+        if self.list.len() <= self.used + count {
+            self.list.resize(self.used + count + 1, Footprint::none());
+        }
+    }
+
+    /// Keeps the `len` records the walk wrote after the used ones (monotone in plane, either
+    /// way), scaled by the ray's `dL/dσ`, in ascending plane order, and indexes them by plane.
+    fn keep_ray(&mut self, len: usize, d_sigma: T) {
+        let first = self.used;
+        let records = &mut self.list[first..first + len];
         let (Some(head), Some(tail)) = (records.first(), records.last()) else { return };
-        let first = self.list.len();
-        let scaled = |f: &Footprint<T>| {
-            let mut f = *f;
+        let (low, high) = (head.plane.min(tail.plane), head.plane.max(tail.plane));
+        if head.plane > tail.plane {
+            records.reverse();
+        }
+        for f in records.iter_mut() {
             for w in &mut f.weights {
                 *w = *w * d_sigma;
             }
-            f
-        };
-        if head.plane <= tail.plane {
-            self.list.extend(records.iter().map(scaled));
-        } else {
-            self.list.extend(records.iter().rev().map(scaled));
         }
-        let (low, high) = (head.plane.min(tail.plane), head.plane.max(tail.plane));
         let starts = self.plane_starts.len() as u32;
         let mut plane = low;
-        for (i, f) in self.list[first..].iter().enumerate() {
+        for (i, f) in records.iter().enumerate() {
             while plane <= f.plane {
                 self.plane_starts.push((first + i) as u32);
                 plane += 1;
             }
         }
-        self.plane_starts.push(self.list.len() as u32);
+        self.used += len;
+        self.plane_starts.push(self.used as u32);
         self.rays.push(RayFootprints { low, high, starts });
     }
 
@@ -232,7 +237,7 @@ impl Renderer {
 
     /// `Î` of one ray.
     pub fn render_ray<T: Scalar>(&self, dense: &[T], mask: Option<&AlphaMask>, ray: &Ray, offset: f64) -> f64 {
-        self.transmittance(walk::march::<T, false>(&self.walk(dense, mask, ray, offset), &mut Vec::new()).0)
+        self.transmittance(walk::march::<T, false>(&self.walk(dense, mask, ray, offset), &mut Vec::new(), 0).0)
     }
 
     /// Renders `rays` (with their per-ray `offsets`), returns predictions and MSE, and when
@@ -287,20 +292,17 @@ impl Renderer {
         let mut t: Traced<T> = take_spare();
         let walks: Vec<RayWalk<T>> =
             group.iter().zip(offsets).map(|(ray, &off)| self.walk(dense, mask, ray, off)).collect();
-        let longest = walks.iter().map(|w| w.count).max().unwrap_or(0);
-        if t.slots.len() <= longest {
-            t.slots.resize(longest + 1, Footprint::none());
-        }
         t.footprints.clear();
         t.predicted.clear();
         for (ray, walk) in group.iter().zip(&walks) {
-            let (depth, len) = walk::march::<T, true>(walk, &mut t.slots);
+            t.footprints.reserve_walk(walk.count);
+            let (depth, len) = walk::march::<T, true>(walk, &mut t.footprints.list, t.footprints.used);
             let p = self.transmittance(depth);
             // dL/dÎ = 2(Î − I)/B;  dÎ/dσ_k = −s·δ·Î;  dσ/dF = 1[F + Δ > 0] (the active samples).
             let d_sigma = 2.0 * (p - ray.target) / batch_len as f64 * (-self.scale * self.step * p);
             let d_sigma = T::from(d_sigma).expect("finite");
             if d_sigma != T::zero() {
-                t.footprints.push_ray(&t.slots[..len], d_sigma);
+                t.footprints.keep_ray(len, d_sigma);
             }
             t.predicted.push(p);
         }
@@ -313,8 +315,9 @@ impl Renderer {
         let (sy, sz) = (n, n * n);
         grad.par_chunks_mut(sz * PLANES_PER_SLAB).enumerate().for_each(|(slab, out)| {
             let (z0, z1) = (slab * PLANES_PER_SLAB, ((slab + 1) * PLANES_PER_SLAB).min(n));
-            let split = z0 * sz; // node i is out[i − split]
-                                 // Cells on plane z0 − 1 reach into this slab with their upper corners.
+            // Node i is out[i − split]; cells on plane z0 − 1 reach into this slab with their
+            // upper corners.
+            let split = z0 * sz;
             let (low, high) = (z0.saturating_sub(1) as u32, (z1 - 1) as u32);
             for f in traced.iter().flat_map(|t| t.footprints.on_planes(low, high)).flatten() {
                 let (cell, plane) = (f.cell as usize, f.plane as usize);

@@ -29,15 +29,20 @@ pub(super) struct RayWalk<'a, T> {
 }
 
 /// The optical depth `Σ σ_k` of the ray (without `s·δ`) and, with `RECORD`, its footprints
-/// (weights unscaled) in `slots[..len]`, returned with `len`; `slots` must then hold at least
-/// `count + 1` records (the open record is stored every sample, branch-free).
+/// (weights unscaled) in `slots[first..first + len]`, returned with `len`; `slots` must then
+/// hold at least `first + count + 1` records (the open record is stored every sample,
+/// branch-free).
 ///
 /// # Panics
 /// If `dense` (or the mask) has fewer than `n³` values, or `n` is outside `[2, 1024]`.
 // `slots` is a Vec, not a slice, so that the f32 kernel can have it by downcast (a slice is
 // unsized, so not `Any`).
 #[allow(clippy::ptr_arg)]
-pub(super) fn march<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, slots: &mut Vec<Footprint<T>>) -> (T, usize) {
+pub(super) fn march<T: Scalar, const RECORD: bool>(
+    walk: &RayWalk<T>,
+    slots: &mut Vec<Footprint<T>>,
+    first: usize,
+) -> (T, usize) {
     let n = walk.n;
     assert!(
         (2..=1024).contains(&n) && walk.dense.len() >= n * n * n,
@@ -45,7 +50,7 @@ pub(super) fn march<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, slots: &mu
         n * n * n
     );
     assert!(walk.kept.is_none_or(|k| k.len() >= n * n * n), "walk: the mask must cover the lattice");
-    assert!(!RECORD || slots.len() > walk.count, "walk: room for {} records needed", walk.count + 1);
+    assert!(!RECORD || slots.len() > first + walk.count, "walk: room for {} records needed", walk.count + 1);
     #[cfg(target_arch = "x86_64")]
     if let (Some(dense), Some(slots)) =
         (T::as_f32(walk.dense), (slots as &mut dyn std::any::Any).downcast_mut::<Vec<Footprint<f32>>>())
@@ -54,11 +59,11 @@ pub(super) fn march<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, slots: &mu
             let walk = as_f32_walk(walk, dense);
             // SAFETY: the CPU has AVX2 (checked above) and the asserts above give `avx2::march`
             // its lattice and mask sizes.
-            let (depth, len) = unsafe { avx2::march::<RECORD>(&walk, slots) };
+            let (depth, len) = unsafe { avx2::march::<RECORD>(&walk, &mut slots[first..]) };
             return (T::from(depth).expect("f32"), len);
         }
     }
-    portable::<T, RECORD>(walk, slots)
+    portable::<T, RECORD>(walk, &mut slots[first..])
 }
 
 /// `walk` with its (already f32) values as f32.
@@ -298,10 +303,9 @@ mod avx2 {
         }
     }
 
-    /// Hands the block's first `valid` samples to the recorder, weights transposed to one
-    /// vector per sample: [`Recorder::add`] with its 0/1 factors as lane masks (as 0/1 floats
-    /// they compiled to unpredictable branches). The weights are ≥ +0, so masking a value off
-    /// gives the +0 that multiplying it by 0 does: the records are bit-identical.
+    /// Hands the block's first `valid` samples to the recorder: their weights masked to +0
+    /// where not active (as multiplying by 0 does: the weights are ≥ +0) and transposed to one
+    /// row per sample, and for each sample whether its cell is the previous one's.
     #[inline(always)]
     fn record(
         recorder: &mut Recorder<f32>,
@@ -311,28 +315,63 @@ mod avx2 {
         active: __m256,
         weights: [__m256; 8],
     ) {
-        let (mut cells, mut planes) = ([0u32; LANES], [0u32; LANES]);
-        // SAFETY (of the intrinsics): only called from `march`, which has AVX2; the loads and
-        // stores address whole local arrays (or a record's weights) of the vectors' size.
+        let (mut cells, mut planes, mut same) = ([0u32; LANES], [0u32; LANES], [0u32; LANES]);
+        let mut rows = [[0f32; 8]; LANES];
+        // SAFETY (of the intrinsics): only called from `march`, which has AVX2; the stores
+        // write whole local arrays of the vectors' sizes.
         unsafe {
+            let previous = _mm256_permutevar8x32_epi32(cell, _mm256_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6));
+            let previous = _mm256_blend_epi32::<1>(previous, _mm256_set1_epi32(recorder.open.cell as i32));
+            let same_cell = _mm256_cmpeq_epi32(cell, previous);
             _mm256_storeu_si256(cells.as_mut_ptr() as *mut __m256i, cell);
             _mm256_storeu_si256(planes.as_mut_ptr() as *mut __m256i, plane);
-            let per_sample = transpose(weights);
-            let active = _mm256_movemask_ps(active);
+            _mm256_storeu_si256(same.as_mut_ptr() as *mut __m256i, same_cell);
+            for (row, v) in rows.iter_mut().zip(transpose(weights.map(|w| _mm256_and_ps(w, active)))) {
+                _mm256_storeu_ps(row.as_mut_ptr(), v);
+            }
+            let bits = |mask: __m256| _mm256_movemask_ps(mask) as u32;
+            let blocks = Block { cells, planes, same, same_bits: bits(_mm256_castsi256_ps(same_cell)), rows };
+            add_samples(recorder, &blocks, valid, bits(active));
+        }
+    }
+
+    /// A block's samples for the recorder (see [`record`]).
+    struct Block {
+        cells: [u32; LANES],
+        planes: [u32; LANES],
+        /// All ones where the sample's cell is the previous sample's (or the open record's).
+        same: [u32; LANES],
+        same_bits: u32,
+        /// Each sample's 8 weights, +0 where the sample is not active.
+        rows: [[f32; 8]; LANES],
+    }
+
+    /// [`Recorder::add`] for the first `valid` samples of `block` in turn, its 0/1 factors as
+    /// lane masks (as 0/1 floats they compiled to unpredictable branches); `active` has a bit
+    /// per sample. Not inlined: inside the walk's loop the open record's vector was spilled,
+    /// putting a store and a load on its dependency chain.
+    #[target_feature(enable = "avx2")]
+    #[inline(never)]
+    fn add_samples(recorder: &mut Recorder<f32>, block: &Block, valid: usize, active: u32) {
+        // SAFETY: the loads and stores address whole arrays of 8 f32 (or one u32).
+        unsafe {
             let mut open = _mm256_loadu_ps(recorder.open.weights.as_ptr());
-            for lane in 0..valid {
-                let same = cells[lane] == recorder.open.cell;
-                let is_active = active >> lane & 1 == 1;
-                recorder.len += usize::from(!same & recorder.open_active);
-                let keep = _mm256_castsi256_ps(_mm256_set1_epi32(-i32::from(same)));
-                let add = _mm256_castsi256_ps(_mm256_set1_epi32(-i32::from(is_active)));
-                open = _mm256_add_ps(_mm256_and_ps(open, keep), _mm256_and_ps(per_sample[lane], add));
-                (recorder.open.cell, recorder.open.plane) = (cells[lane], planes[lane]);
-                recorder.open_active = (recorder.open_active & same) | is_active;
-                let slot = &mut recorder.slots[recorder.len];
-                (slot.cell, slot.plane) = (cells[lane], planes[lane]);
+            let (mut len, mut open_active) = (recorder.len, u32::from(recorder.open_active));
+            for lane in 0..valid.min(LANES) {
+                let (same, is_active) = (block.same_bits >> lane & 1, active >> lane & 1);
+                len += ((same ^ 1) & open_active) as usize;
+                open_active = (open_active & same) | is_active;
+                let keep = _mm256_broadcast_ss(&*(block.same.as_ptr().add(lane) as *const f32));
+                open = _mm256_add_ps(_mm256_and_ps(open, keep), _mm256_loadu_ps(block.rows[lane].as_ptr()));
+                let slot = &mut recorder.slots[len];
+                (slot.cell, slot.plane) = (block.cells[lane], block.planes[lane]);
                 _mm256_storeu_ps(slot.weights.as_mut_ptr(), open);
             }
+            if valid > 0 {
+                let last = valid.min(LANES) - 1;
+                (recorder.open.cell, recorder.open.plane) = (block.cells[last], block.planes[last]);
+            }
+            (recorder.len, recorder.open_active) = (len, open_active == 1);
             _mm256_storeu_ps(recorder.open.weights.as_mut_ptr(), open);
         }
     }
