@@ -375,12 +375,17 @@ impl Renderer {
 }
 
 /// Adds the weights `w` of a cell face's 4 corners (x fastest, then y) to `out`, the face's
-/// first corner at `origin`.
+/// first corner at `origin`: two pairs of x-neighbours.
 #[inline(always)]
 fn add_face<T: Scalar>(out: &mut [T], origin: usize, sy: usize, w: &[T]) {
-    let (near, far) = out[origin..origin + sy + 2].split_at_mut(sy);
-    near[0] = near[0] + w[0];
-    near[1] = near[1] + w[1];
-    far[0] = far[0] + w[2];
-    far[1] = far[1] + w[3];
+    add_pair(&mut out[origin..origin + 2], &w[..2]);
+    add_pair(&mut out[origin + sy..origin + sy + 2], &w[2..4]);
+}
+
+/// `pair += w` for two neighbouring values (one 8-byte vector operation in f32).
+#[inline(always)]
+fn add_pair<T: Scalar>(pair: &mut [T], w: &[T]) {
+    if let ([a, b], [wa, wb]) = (pair, w) {
+        (*a, *b) = (*a + *wa, *b + *wb);
+    }
 }
