@@ -28,7 +28,8 @@ fn main() -> anyhow::Result<()> {
         .map(|c| Ok(exr_image::decode(&std::fs::read(dir.join(format!("drr_{}.exr", c.view.name())))?)?.pixels))
         .collect::<anyhow::Result<_>>()?;
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
-    let params = TrainParams { iterations, ..TrainParams::default() };
+    // The paper's configuration: the defaults without the 3-D TV (issue 8's addition).
+    let params = TrainParams { iterations, lambda_tv3d: 0.0, ..TrainParams::default() };
     let mut per_iteration = Vec::new();
     let mut last_field = None;
     for run in 0..runs {
