@@ -14,7 +14,7 @@ use aret_pipe::gpu::device::{Gpu, GpuOptions};
 use aret_pipe::gpu::fit::DeviceFit;
 use aret_pipe::gpu::Backend;
 use aret_pipe::stage::drr::{render_views, Params as DrrParams, RoiCenter};
-use aret_pipe::train::fit::{fit, gradient, ray_pool, renderer, Schedule, Step, TrainParams, Views};
+use aret_pipe::train::fit::{fit, gradient, ray_pool, renderer, Schedule, Step, StepBuffers, TrainParams, Views};
 use aret_pipe::train::regularize::TvNorm;
 use aret_pipe::volume::{Geometry, Volume};
 use std::path::Path;
@@ -169,7 +169,9 @@ fn compare_step(gpu: &Gpu, params: &TrainParams, mask_percentile: Option<f64>) -
         assert_eq!(gpu_mask.nodes, cpu_mask.nodes, "alpha masks differ");
         mask = Some(cpu_mask);
     }
-    let cpu = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, true);
+    let mut buffers = StepBuffers::new(field.n, field.rank);
+    let terms = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, true, &mut buffers);
+    let cpu = Step { grad: buffers.grad, terms };
     let gpu = device.gradient(&batch, &offsets).unwrap();
     (cpu, gpu)
 }

@@ -8,7 +8,7 @@
 //! ([`VmField::contract`]): exact, and far cheaper than sampling the factors per point.
 //! Nodes sit at the N cell centres of the box (first node half a cell in from the face).
 
-use super::gemm::{gemm, Layout, Scalar, Shape};
+use super::gemm::{gemm, give_spare, take_spare, Layout, Scalar, Shape};
 use num_traits::Float;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -78,9 +78,17 @@ impl<T: Float + Send + Sync> VmField<T> {
 impl<T: Scalar> VmField<T> {
     /// The dense pre-activation `F` on the node lattice, index `x + N·(y + N·z)`.
     pub fn compose(&self) -> Vec<T> {
+        let mut dense = vec![T::zero(); self.n * self.n * self.n];
+        self.compose_into(&mut dense);
+        dense
+    }
+
+    /// [`VmField::compose`] into `dense` (`N³` values, overwritten): a training loop keeps one
+    /// buffer rather than allocating a megabyte a step.
+    pub fn compose_into(&self, dense: &mut [T]) {
         let (n, r) = (self.n, self.rank);
         let nn = n * n;
-        let mut dense = vec![T::zero(); nn * n];
+        assert_eq!(dense.len(), nn * n, "compose: the dense field has N³ values");
         let [p0, p1, p2] = &self.planes;
         let [l0, l1, l2] = &self.lines;
         let one = T::one();
@@ -90,20 +98,26 @@ impl<T: Scalar> VmField<T> {
             (p0, Layout::new(0, 1, nn)),
             (l0, Layout::new(0, n, 1)),
             T::zero(),
-            (&mut dense, Layout::new(0, 1, nn)),
+            (dense, Layout::new(0, 1, nn)),
         );
         let per_z = Shape { count: n, m: n, k: r, n };
         let (a1, c1) = (Layout::new(0, 1, nn).batched(n), Layout::new(0, 1, n).batched(nn));
-        gemm(per_z, (p1, a1), (l1, Layout::new(0, n, 1)), one, (&mut dense, c1));
-        gemm(single, (p2, Layout::new(0, 1, nn)), (l2, Layout::new(0, n, 1)), one, (&mut dense, Layout::new(0, n, 1)));
-        dense
+        gemm(per_z, (p1, a1), (l1, Layout::new(0, n, 1)), one, (dense, c1));
+        gemm(single, (p2, Layout::new(0, 1, nn)), (l2, Layout::new(0, n, 1)), one, (dense, Layout::new(0, n, 1)));
     }
 
     /// The factors' gradient from the gradient `grad` of the loss with respect to `F`.
     pub fn contract(&self, grad: &[T]) -> VmField<T> {
+        let mut out = VmField::zeros(self.n, self.rank);
+        self.contract_into(grad, &mut out);
+        out
+    }
+
+    /// [`VmField::contract`] into `out` (same shape, overwritten): a training loop keeps one.
+    pub fn contract_into(&self, grad: &[T], out: &mut VmField<T>) {
         let (n, r) = (self.n, self.rank);
         let nn = n * n;
-        let mut out = VmField::zeros(n, r);
+        assert!(out.n == n && out.rank == r, "contract: the output has the field's shape");
         let zero = T::zero();
         let planes_t = Layout::new(0, 1, nn); // P as (uv × r)
         let lines_t = Layout::new(0, 1, n); // L as (w × r)
@@ -135,7 +149,9 @@ impl<T: Scalar> VmField<T> {
         let dense_z = Layout::new(0, 1, n).batched(nn);
         let per_z = |m, k, n| Shape { count: self.n, m, k, n };
         gemm(per_z(n, n, r), (grad, dense_z), (&self.lines[1], lines_t), zero, (dp1, Layout::new(0, 1, nn).batched(n)));
-        let mut partial = vec![zero; n * r * n];
+        // Scratch kept between steps (a quarter megabyte).
+        let mut partial: Vec<T> = take_spare();
+        partial.resize(n * r * n, zero);
         let p1_z = Layout::new(0, nn, 1).batched(n);
         gemm(
             per_z(r, n, n),
@@ -144,12 +160,14 @@ impl<T: Scalar> VmField<T> {
             zero,
             (&mut partial, Layout::new(0, n, 1).batched(r * n)),
         );
-        for slab in partial.chunks_exact(r * n) {
+        let mut slabs = partial.chunks_exact(r * n);
+        dl1.copy_from_slice(slabs.next().expect("n ≥ 1"));
+        for slab in slabs {
             for (d, &p) in dl1.iter_mut().zip(slab) {
                 *d = *d + p;
             }
         }
-        out
+        give_spare(partial);
     }
 }
 

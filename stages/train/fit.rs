@@ -242,8 +242,26 @@ pub struct Step {
     pub terms: Terms,
 }
 
-/// The CPU's gradient of one iteration: compose, render and scatter, 3-D TV, contract,
-/// regularisers. The 3-D TV's value is computed when it is trained or `logged` (else 0).
+/// The buffers of one CPU step, kept across iterations: allocating the megabyte-sized dense
+/// field and its gradient every step made the allocator return them to the OS and fault them
+/// in again (about 670 page faults per iteration).
+pub struct StepBuffers {
+    dense: Vec<f32>,
+    grad_dense: Vec<f32>,
+    /// The factor gradient of the last [`gradient`].
+    pub grad: VmField<f32>,
+}
+
+impl StepBuffers {
+    pub fn new(n: usize, rank: usize) -> StepBuffers {
+        StepBuffers { dense: vec![0f32; n * n * n], grad_dense: vec![0f32; n * n * n], grad: VmField::zeros(n, rank) }
+    }
+}
+
+/// The CPU's gradient of one iteration into `buffers.grad`: compose, render and scatter,
+/// 3-D TV, contract, regularisers. Returns the loss terms; the 3-D TV's value is computed
+/// when it is trained or `logged` (else 0).
+#[allow(clippy::too_many_arguments)]
 pub fn gradient(
     params: &TrainParams,
     renderer: &Renderer,
@@ -252,22 +270,24 @@ pub fn gradient(
     batch: &[Ray],
     offsets: &[f64],
     logged: bool,
-) -> Step {
-    let dense = field.compose();
-    let mut grad_dense = vec![0f32; dense.len()];
-    let result = renderer.batch(&dense, mask, batch, offsets, Some(&mut grad_dense));
+    buffers: &mut StepBuffers,
+) -> Terms {
+    let StepBuffers { dense, grad_dense, grad } = buffers;
+    field.compose_into(dense);
+    grad_dense.fill(0.0);
+    let result = renderer.batch(dense, mask, batch, offsets, Some(grad_dense));
     // The 3-D TV acts on F itself: its gradient joins dL/dF before the contraction.
     let tv3d = if params.lambda_tv3d > 0.0 {
-        regularize::tv_dense(&dense, field.n, params.lambda_tv3d as f32, &mut grad_dense)
+        regularize::tv_dense(dense, field.n, params.lambda_tv3d as f32, grad_dense)
     } else if logged {
-        tv_dense_value(&dense, field.n)
+        tv_dense_value(dense, field.n)
     } else {
         0.0
     };
-    let mut grad = field.contract(&grad_dense);
-    let l1 = regularize::l1(field, params.lambda_l1 as f32, &mut grad);
-    let tv = regularize::tv(field, params.tv_norm, params.lambda_tv as f32, &mut grad);
-    Step { grad, terms: Terms { photo: result.mse, l1, tv, tv3d } }
+    field.contract_into(grad_dense, grad);
+    let l1 = regularize::l1(field, params.lambda_l1 as f32, grad);
+    let tv = regularize::tv(field, params.tv_norm, params.lambda_tv as f32, grad);
+    Terms { photo: result.mse, l1, tv, tv3d }
 }
 
 /// The unweighted loss terms of `field` with `photo` as the photometric term (the initial row).
@@ -327,6 +347,7 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     log.push(initial);
     let mut batch = Vec::with_capacity(params.batch_rays);
     let mut offsets = Vec::with_capacity(params.batch_rays);
+    let mut buffers = StepBuffers::new(field.n, field.rank);
     for it in 0..params.iterations {
         let drawn = schedule.next_batch(params.batch_rays, renderer.step);
         batch.clear();
@@ -334,15 +355,15 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
         batch.extend(drawn.iter().map(|&(i, _)| pool[i]));
         offsets.extend(drawn.iter().map(|&(_, o)| o));
         let logged = params.logs_after(it + 1);
-        let step = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, logged);
-        let lr = adam.update(&mut field, &step.grad);
+        let terms = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, logged, &mut buffers);
+        let lr = adam.update(&mut field, &buffers.grad);
         if params.remasks_after(it + 1) {
             mask = Some(renderer.alpha_mask(&field.compose(), params.alpha_threshold));
         }
         if logged {
             let views_mse = view_mse(&renderer, &field, mask.as_ref(), &per_view);
             let seconds = started.elapsed().as_secs_f64();
-            let row = log_row(params, it + 1, step.terms, &views_mse, lr, seconds);
+            let row = log_row(params, it + 1, terms, &views_mse, lr, seconds);
             on_log(&row);
             log.push(row);
         }

@@ -8,6 +8,8 @@
 
 use num_traits::Float;
 use rayon::prelude::*;
+use std::any::Any;
+use std::sync::{Mutex, PoisonError};
 
 /// The real types the training kernels run in (f32 in training, f64 in gradient checks):
 /// a GEMM kernel and a fast index conversion.
@@ -15,6 +17,12 @@ pub trait Scalar: Float + Default + Send + Sync + 'static {
     /// The integer part of a value in `[0, i32::MAX]` (a lattice coordinate), by machine
     /// conversion rather than `num_traits`' checked one.
     fn trunc_index(self) -> usize;
+
+    /// A small lattice index as a value (by a 32-bit machine conversion).
+    fn from_index(index: usize) -> Self;
+
+    /// The values as f32, when that is their type: the way into f32-only vector kernels.
+    fn as_f32(values: &[Self]) -> Option<&[f32]>;
 
     /// `C ← A·B + β·C` on raw strided views.
     ///
@@ -37,11 +45,20 @@ pub trait Scalar: Float + Default + Send + Sync + 'static {
 }
 
 macro_rules! scalar {
-    ($t:ty, $kernel:path) => {
+    ($t:ty, $kernel:path, $as_f32:expr) => {
         impl Scalar for $t {
             #[inline]
             fn trunc_index(self) -> usize {
                 self as i32 as usize
+            }
+
+            #[inline]
+            fn from_index(index: usize) -> Self {
+                index as i32 as Self
+            }
+
+            fn as_f32(values: &[Self]) -> Option<&[f32]> {
+                $as_f32(values)
             }
 
             unsafe fn gemm_raw(
@@ -61,8 +78,8 @@ macro_rules! scalar {
         }
     };
 }
-scalar!(f32, matrixmultiply::sgemm);
-scalar!(f64, matrixmultiply::dgemm);
+scalar!(f32, matrixmultiply::sgemm, Some);
+scalar!(f64, matrixmultiply::dgemm, |_| None);
 
 /// Where a (batch of) matrices lives in a flat buffer: element `(i, j)` of matrix `b` is at
 /// `offset + b·batch + i·row + j·col`.
@@ -177,6 +194,30 @@ pub fn gemm<T: Scalar>(
             )
         }
     });
+}
+
+/// Scratch buffers the training kernels keep from one step to the next (at most this many).
+/// Allocating and freeing a step's megabytes of scratch made the allocator return the memory
+/// to the OS and fault it in again every step: ≈ 700 page faults an iteration, ≈ 40% of the
+/// step under load.
+const MAX_SPARE: usize = 256;
+static SPARE: Mutex<Vec<Box<dyn Any + Send>>> = Mutex::new(Vec::new());
+
+/// A kept buffer (set) of type `B`, or a new one; its contents are whatever it last held.
+pub(crate) fn take_spare<B: Any + Send + Default>() -> B {
+    let mut spare = SPARE.lock().unwrap_or_else(PoisonError::into_inner);
+    match spare.iter().rposition(|b| b.is::<B>()) {
+        Some(i) => *spare.swap_remove(i).downcast::<B>().expect("checked type"),
+        None => B::default(),
+    }
+}
+
+/// Keeps `buffers` for a later step.
+pub(crate) fn give_spare<B: Any + Send>(buffers: B) {
+    let mut spare = SPARE.lock().unwrap_or_else(PoisonError::into_inner);
+    if spare.len() < MAX_SPARE {
+        spare.push(Box::new(buffers));
+    }
 }
 
 /// A raw pointer shared by the block tasks of one [`gemm`] call.

@@ -7,12 +7,15 @@
 //! beyond the outermost ones, and `Î = exp(−s · Σ σ_k δ)`, the DRR's Beer–Lambert model. An
 //! alpha mask, when given, silences samples none of whose 8 neighbour nodes is kept.
 
-use super::gemm::Scalar;
+use super::gemm::{give_spare, take_spare, Scalar};
 use crate::geometry::Aabb;
 use crate::kernels::trilinear;
 use glam::DVec3;
 use num_traits::Float;
 use rayon::prelude::*;
+use walk::RayWalk;
+
+mod walk;
 
 /// The node lattice: N nodes per axis at the cell centres of the box.
 #[derive(Debug, Clone, Copy)]
@@ -60,19 +63,21 @@ pub struct BatchResult<T> {
 #[derive(Debug, Clone, PartialEq)]
 pub struct AlphaMask {
     pub nodes: Vec<bool>,
-    cells: Vec<bool>,
+    /// Per cell, all ones (a vector lane mask) when a corner is kept, else zero.
+    cells: Vec<u32>,
 }
 
 impl AlphaMask {
     /// The mask of the kept `nodes` on an `n³` lattice.
     pub fn from_nodes(nodes: Vec<bool>, n: usize) -> AlphaMask {
         let dims = [n; 3];
-        let mut cells = vec![false; nodes.len()];
+        let mut cells = vec![0; nodes.len()];
         for z in 0..n.saturating_sub(1) {
             for y in 0..n - 1 {
                 for x in 0..n - 1 {
                     let origin = x + n * (y + n * z);
-                    cells[origin] = trilinear::corners(origin, [0.0; 3], dims).iter().any(|&(i, _)| nodes[i]);
+                    let kept = trilinear::corners(origin, [0.0; 3], dims).iter().any(|&(i, _)| nodes[i]);
+                    cells[origin] = if kept { u32::MAX } else { 0 };
                 }
             }
         }
@@ -80,41 +85,113 @@ impl AlphaMask {
     }
 }
 
-/// A sample with a positive activation (its gradient is non-zero): its cell's lower corner
-/// and its ray within the tracing task, packed in 32 bits (16 bytes a sample in f32), and its
-/// position in the cell.
-#[derive(Debug, Clone, Copy, Default)]
-struct Active<T> {
-    cell_and_ray: u32,
-    frac: [T; 3],
-}
-
-/// Bits of `Active::cell_and_ray` for the cell: lattices up to 512³ nodes.
-const CELL_BITS: u32 = 27;
-/// The largest lattice `batch` takes.
+/// The largest lattice `batch` takes (cell indices are packed in 32 bits).
 pub const MAX_GRID: usize = 512;
 
-impl<T> Active<T> {
-    fn cell(&self) -> usize {
-        (self.cell_and_ray & ((1 << CELL_BITS) - 1)) as usize
-    }
+/// One ray's gradient footprint on one cell: the trilinear weights of the ray's active
+/// samples in that cell, summed (consecutive samples of a ray often share a cell), then
+/// scaled by the ray's `dL/dσ` once the ray is traced. Corners in the order x fastest, then
+/// y, then z (the first four on the cell's lower plane).
+#[derive(Debug, Clone, Copy)]
+struct Footprint<T> {
+    /// The cell's lower corner node, `x + N·(y + N·z)`.
+    cell: u32,
+    /// The cell's z-plane.
+    plane: u32,
+    weights: [T; 8],
+}
 
-    fn ray_in_task(&self) -> usize {
-        (self.cell_and_ray >> CELL_BITS) as usize
+impl<T: Scalar> Footprint<T> {
+    /// An empty record that matches no cell.
+    fn none() -> Self {
+        Footprint { cell: u32::MAX, plane: u32::MAX, weights: [T::zero(); 8] }
     }
 }
 
-/// Rays per tracing task (at most 2^(32 − CELL_BITS)); fixed, so the work split never
-/// depends on the thread count.
+/// Rays per tracing task; fixed, so the work split never depends on the thread count.
 const RAYS_PER_TASK: usize = 32;
 /// Lattice z-planes per scatter task.
 const PLANES_PER_SLAB: usize = 4;
 
-/// One task's traced rays: predictions, and its active samples by the z-plane of their cell
-/// (`by_plane[z]`, in ray order within a plane).
+/// One task's traced rays: predictions and footprints.
+#[derive(Default)]
 struct Traced<T> {
     predicted: Vec<f64>,
-    by_plane: Vec<Vec<Active<T>>>,
+    footprints: Footprints<T>,
+}
+
+/// Rays' footprints, ray after ray, each ray's in ascending plane order (a straight ray's
+/// planes are monotone), indexed by plane. The walk writes a ray's records straight into
+/// `list` past the `used` ones (no copy); `list` only grows, and is reused batch to batch.
+#[derive(Default)]
+struct Footprints<T> {
+    list: Vec<Footprint<T>>,
+    used: usize,
+    rays: Vec<RayFootprints>,
+    /// Per ray, where each of its planes starts in `list` (see [`RayFootprints`]).
+    plane_starts: Vec<u32>,
+}
+
+/// Where one ray's footprints lie: on planes `low..=high`, plane p's (possibly none) from
+/// `plane_starts[starts + p − low]` up to the next plane's start; `plane_starts[starts +
+/// high − low + 1]` is the end of the ray's footprints.
+#[derive(Debug, Clone, Copy)]
+struct RayFootprints {
+    low: u32,
+    high: u32,
+    starts: u32,
+}
+
+impl<T: Scalar> Footprints<T> {
+    fn clear(&mut self) {
+        self.used = 0;
+        self.rays.clear();
+        self.plane_starts.clear();
+    }
+
+    /// Makes room for the walk to write `count + 1` records after the used ones.
+    fn reserve_walk(&mut self, count: usize) {
+        if self.list.len() <= self.used + count {
+            self.list.resize(self.used + count + 1, Footprint::none());
+        }
+    }
+
+    /// Keeps the `len` records the walk wrote after the used ones (monotone in plane, either
+    /// way), scaled by the ray's `dL/dσ`, in ascending plane order, and indexes them by plane.
+    fn keep_ray(&mut self, len: usize, d_sigma: T) {
+        let first = self.used;
+        let records = &mut self.list[first..first + len];
+        let (Some(head), Some(tail)) = (records.first(), records.last()) else { return };
+        let (low, high) = (head.plane.min(tail.plane), head.plane.max(tail.plane));
+        if head.plane > tail.plane {
+            records.reverse();
+        }
+        for f in records.iter_mut() {
+            for w in &mut f.weights {
+                *w = *w * d_sigma;
+            }
+        }
+        let starts = self.plane_starts.len() as u32;
+        let mut plane = low;
+        for (i, f) in records.iter().enumerate() {
+            while plane <= f.plane {
+                self.plane_starts.push((first + i) as u32);
+                plane += 1;
+            }
+        }
+        self.used += len;
+        self.plane_starts.push(self.used as u32);
+        self.rays.push(RayFootprints { low, high, starts });
+    }
+
+    /// The footprints on planes `low..=high`, ray by ray.
+    fn on_planes(&self, low: u32, high: u32) -> impl Iterator<Item = &[Footprint<T>]> {
+        self.rays.iter().filter(move |r| r.low <= high && r.high >= low).map(move |r| {
+            let (from, to) = (low.max(r.low), high.min(r.high));
+            let starts = &self.plane_starts[r.starts as usize..];
+            &self.list[starts[(from - r.low) as usize] as usize..starts[(to - r.low + 1) as usize] as usize]
+        })
+    }
 }
 
 impl Renderer {
@@ -132,73 +209,45 @@ impl Renderer {
         (std::array::from_fn(|k| a[k] + first * b[k]), std::array::from_fn(|k| self.step * b[k]), count)
     }
 
-    /// `Î` of one ray; with `active`, also appends the samples whose σ is positive (their
-    /// gradient is non-zero), tagged with the ray's index in its task.
-    fn trace<T: Scalar>(
+    /// The walk of `ray`'s samples (offset `offset` ∈ [0, step)) through `dense`.
+    fn walk<'a, T: Scalar>(
         &self,
-        dense: &[T],
-        mask: Option<&AlphaMask>,
+        dense: &'a [T],
+        mask: Option<&'a AlphaMask>,
         ray: &Ray,
         offset: f64,
-        mut active: Option<(&mut [Vec<Active<T>>], u32)>,
-    ) -> f64 {
+    ) -> RayWalk<'a, T> {
         let (q0, dq, count) = self.samples(ray, offset);
-        let (q0, dq) = (q0.map(|v| T::from(v).expect("finite")), dq.map(|v| T::from(v).expect("finite")));
-        let n = self.lattice.n;
-        let (sy, sz) = (n, n * n);
-        let (last_node, last_cell) = (T::from(n - 1).expect("small"), n - 2);
-        let shift = T::from(self.shift).expect("finite");
-        let mut optical_depth = T::zero();
-        let mut k = T::zero();
-        for _ in 0..count {
-            // The cell and position in it, clamped to the outermost nodes (kernels::trilinear's
-            // rule, in T).
-            let mut base = [0usize; 3];
-            let mut frac = [T::zero(); 3];
-            for a in 0..3 {
-                let x = (q0[a] + k * dq[a]).max(T::zero()).min(last_node);
-                base[a] = x.trunc_index().min(last_cell);
-                frac[a] = x - T::from(base[a]).expect("small");
-            }
-            k = k + T::one();
-            let cell = base[0] + n * (base[1] + n * base[2]);
-            if mask.is_some_and(|m| !m.cells[cell]) {
-                continue;
-            }
-            let [fx, fy, fz] = frac;
-            let lerp = |a: T, b: T, t: T| a + (b - a) * t;
-            let corners = &dense[cell..=cell + sz + sy + 1]; // one bounds check per sample
-            let v = |i: usize| corners[i];
-            let f = lerp(
-                lerp(lerp(v(0), v(1), fx), lerp(v(sy), v(sy + 1), fx), fy),
-                lerp(lerp(v(sz), v(sz + 1), fx), lerp(v(sz + sy), v(sz + sy + 1), fx), fy),
-                fz,
-            );
-            let sigma = f + shift;
-            optical_depth = optical_depth + sigma.max(T::zero());
-            if let Some((by_plane, ray)) = active.as_mut() {
-                // Pushed, then dropped unless active: no branch on the sign of σ, which would
-                // mispredict on a field near zero.
-                let list = &mut by_plane[base[2]];
-                list.push(Active { cell_and_ray: cell as u32 | *ray << CELL_BITS, frac: [fx, fy, fz] });
-                list.truncate(list.len() - usize::from(sigma <= T::zero()));
-            }
+        let value = |v: f64| T::from(v).expect("finite");
+        RayWalk {
+            dense,
+            kept: mask.map(|m| m.cells.as_slice()),
+            q0: q0.map(value),
+            dq: dq.map(value),
+            count,
+            n: self.lattice.n,
+            shift: value(self.shift),
         }
+    }
+
+    /// `Î = exp(−s·δ·Σ σ)` from the optical depth.
+    fn transmittance<T: Scalar>(&self, optical_depth: T) -> f64 {
         (-self.scale * self.step * optical_depth.to_f64().expect("finite")).exp()
     }
 
     /// `Î` of one ray.
     pub fn render_ray<T: Scalar>(&self, dense: &[T], mask: Option<&AlphaMask>, ray: &Ray, offset: f64) -> f64 {
-        self.trace(dense, mask, ray, offset, None)
+        self.transmittance(walk::march::<T, false>(&self.walk(dense, mask, ray, offset), &mut Vec::new(), 0).0)
     }
 
     /// Renders `rays` (with their per-ray `offsets`), returns predictions and MSE, and when
     /// `grad` is given adds `dMSE/dF` to it.
     ///
-    /// Rays trace in parallel, in fixed groups that record their active samples bucketed by
-    /// z-plane; the scatter then runs in parallel over z-slabs of the lattice, each adding the
-    /// groups' samples in group, then plane, then ray order. Every gradient element is summed
-    /// in one fixed order: the result is bit-identical whatever the thread count.
+    /// Rays trace in parallel, in fixed groups that record their footprints (already scaled by
+    /// the ray's `dL/dσ`) indexed by z-plane; the scatter then runs in parallel over z-slabs of
+    /// the lattice, each adding the footprints on its planes in group, then ray, then plane
+    /// order. Every gradient element is summed in one fixed order: the result is bit-identical
+    /// whatever the thread count.
     pub fn batch<T: Scalar>(
         &self,
         dense: &[T],
@@ -207,71 +256,77 @@ impl Renderer {
         offsets: &[f64],
         grad: Option<&mut [T]>,
     ) -> BatchResult<T> {
-        let want_grad = grad.is_some();
-        let n = self.lattice.n;
         let traced: Vec<Traced<T>> = rays
             .par_chunks(RAYS_PER_TASK)
             .zip(offsets.par_chunks(RAYS_PER_TASK))
-            .map(|(rays, offsets)| {
-                let mut by_plane = vec![Vec::new(); if want_grad { n } else { 0 }];
-                let predicted = rays
-                    .iter()
-                    .zip(offsets)
-                    .enumerate()
-                    .map(|(i, (ray, &off))| {
-                        self.trace(dense, mask, ray, off, want_grad.then_some((by_plane.as_mut_slice(), i as u32)))
-                    })
-                    .collect();
-                Traced { predicted, by_plane }
+            .map(|(group, offsets)| {
+                if grad.is_some() {
+                    self.trace_recording(dense, mask, group, offsets, rays.len())
+                } else {
+                    let predicted =
+                        group.iter().zip(offsets).map(|(ray, &off)| self.render_ray(dense, mask, ray, off)).collect();
+                    Traced { predicted, ..Traced::default() }
+                }
             })
             .collect();
         let predicted: Vec<f64> = traced.iter().flat_map(|t| t.predicted.iter().copied()).collect();
         let b = rays.len() as f64;
         let mse = rays.iter().zip(&predicted).map(|(r, p)| (p - r.target).powi(2)).sum::<f64>() / b;
         if let Some(grad) = grad {
-            // dL/dÎ = 2(Î − I)/B;  dÎ/dσ_k = −s·δ·Î;  dσ/dF = 1[F + Δ > 0] (the active samples).
-            let d_sigma: Vec<T> = rays
-                .iter()
-                .zip(&predicted)
-                .map(|(ray, &p)| T::from(2.0 * (p - ray.target) / b * (-self.scale * self.step * p)).expect("finite"))
-                .collect();
-            self.scatter(&traced, &d_sigma, grad);
+            self.scatter(&traced, grad);
+            traced.into_iter().for_each(give_spare);
         }
         BatchResult { predicted: predicted.into_iter().map(|p| T::from(p).expect("finite")).collect(), mse }
     }
 
-    /// Adds each active sample's `d_sigma` times its trilinear weights to its cell's corners.
-    fn scatter<T: Scalar>(&self, traced: &[Traced<T>], d_sigma: &[T], grad: &mut [T]) {
+    /// Traces one group of rays of a batch of `batch_len`, recording each ray's footprints
+    /// scaled by its `dL/dσ`. The buffers come from the previous batch.
+    fn trace_recording<T: Scalar>(
+        &self,
+        dense: &[T],
+        mask: Option<&AlphaMask>,
+        group: &[Ray],
+        offsets: &[f64],
+        batch_len: usize,
+    ) -> Traced<T> {
+        let mut t: Traced<T> = take_spare();
+        let walks: Vec<RayWalk<T>> =
+            group.iter().zip(offsets).map(|(ray, &off)| self.walk(dense, mask, ray, off)).collect();
+        t.footprints.clear();
+        t.predicted.clear();
+        for (ray, walk) in group.iter().zip(&walks) {
+            t.footprints.reserve_walk(walk.count);
+            let (depth, len) = walk::march::<T, true>(walk, &mut t.footprints.list, t.footprints.used);
+            let p = self.transmittance(depth);
+            // dL/dÎ = 2(Î − I)/B;  dÎ/dσ_k = −s·δ·Î;  dσ/dF = 1[F + Δ > 0] (the active samples).
+            let d_sigma = 2.0 * (p - ray.target) / batch_len as f64 * (-self.scale * self.step * p);
+            let d_sigma = T::from(d_sigma).expect("finite");
+            if d_sigma != T::zero() {
+                t.footprints.keep_ray(len, d_sigma);
+            }
+            t.predicted.push(p);
+        }
+        t
+    }
+
+    /// Adds every footprint to the corners of its cell.
+    fn scatter<T: Scalar>(&self, traced: &[Traced<T>], grad: &mut [T]) {
         let n = self.lattice.n;
         let (sy, sz) = (n, n * n);
         grad.par_chunks_mut(sz * PLANES_PER_SLAB).enumerate().for_each(|(slab, out)| {
             let (z0, z1) = (slab * PLANES_PER_SLAB, ((slab + 1) * PLANES_PER_SLAB).min(n));
-            let base = z0 * sz;
-            for (t, d_sigma) in traced.iter().zip(d_sigma.chunks(RAYS_PER_TASK)) {
-                // Cells on plane z0 − 1 reach into this slab with their upper corners.
-                for a in t.by_plane[z0.saturating_sub(1)..z1].iter().flatten() {
-                    let g = d_sigma[a.ray_in_task()];
-                    if g == T::zero() {
-                        continue;
-                    }
-                    let cell = a.cell();
-                    let cz = cell / sz;
-                    let [fx, fy, fz] = a.frac;
-                    let (gx, gy) = (T::one() - fx, T::one() - fy);
-                    let face = [gx * gy, fx * gy, gx * fy, fx * fy];
-                    let offsets = [0, 1, sy, sy + 1];
-                    let mut splat = |plane_origin: usize, w: T| {
-                        let face_nodes = &mut out[plane_origin - base..=plane_origin - base + sy + 1];
-                        for (o, f) in offsets.iter().zip(face) {
-                            face_nodes[*o] = face_nodes[*o] + w * f;
-                        }
-                    };
-                    if cz >= z0 {
-                        splat(cell, g * (T::one() - fz));
-                    }
-                    if cz + 1 < z1 {
-                        splat(cell + sz, g * fz);
-                    }
+            // Node i is out[i − split]; cells on plane z0 − 1 reach into this slab with their
+            // upper corners.
+            let split = z0 * sz;
+            let (low, high) = (z0.saturating_sub(1) as u32, (z1 - 1) as u32);
+            for f in traced.iter().flat_map(|t| t.footprints.on_planes(low, high)).flatten() {
+                let (cell, plane) = (f.cell as usize, f.plane as usize);
+                let (lower, upper) = f.weights.split_at(4);
+                if plane >= z0 {
+                    add_face(out, cell - split, sy, lower);
+                }
+                if plane + 1 < z1 {
+                    add_face(out, cell + sz - split, sy, upper);
                 }
             }
         });
@@ -286,7 +341,7 @@ impl Renderer {
             .map(|i| {
                 let (x, y, z) = (i % n, (i / n) % n, i / (n * n));
                 let cell = last_cell(x) + n * (last_cell(y) + n * last_cell(z));
-                if mask.is_some_and(|m| !m.cells[cell]) {
+                if mask.is_some_and(|m| m.cells[cell] == 0) {
                     return 0.0;
                 }
                 (dense[i].to_f64().expect("finite") + self.shift).max(0.0) as f32
@@ -316,5 +371,21 @@ impl Renderer {
             }
         }
         AlphaMask::from_nodes(keep, n)
+    }
+}
+
+/// Adds the weights `w` of a cell face's 4 corners (x fastest, then y) to `out`, the face's
+/// first corner at `origin`: two pairs of x-neighbours.
+#[inline(always)]
+fn add_face<T: Scalar>(out: &mut [T], origin: usize, sy: usize, w: &[T]) {
+    add_pair(&mut out[origin..origin + 2], &w[..2]);
+    add_pair(&mut out[origin + sy..origin + sy + 2], &w[2..4]);
+}
+
+/// `pair += w` for two neighbouring values (one 8-byte vector operation in f32).
+#[inline(always)]
+fn add_pair<T: Scalar>(pair: &mut [T], w: &[T]) {
+    if let ([a, b], [wa, wb]) = (pair, w) {
+        (*a, *b) = (*a + *wa, *b + *wb);
     }
 }

@@ -1,0 +1,514 @@
+//! The walk of one ray's samples through the composed field `F`, eight samples (lanes) at a
+//! time: each sample's cell and trilinear weights, `σ = ReLU(F + Δ)`, the ray's optical depth
+//! and, when recording, its footprints (see [`Footprint`]).
+//!
+//! Two kernels do the walk with the same IEEE operations in the same order, so their results
+//! are bit-identical: a portable one (any precision), and for f32 on x86-64 CPUs with AVX2 one
+//! with 8-lane vectors, chosen at run time. The walk was instruction-bound as scalar code
+//! (≈ 150 instructions a sample: saturating conversions, bounds checks); the vector walk takes
+//! ≈ 24 a sample, ≈ 25 more when recording.
+
+use super::Footprint;
+use crate::train::gemm::Scalar;
+
+/// Samples per block: one AVX2 vector of f32.
+const LANES: usize = 8;
+
+/// One ray's samples: sample `k < count` lies at the continuous node index `q0 + k·dq` of the
+/// `n³` lattice whose composed field is `dense`.
+pub(super) struct RayWalk<'a, T> {
+    pub dense: &'a [T],
+    /// Per cell, all ones where the alpha mask keeps it (a lane mask); `None`: no mask.
+    pub kept: Option<&'a [u32]>,
+    pub q0: [T; 3],
+    pub dq: [T; 3],
+    pub count: usize,
+    pub n: usize,
+    /// Δ in σ = ReLU(F + Δ).
+    pub shift: T,
+}
+
+/// The optical depth `Σ σ_k` of the ray (without `s·δ`) and, with `RECORD`, its footprints
+/// (weights unscaled) in `slots[first..first + len]`, returned with `len`; `slots` must then
+/// hold at least `first + count + 1` records (the open record is stored every sample,
+/// branch-free).
+///
+/// # Panics
+/// If `dense` (or the mask) has fewer than `n³` values, or `n` is outside `[2, 1024]`.
+// `slots` is a Vec, not a slice, so that the f32 kernel can have it by downcast (a slice is
+// unsized, so not `Any`).
+#[allow(clippy::ptr_arg)]
+pub(super) fn march<T: Scalar, const RECORD: bool>(
+    walk: &RayWalk<T>,
+    slots: &mut Vec<Footprint<T>>,
+    first: usize,
+) -> (T, usize) {
+    let n = walk.n;
+    assert!(
+        (2..=1024).contains(&n) && walk.dense.len() >= n * n * n,
+        "walk: a {n}³ lattice needs {} values",
+        n * n * n
+    );
+    assert!(walk.kept.is_none_or(|k| k.len() >= n * n * n), "walk: the mask must cover the lattice");
+    assert!(!RECORD || slots.len() > first + walk.count, "walk: room for {} records needed", walk.count + 1);
+    #[cfg(target_arch = "x86_64")]
+    if let (Some(dense), Some(slots)) =
+        (T::as_f32(walk.dense), (slots as &mut dyn std::any::Any).downcast_mut::<Vec<Footprint<f32>>>())
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            let walk = as_f32_walk(walk, dense);
+            // SAFETY: the CPU has AVX2 (checked above) and the asserts above give `avx2::march`
+            // its lattice and mask sizes.
+            let (depth, len) = unsafe { avx2::march::<RECORD>(&walk, &mut slots[first..]) };
+            return (T::from(depth).expect("f32"), len);
+        }
+    }
+    portable::<T, RECORD>(walk, &mut slots[first..])
+}
+
+/// `walk` with its (already f32) values as f32.
+#[cfg(target_arch = "x86_64")]
+fn as_f32_walk<'a, T: Scalar>(walk: &RayWalk<'a, T>, dense: &'a [f32]) -> RayWalk<'a, f32> {
+    let f = |x: T| x.to_f32().expect("f32");
+    RayWalk {
+        dense,
+        kept: walk.kept,
+        q0: walk.q0.map(f),
+        dq: walk.dq.map(f),
+        count: walk.count,
+        n: walk.n,
+        shift: f(walk.shift),
+    }
+}
+
+/// The footprint being built while walking: records are closed when the cell changes and
+/// they hold an active sample (branch-free: cell changes and the sign of σ are unpredictable).
+struct Recorder<'s, T> {
+    slots: &'s mut [Footprint<T>],
+    len: usize,
+    open: Footprint<T>,
+    open_active: bool,
+}
+
+impl<'s, T: Scalar> Recorder<'s, T> {
+    fn new(slots: &'s mut [Footprint<T>]) -> Self {
+        Recorder { slots, len: 0, open: Footprint::none(), open_active: false }
+    }
+
+    /// Adds one sample: its cell, the cell's plane, whether σ > 0, its corner weights.
+    #[inline(always)]
+    fn add(&mut self, cell: u32, plane: u32, active: bool, weights: [T; 8]) {
+        let same = cell == self.open.cell;
+        self.len += usize::from(!same & self.open_active);
+        let (keep, add) = (T::from_index(usize::from(same)), T::from_index(usize::from(active)));
+        self.open.weights = std::array::from_fn(|i| self.open.weights[i] * keep + weights[i] * add);
+        (self.open.cell, self.open.plane) = (cell, plane);
+        self.open_active = (self.open_active & same) | active;
+        self.slots[self.len] = self.open;
+    }
+
+    /// Adds samples none of which is active, of the cells `cells` with planes `planes`: the
+    /// same records as adding them one by one (a run of inactive samples leaves only an empty
+    /// open record on the last one's cell, the open record closed if the cell changed).
+    #[inline(always)]
+    fn add_inactive(&mut self, cells: &[u32], planes: &[u32]) {
+        if let (Some(&cell), Some(&plane)) = (cells.last(), planes.last()) {
+            if cells.iter().any(|&c| c != self.open.cell) {
+                self.len += usize::from(self.open_active);
+                self.open = Footprint { cell, plane, weights: [T::zero(); 8] };
+                self.open_active = false;
+                self.slots[self.len] = self.open;
+            }
+        }
+    }
+
+    /// The number of records.
+    fn finish(self) -> usize {
+        self.len + usize::from(self.open_active)
+    }
+}
+
+/// `max(x, 0)`, as the vector instruction computes it (NaN → 0).
+#[inline(always)]
+fn at_least_zero<T: Scalar>(x: T) -> T {
+    if x > T::zero() {
+        x
+    } else {
+        T::zero()
+    }
+}
+
+/// `min(x, hi)`, as the vector instruction computes it.
+#[inline(always)]
+fn at_most<T: Scalar>(x: T, hi: T) -> T {
+    if x < hi {
+        x
+    } else {
+        hi
+    }
+}
+
+/// The walk in plain code, lane by lane, in the vector kernel's operation order.
+fn portable<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, slots: &mut [Footprint<T>]) -> (T, usize) {
+    let n = walk.n;
+    let (sy, sz) = (n, n * n);
+    let (last_node, last_cell) = (T::from_index(n - 1), T::from_index(n - 2));
+    let mut depth = [T::zero(); LANES];
+    let mut recorder = Recorder::new(slots);
+    for k0 in (0..walk.count).step_by(LANES) {
+        for (lane, depth) in depth.iter_mut().enumerate() {
+            let k = T::from_index(k0) + T::from_index(lane);
+            let mut base = [0usize; 3];
+            let mut frac = [T::zero(); 3];
+            for a in 0..3 {
+                let x = at_most(at_least_zero(walk.q0[a] + k * walk.dq[a]), last_node);
+                base[a] = at_most(x, last_cell).trunc_index();
+                frac[a] = x - T::from_index(base[a]);
+            }
+            let cell = base[0] + sy * base[1] + sz * base[2];
+            let corners = [0, 1, sy, sy + 1, sz, sz + 1, sz + sy, sz + sy + 1].map(|o| walk.dense[cell + o]);
+            let weights = trilinear_weights(frac);
+            let s: [T; 4] = std::array::from_fn(|i| weights[i] * corners[i] + weights[i + 4] * corners[i + 4]);
+            let sigma = ((s[0] + s[1]) + (s[2] + s[3])) + walk.shift;
+            let live = k0 + lane < walk.count && walk.kept.is_none_or(|kept| kept[cell] != 0);
+            let active = live && sigma > T::zero();
+            *depth = *depth + if active { sigma } else { T::zero() };
+            if RECORD && k0 + lane < walk.count {
+                recorder.add(cell as u32, base[2] as u32, active, weights);
+            }
+        }
+    }
+    let half: [T; 4] = std::array::from_fn(|i| depth[i] + depth[i + 4]);
+    ((half[0] + half[2]) + (half[1] + half[3]), if RECORD { recorder.finish() } else { 0 })
+}
+
+/// The trilinear weights of the 8 corners at `frac`, in [`Footprint`] order.
+#[inline(always)]
+fn trilinear_weights<T: Scalar>([fx, fy, fz]: [T; 3]) -> [T; 8] {
+    let (gx, gy, gz) = (T::one() - fx, T::one() - fy, T::one() - fz);
+    let face = [gx * gy, fx * gy, gx * fy, fx * fy];
+    [face[0] * gz, face[1] * gz, face[2] * gz, face[3] * gz, face[0] * fz, face[1] * fz, face[2] * fz, face[3] * fz]
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::{Footprint, RayWalk, Recorder, LANES};
+    use std::arch::x86_64::*;
+
+    /// The walk with 8-lane AVX2 vectors: [`super::portable`] lane for lane.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2; `walk.dense` and `walk.kept` must hold at least `n³` values,
+    /// `2 ≤ n ≤ 1024`; with `RECORD`, `slots` must hold more than `count` records.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn march<const RECORD: bool>(walk: &RayWalk<f32>, slots: &mut [Footprint<f32>]) -> (f32, usize) {
+        let n = walk.n as i32;
+        let (sy, sz) = (n, n * n);
+        let zero = _mm256_setzero_ps();
+        let one = _mm256_set1_ps(1.0);
+        let lanes = _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
+        let (last_node, last_cell) = (_mm256_set1_ps((n - 1) as f32), _mm256_set1_ps((n - 2) as f32));
+        let (q0, dq) = (walk.q0.map(|v| _mm256_set1_ps(v)), walk.dq.map(|v| _mm256_set1_ps(v)));
+        let (count, shift) = (_mm256_set1_ps(walk.count as i32 as f32), _mm256_set1_ps(walk.shift));
+        let mut depth = zero;
+        let mut recorder = Recorder::new(slots);
+        for k0 in (0..walk.count).step_by(LANES) {
+            let k = _mm256_add_ps(_mm256_set1_ps(k0 as i32 as f32), lanes);
+            let mut base = [_mm256_setzero_si256(); 3];
+            let mut frac = [zero; 3];
+            for a in 0..3 {
+                let q = _mm256_add_ps(q0[a], _mm256_mul_ps(k, dq[a]));
+                let x = _mm256_min_ps(_mm256_max_ps(q, zero), last_node);
+                base[a] = _mm256_cvttps_epi32(_mm256_min_ps(x, last_cell));
+                frac[a] = _mm256_sub_ps(x, _mm256_cvtepi32_ps(base[a]));
+            }
+            let cell = _mm256_add_epi32(
+                _mm256_add_epi32(base[0], _mm256_mullo_epi32(base[1], _mm256_set1_epi32(sy))),
+                _mm256_mullo_epi32(base[2], _mm256_set1_epi32(sz)),
+            );
+            // SAFETY: every base coordinate is in [0, n − 2], so cell + offset ≤ n³ − 1, inside
+            // `dense` (the caller's contract).
+            let corners = unsafe { corner_values(walk.dense, cell, [0, sy as usize, sz as usize, (sz + sy) as usize]) };
+            let weights = trilinear_weights(frac, one);
+            let s: [__m256; 4] = std::array::from_fn(|i| {
+                _mm256_add_ps(_mm256_mul_ps(weights[i], corners[i]), _mm256_mul_ps(weights[i + 4], corners[i + 4]))
+            });
+            let sigma = _mm256_add_ps(_mm256_add_ps(_mm256_add_ps(s[0], s[1]), _mm256_add_ps(s[2], s[3])), shift);
+            let mut live = _mm256_cmp_ps::<_CMP_LT_OQ>(k, count);
+            if let Some(kept) = walk.kept {
+                // SAFETY: cell ≤ n³ − 1 and the mask holds n³ values (the caller's contract).
+                let gate = unsafe { _mm256_i32gather_epi32::<4>(kept.as_ptr() as *const i32, cell) };
+                live = _mm256_and_ps(live, _mm256_castsi256_ps(gate));
+            }
+            let active = _mm256_and_ps(live, _mm256_cmp_ps::<_CMP_GT_OQ>(sigma, zero));
+            depth = _mm256_add_ps(depth, _mm256_and_ps(active, sigma));
+            if RECORD {
+                // Air (σ = 0) gives whole blocks without an active sample: skip the transpose.
+                let valid = (walk.count - k0).min(LANES);
+                if _mm256_movemask_ps(active) == 0 {
+                    let open = _mm256_set1_epi32(recorder.open.cell as i32);
+                    let same = _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(cell, open)));
+                    if !same & ((1 << valid) - 1) != 0 {
+                        let (mut cells, mut planes) = ([0u32; LANES], [0u32; LANES]);
+                        // SAFETY: the stores write whole local arrays of the vectors' size.
+                        unsafe {
+                            _mm256_storeu_si256(cells.as_mut_ptr() as *mut __m256i, cell);
+                            _mm256_storeu_si256(planes.as_mut_ptr() as *mut __m256i, base[2]);
+                        }
+                        recorder.add_inactive(&cells[..valid], &planes[..valid]);
+                    }
+                } else {
+                    record(&mut recorder, valid, cell, base[2], active, weights);
+                }
+            }
+        }
+        let half = _mm_add_ps(_mm256_castps256_ps128(depth), _mm256_extractf128_ps::<1>(depth));
+        let pair = _mm_add_ps(half, _mm_movehl_ps(half, half));
+        let total = _mm_add_ss(pair, _mm_shuffle_ps::<1>(pair, pair));
+        (_mm_cvtss_f32(total), if RECORD { recorder.finish() } else { 0 })
+    }
+
+    /// `F` at the 8 corners of the 8 samples' cells (one vector per corner, [`Footprint`]
+    /// order), read as the 4 pairs of x-neighbours at `rows` (the cell's 4 (y, z) rows): 32
+    /// 8-byte loads and shuffles are faster than 8 gathers of 8 values on Zen 3.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2, and `cell + row + 1` must lie inside `dense` for every cell
+    /// and row.
+    #[inline(always)]
+    unsafe fn corner_values(dense: &[f32], cell: __m256i, rows: [usize; 4]) -> [__m256; 8] {
+        let mut cells = [0u32; LANES];
+        _mm256_storeu_si256(cells.as_mut_ptr() as *mut __m256i, cell);
+        let mut corners = [_mm256_setzero_ps(); 8];
+        for (r, row) in rows.into_iter().enumerate() {
+            let pair = |lane: usize| dense.as_ptr().add(cells[lane] as usize + row) as *const f64;
+            let two = |a: usize, b: usize| _mm_castpd_ps(_mm_loadh_pd(_mm_load_sd(pair(a)), pair(b)));
+            // Samples (0, 1 | 4, 5) and (2, 3 | 6, 7), so the shuffles leave them in order.
+            let low = _mm256_insertf128_ps::<1>(_mm256_castps128_ps256(two(0, 1)), two(4, 5));
+            let high = _mm256_insertf128_ps::<1>(_mm256_castps128_ps256(two(2, 3)), two(6, 7));
+            corners[2 * r] = _mm256_shuffle_ps::<0x88>(low, high);
+            corners[2 * r + 1] = _mm256_shuffle_ps::<0xDD>(low, high);
+        }
+        corners
+    }
+
+    /// The 8 corner weights (one vector per corner, [`Footprint`] order) of the 8 samples.
+    #[inline(always)]
+    fn trilinear_weights([fx, fy, fz]: [__m256; 3], one: __m256) -> [__m256; 8] {
+        // SAFETY (of the intrinsics): only called from `march`, which has AVX2.
+        unsafe {
+            let (gx, gy, gz) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy), _mm256_sub_ps(one, fz));
+            let face = [_mm256_mul_ps(gx, gy), _mm256_mul_ps(fx, gy), _mm256_mul_ps(gx, fy), _mm256_mul_ps(fx, fy)];
+            std::array::from_fn(|c| _mm256_mul_ps(face[c % 4], if c < 4 { gz } else { fz }))
+        }
+    }
+
+    /// Hands the block's first `valid` samples to the recorder: their weights masked to +0
+    /// where not active (as multiplying by 0 does: the weights are ≥ +0) and transposed to one
+    /// row per sample, and for each sample whether its cell is the previous one's.
+    #[inline(always)]
+    fn record(
+        recorder: &mut Recorder<f32>,
+        valid: usize,
+        cell: __m256i,
+        plane: __m256i,
+        active: __m256,
+        weights: [__m256; 8],
+    ) {
+        let (mut cells, mut planes, mut same) = ([0u32; LANES], [0u32; LANES], [0u32; LANES]);
+        let mut rows = [[0f32; 8]; LANES];
+        // SAFETY (of the intrinsics): only called from `march`, which has AVX2; the stores
+        // write whole local arrays of the vectors' sizes.
+        unsafe {
+            let previous = _mm256_permutevar8x32_epi32(cell, _mm256_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6));
+            let previous = _mm256_blend_epi32::<1>(previous, _mm256_set1_epi32(recorder.open.cell as i32));
+            let same_cell = _mm256_cmpeq_epi32(cell, previous);
+            _mm256_storeu_si256(cells.as_mut_ptr() as *mut __m256i, cell);
+            _mm256_storeu_si256(planes.as_mut_ptr() as *mut __m256i, plane);
+            _mm256_storeu_si256(same.as_mut_ptr() as *mut __m256i, same_cell);
+            for (row, v) in rows.iter_mut().zip(transpose(weights.map(|w| _mm256_and_ps(w, active)))) {
+                _mm256_storeu_ps(row.as_mut_ptr(), v);
+            }
+            let bits = |mask: __m256| _mm256_movemask_ps(mask) as u32;
+            let blocks = Block { cells, planes, same, same_bits: bits(_mm256_castsi256_ps(same_cell)), rows };
+            add_samples(recorder, &blocks, valid, bits(active));
+        }
+    }
+
+    /// A block's samples for the recorder (see [`record`]).
+    struct Block {
+        cells: [u32; LANES],
+        planes: [u32; LANES],
+        /// All ones where the sample's cell is the previous sample's (or the open record's).
+        same: [u32; LANES],
+        same_bits: u32,
+        /// Each sample's 8 weights, +0 where the sample is not active.
+        rows: [[f32; 8]; LANES],
+    }
+
+    /// [`Recorder::add`] for the first `valid` samples of `block` in turn, its 0/1 factors as
+    /// lane masks (as 0/1 floats they compiled to unpredictable branches); `active` has a bit
+    /// per sample. Not inlined: inside the walk's loop the open record's vector was spilled,
+    /// putting a store and a load on its dependency chain.
+    #[target_feature(enable = "avx2")]
+    #[inline(never)]
+    fn add_samples(recorder: &mut Recorder<f32>, block: &Block, valid: usize, active: u32) {
+        // SAFETY: the loads and stores address whole arrays of 8 f32 (or one u32).
+        unsafe {
+            let mut open = _mm256_loadu_ps(recorder.open.weights.as_ptr());
+            let (mut len, mut open_active) = (recorder.len, u32::from(recorder.open_active));
+            for lane in 0..valid.min(LANES) {
+                let (same, is_active) = (block.same_bits >> lane & 1, active >> lane & 1);
+                len += ((same ^ 1) & open_active) as usize;
+                open_active = (open_active & same) | is_active;
+                let keep = _mm256_broadcast_ss(&*(block.same.as_ptr().add(lane) as *const f32));
+                open = _mm256_add_ps(_mm256_and_ps(open, keep), _mm256_loadu_ps(block.rows[lane].as_ptr()));
+                let slot = &mut recorder.slots[len];
+                (slot.cell, slot.plane) = (block.cells[lane], block.planes[lane]);
+                _mm256_storeu_ps(slot.weights.as_mut_ptr(), open);
+            }
+            if valid > 0 {
+                let last = valid.min(LANES) - 1;
+                (recorder.open.cell, recorder.open.plane) = (block.cells[last], block.planes[last]);
+            }
+            (recorder.len, recorder.open_active) = (len, open_active == 1);
+            _mm256_storeu_ps(recorder.open.weights.as_mut_ptr(), open);
+        }
+    }
+
+    /// The 8 × 8 transpose: rows (corners × samples) to rows (samples × corners).
+    #[inline(always)]
+    fn transpose(r: [__m256; 8]) -> [__m256; 8] {
+        // SAFETY (of the intrinsics): only called from `march`, which has AVX2.
+        unsafe {
+            let t: [__m256; 8] = [
+                _mm256_unpacklo_ps(r[0], r[1]),
+                _mm256_unpackhi_ps(r[0], r[1]),
+                _mm256_unpacklo_ps(r[2], r[3]),
+                _mm256_unpackhi_ps(r[2], r[3]),
+                _mm256_unpacklo_ps(r[4], r[5]),
+                _mm256_unpackhi_ps(r[4], r[5]),
+                _mm256_unpacklo_ps(r[6], r[7]),
+                _mm256_unpackhi_ps(r[6], r[7]),
+            ];
+            let u: [__m256; 8] = [
+                _mm256_shuffle_ps::<0x44>(t[0], t[2]),
+                _mm256_shuffle_ps::<0xEE>(t[0], t[2]),
+                _mm256_shuffle_ps::<0x44>(t[1], t[3]),
+                _mm256_shuffle_ps::<0xEE>(t[1], t[3]),
+                _mm256_shuffle_ps::<0x44>(t[4], t[6]),
+                _mm256_shuffle_ps::<0xEE>(t[4], t[6]),
+                _mm256_shuffle_ps::<0x44>(t[5], t[7]),
+                _mm256_shuffle_ps::<0xEE>(t[5], t[7]),
+            ];
+            [
+                _mm256_permute2f128_ps::<0x20>(u[0], u[4]),
+                _mm256_permute2f128_ps::<0x20>(u[1], u[5]),
+                _mm256_permute2f128_ps::<0x20>(u[2], u[6]),
+                _mm256_permute2f128_ps::<0x20>(u[3], u[7]),
+                _mm256_permute2f128_ps::<0x31>(u[0], u[4]),
+                _mm256_permute2f128_ps::<0x31>(u[1], u[5]),
+                _mm256_permute2f128_ps::<0x31>(u[2], u[6]),
+                _mm256_permute2f128_ps::<0x31>(u[3], u[7]),
+            ]
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Walks of random rays (some starting or ending outside the lattice, so clamped) through
+    /// a random field, with and without a mask.
+    /// A ray: first sample's node index, increment, sample count.
+    type Case = ([f32; 3], [f32; 3], usize);
+
+    fn cases(n: usize, seed: u64) -> (Vec<f32>, Vec<u32>, Vec<Case>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let dense = (0..n * n * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+        let kept = (0..n * n * n).map(|_| if rng.gen_bool(0.7) { u32::MAX } else { 0 }).collect();
+        let rays = (0..200)
+            .map(|_| {
+                let q0 = std::array::from_fn(|_| rng.gen_range(-2.0..n as f32 + 1.0));
+                let dq = std::array::from_fn(|_| rng.gen_range(-0.6..0.6));
+                (q0, dq, rng.gen_range(0..70))
+            })
+            .collect();
+        (dense, kept, rays)
+    }
+
+    fn walk_with<'a>(dense: &'a [f32], kept: Option<&'a [u32]>, n: usize, ray: Case) -> RayWalk<'a, f32> {
+        RayWalk { dense, kept, q0: ray.0, dq: ray.1, count: ray.2, n, shift: 0.1 }
+    }
+
+    #[test]
+    fn merged_footprints_hold_every_active_samples_weights() {
+        // The footprints' weights summed per cell equal the active samples' trilinear weights
+        // summed per cell, and the depth is the sum of the active σ.
+        let n = 5;
+        let (dense, _, rays) = cases(n, 3);
+        for &ray in &rays {
+            let walk = walk_with(&dense, None, n, ray);
+            let mut slots = vec![Footprint::none(); ray.2 + 1];
+            let (depth, len) = portable::<f32, true>(&walk, &mut slots);
+            let (mut expected_depth, mut expected) = (0.0f64, std::collections::BTreeMap::new());
+            let mut from_records = std::collections::BTreeMap::new();
+            for k in 0..ray.2 {
+                let one = RayWalk {
+                    q0: std::array::from_fn(|a| ray.0[a] + k as f32 * ray.1[a]),
+                    count: 1,
+                    ..walk_with(&dense, None, n, ray)
+                };
+                let mut slot = vec![Footprint::none(); 2];
+                let (sigma, active) = portable::<f32, true>(&one, &mut slot);
+                expected_depth += f64::from(sigma);
+                if active == 1 {
+                    let w: &mut [f64; 8] = expected.entry(slot[0].cell).or_insert([0.0; 8]);
+                    w.iter_mut().zip(slot[0].weights).for_each(|(a, b)| *a += f64::from(b));
+                }
+            }
+            for f in &slots[..len] {
+                let w: &mut [f64; 8] = from_records.entry(f.cell).or_insert([0.0; 8]);
+                w.iter_mut().zip(f.weights).for_each(|(a, b)| *a += f64::from(b));
+            }
+            assert!((f64::from(depth) - expected_depth).abs() < 1e-4 * expected_depth.max(1.0));
+            assert_eq!(expected.keys().collect::<Vec<_>>(), from_records.keys().collect::<Vec<_>>());
+            for (a, b) in expected.values().zip(from_records.values()) {
+                assert!(a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5), "{a:?} vs {b:?}");
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_avx2_walk_is_bit_identical_to_the_portable_one() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            eprintln!("no AVX2 on this CPU: nothing to compare");
+            return;
+        }
+        for (n, seed) in [(2, 1), (7, 2), (64, 3)] {
+            let (dense, kept, rays) = cases(n, seed);
+            for mask in [None, Some(kept.as_slice())] {
+                for &ray in &rays {
+                    let walk = walk_with(&dense, mask, n, ray);
+                    let (mut a, mut b) = (vec![Footprint::none(); ray.2 + 1], vec![Footprint::none(); ray.2 + 1]);
+                    let (depth_a, len_a) = portable::<f32, true>(&walk, &mut a);
+                    // SAFETY: AVX2 checked above; the field and mask hold n³ values.
+                    let (depth_b, len_b) = unsafe { avx2::march::<true>(&walk, &mut b) };
+                    assert_eq!(depth_a.to_bits(), depth_b.to_bits(), "n {n}, ray {ray:?}");
+                    assert_eq!(len_a, len_b);
+                    for (x, y) in a[..len_a].iter().zip(&b[..len_b]) {
+                        assert_eq!((x.cell, x.plane), (y.cell, y.plane));
+                        assert_eq!(x.weights.map(f32::to_bits), y.weights.map(f32::to_bits));
+                    }
+                    // SAFETY: as above.
+                    let (depth_c, _) = unsafe { avx2::march::<false>(&walk, &mut Vec::new()) };
+                    assert_eq!(depth_a.to_bits(), depth_c.to_bits());
+                }
+            }
+        }
+    }
+}
