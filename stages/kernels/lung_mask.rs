@@ -73,24 +73,27 @@ pub struct BlobPeak {
     pub scale_mm: f64,
 }
 
-/// The strongest bright-blob response (−s²∇²G_s * σ, max over `scales_mm`) at a voxel more than
-/// `inside_mm` inside `region`: edges of the region respond too, and a nodule is a blob
-/// surrounded by lung. `None` when no such voxel has a positive response.
+/// The voxels more than `inside_mm` inside `region`, where a blob centre may lie: edges of the
+/// region respond too, and a nodule is a blob surrounded by lung.
+pub fn blob_sites(region: &[bool], dims: [usize; 3], spacing_mm: [f64; 3], inside_mm: f64) -> Vec<bool> {
+    distance_inside_mm(region, dims, spacing_mm).iter().map(|&d| d > inside_mm).collect()
+}
+
+/// The strongest bright-blob response (−s²∇²G_s * σ, max over `scales_mm`) at one of the
+/// `sites` ([`blob_sites`]). `None` when no site has a positive response.
 pub fn strongest_blob(
     density: &[f32],
     dims: [usize; 3],
     spacing_mm: [f64; 3],
     scales_mm: &[f64],
-    region: &[bool],
-    inside_mm: f64,
+    sites: &[bool],
 ) -> Option<BlobPeak> {
-    let depth = distance_inside_mm(region, dims, spacing_mm);
     let mut best: Option<(usize, f32, f64)> = None;
     for &scale_mm in scales_mm {
         let response = blob_response(density, dims, spacing_mm, scale_mm);
         for (i, &r) in response.iter().enumerate() {
             // Strictly greater: ties keep the first scale, then the first voxel.
-            if depth[i] > inside_mm && r > 0.0 && best.is_none_or(|(_, b, _)| r > b) {
+            if sites[i] && r > 0.0 && best.is_none_or(|(_, b, _)| r > b) {
                 best = Some((i, r, scale_mm));
             }
         }

@@ -5,7 +5,8 @@
 //! closing with a radius-`closing_radius` ball on the zero-padded mask; components again; keep
 //! those whose equivalent-sphere diameter is within `diameter_mm`. Outputs: `sweep.csv` (one
 //! row per threshold × candidate) and `sweep.json` (the same, with the parameters, for select,
-//! which regenerates candidate masks with [`levels`]).
+//! which regenerates candidate masks with [`levels`]), and `lung_field.mhd/.raw` when the
+//! region is the lung field.
 //!
 //! Two switches (issue 8; the paper's sweep is `score = "density"`, `region = "box"`): the
 //! thresholded `score` may be the local contrast σ − G(σ, `background_mm`) instead of σ, and
@@ -13,6 +14,7 @@
 //! taken over the region's values and candidates lie inside it.
 
 use crate::engine::{Context, Output, Stage};
+use crate::formats::mhd;
 use crate::kernels::components::{label, Components, Connectivity};
 use crate::kernels::lung_mask::{local_contrast, lung_field};
 use crate::kernels::{morphology, stats};
@@ -22,7 +24,11 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 
-pub const VERSION: u32 = 2;
+// 3: writes the lung field it swept.
+pub const VERSION: u32 = 3;
+
+/// The lung field output (`.mhd/.raw`, 1 inside), written when `region = "lung_field"`.
+pub const LUNG_FIELD: &str = "lung_field";
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -133,18 +139,28 @@ pub struct Scored {
     pub region: Option<Vec<bool>>,
 }
 
-/// What `params` thresholds, and where.
-pub fn scored(density: &Volume<f32>, params: &Params) -> anyhow::Result<Scored> {
+/// The lung field of `density` as the sweep uses it (`region = "lung_field"`), or an error
+/// that says which key to change when there is none.
+pub fn lung_field_of(density: &Volume<f32>) -> anyhow::Result<Vec<bool>> {
+    match lung_field(&density.data, density.geometry.dims, density.geometry.spacing_mm) {
+        Some(lungs) if lungs.field.iter().any(|&b| b) => Ok(lungs.field),
+        _ => bail!(
+            "no lung field found in the density (no band of parenchyma between air and tissue: \
+             too coarse a grid or too short a fit?); use [sweep] region = \"box\" for such runs"
+        ),
+    }
+}
+
+/// What `params` thresholds, and where. `lungs` is the density's lung field when the caller
+/// already has it (select reads the sweep's); otherwise it is found here when the region needs it.
+pub fn scored(density: &Volume<f32>, params: &Params, lungs: Option<Vec<bool>>) -> anyhow::Result<Scored> {
     let (dims, spacing) = (density.geometry.dims, density.geometry.spacing_mm);
     let region = match params.region {
         Region::Box => None,
-        Region::LungField => match lung_field(&density.data, dims, spacing) {
-            Some(lungs) if lungs.field.iter().any(|&b| b) => Some(lungs.field),
-            _ => bail!(
-                "no lung field found in the density (no band of parenchyma between air and tissue: \
-                 too coarse a grid or too short a fit?); use [sweep] region = \"box\" for such runs"
-            ),
-        },
+        Region::LungField => Some(match lungs {
+            Some(lungs) => lungs,
+            None => lung_field_of(density)?,
+        }),
     };
     let data = match params.score {
         Score::Density => density.data.clone(),
@@ -155,8 +171,13 @@ pub fn scored(density: &Volume<f32>, params: &Params) -> anyhow::Result<Scored> 
 
 /// Every threshold's candidates (pure: the same density and parameters give the same levels).
 pub fn levels(density: &Volume<f32>, params: &Params) -> anyhow::Result<Vec<Level>> {
-    let Scored { score, region } = scored(density, params)?;
-    let values: Vec<f64> = match (&region, params.score) {
+    levels_of(&scored(density, params, None)?, params)
+}
+
+/// [`levels`] of an already scored density.
+pub fn levels_of(scored: &Scored, params: &Params) -> anyhow::Result<Vec<Level>> {
+    let Scored { score, region } = scored;
+    let values: Vec<f64> = match (region, params.score) {
         (None, Score::Density) => score.data.iter().filter(|&&v| v != 0.0).map(|&v| f64::from(v)).collect(),
         (None, Score::LocalContrast) => score.data.iter().map(|&v| f64::from(v)).collect(),
         (Some(r), _) => score.data.iter().zip(r).filter(|(_, &inside)| inside).map(|(&v, _)| f64::from(v)).collect(),
@@ -170,7 +191,7 @@ pub fn levels(density: &Volume<f32>, params: &Params) -> anyhow::Result<Vec<Leve
         .percentiles
         .par_iter()
         .zip(thresholds)
-        .map(|(&percentile, threshold)| level(&score, region.as_deref(), params, percentile, threshold))
+        .map(|(&percentile, threshold)| level(score, region.as_deref(), params, percentile, threshold))
         .collect())
 }
 
@@ -267,12 +288,22 @@ impl Stage for Sweep {
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         self.params.check()?;
         let density: Volume<f32> = super::read_volume(ctx, "grid", "density")?;
+        let scored = scored(&density, &self.params, None)?;
         let candidates: Vec<Candidate> =
-            levels(&density, &self.params)?.into_iter().flat_map(|l| l.candidates).collect();
+            levels_of(&scored, &self.params)?.into_iter().flat_map(|l| l.candidates).collect();
         let file = SweepFile { params: self.params.clone(), candidates };
-        Ok(vec![
+        let mut outputs = vec![
             Output::new("sweep.csv", sweep_csv(&file.candidates)),
             Output::new("sweep.json", serde_json::to_vec_pretty(&file)?),
-        ])
+        ];
+        // The lung field, for select (which would otherwise find it again) and for viewing.
+        if let Some(region) = &scored.region {
+            let volume =
+                Volume { geometry: density.geometry.clone(), data: region.iter().map(|&b| u8::from(b)).collect() };
+            let (header, raw) = mhd::encode(&volume, &format!("{LUNG_FIELD}.raw"));
+            outputs.push(Output::new(format!("{LUNG_FIELD}.mhd"), header));
+            outputs.push(Output::new(format!("{LUNG_FIELD}.raw"), raw));
+        }
+        Ok(outputs)
     }
 }

@@ -10,7 +10,8 @@
 //!   uses the one scale matched to the annotated diameter (s = d / (2√3): a ball of radius
 //!   √3·s answers most at s); the blind rules the maximum over `blob_scales_mm`.
 
-use crate::kernels::lung_mask::{lung_field, strongest_blob, BlobPeak};
+use super::Params;
+use crate::kernels::lung_mask::{blob_sites, lung_field, strongest_blob, BlobPeak};
 use crate::volume::Volume;
 use serde::{Deserialize, Serialize};
 
@@ -47,18 +48,19 @@ impl Centre {
     }
 }
 
-/// Finds the centres `how` asks for in `density`. `origin_mm` is the scene origin,
+/// Finds the centres `params.localize` asks for in `density`, whose lung field is `lungs` when
+/// the caller has it (else it is found here, for `blob`). `origin_mm` is the scene origin,
 /// `annotated_diameter_mm` the guided rule's diameter, `coverage` the ground truth's
 /// per-cell coverage (only to report whether a centre is on the nodule).
 pub fn centres(
-    how: Localize,
+    params: &Params,
     density: &Volume<f32>,
+    lungs: Option<&[bool]>,
     origin_mm: [f64; 3],
     annotated_diameter_mm: Option<f64>,
-    blob_scales_mm: &[f64],
-    inside_mm: f64,
     coverage: Option<&[f32]>,
 ) -> Centres {
+    let Params { localize, ref blob_scales_mm, inside_mm, .. } = *params;
     let geometry = &density.geometry;
     let (dims, spacing) = (geometry.dims, geometry.spacing_mm);
     let centre = |voxel: [usize; 3], blob: Option<BlobPeak>| Centre {
@@ -67,19 +69,33 @@ pub fn centres(
         blob,
         on_nodule: coverage.map(|c| c[voxel[0] + dims[0] * (voxel[1] + dims[1] * voxel[2])] > 0.0),
     };
-    match how {
+    match localize {
         Localize::None => Centres::default(),
         Localize::Origin => {
             let voxel = geometry.nearest_voxel(origin_mm);
             Centres { guided: Some(centre(voxel, None)), blind: Some(centre(voxel, None)), note: None }
         }
         Localize::Blob => {
-            let Some(lungs) = lung_field(&density.data, dims, spacing) else {
-                return Centres { note: Some("no lung field found in the density".into()), ..Centres::default() };
+            let found;
+            let lungs = match lungs {
+                Some(lungs) => lungs,
+                None => match lung_field(&density.data, dims, spacing) {
+                    Some(l) => {
+                        found = l.field;
+                        &found
+                    }
+                    None => {
+                        return Centres {
+                            note: Some("no lung field found in the density".into()),
+                            ..Centres::default()
+                        }
+                    }
+                },
             };
+            // Both rules search the same sites.
+            let sites = blob_sites(lungs, dims, spacing, inside_mm);
             let peak = |scales: &[f64]| {
-                strongest_blob(&density.data, dims, spacing, scales, &lungs.field, inside_mm)
-                    .map(|p| centre(p.voxel, Some(p)))
+                strongest_blob(&density.data, dims, spacing, scales, &sites).map(|p| centre(p.voxel, Some(p)))
             };
             let matched = annotated_diameter_mm.map(|d| [0.5 * d / 3f64.sqrt()]);
             let (guided, blind) = (matched.and_then(|s| peak(&s)), peak(blob_scales_mm));

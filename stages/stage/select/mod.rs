@@ -27,7 +27,7 @@ use crate::kernels::marching_cubes::mesh_mask;
 use crate::kernels::mesh::{enclosed_volume_mm3, vertex_normals};
 use crate::stage::drr::CameraSet;
 use crate::stage::ingest::truth::GroundTruth;
-use crate::stage::sweep::{levels, Candidate, SweepFile};
+use crate::stage::sweep::{levels_of, scored, Candidate, Region, SweepFile, LUNG_FIELD};
 use crate::volume::Volume;
 use anyhow::{bail, Context as _};
 use serde::{Deserialize, Serialize};
@@ -36,7 +36,7 @@ mod localize;
 mod preview;
 mod rules;
 
-pub use localize::{Centre, Centres, Localize};
+pub use localize::{centres, Centre, Centres, Localize};
 pub use rules::Analysis;
 
 pub const VERSION: u32 = 6;
@@ -166,7 +166,7 @@ impl Stage for Select {
         match stage {
             "ingest" => output == "ground_truth.json" || output.starts_with("gt_mask."),
             "grid" => output == "density.mhd" || output == "density.raw",
-            "sweep" => output == "sweep.json",
+            "sweep" => output == "sweep.json" || output.starts_with(&format!("{LUNG_FIELD}.")),
             "drr" => output == "cameras.json",
             _ => false,
         }
@@ -183,7 +183,16 @@ impl Stage for Select {
             Some(_) => Some(ground_truth_on_grid(&super::read_volume(ctx, "ingest", "gt_mask")?, &density.geometry)?),
             None => None,
         };
-        let levels = levels(&density, &sweep.params)?;
+        // The sweep's lung field, when it swept one: the same σ gives the same field.
+        let lungs = match sweep.params.region {
+            Region::LungField => {
+                let field: Volume<u8> = super::read_volume(ctx, "sweep", LUNG_FIELD)?;
+                Some(field.data.iter().map(|&v| v != 0).collect::<Vec<bool>>())
+            }
+            Region::Box => None,
+        };
+        let scored = scored(&density, &sweep.params, lungs)?;
+        let levels = levels_of(&scored, &sweep.params)?;
         let found: Vec<Candidate> = levels.iter().flat_map(|l| l.candidates.iter().cloned()).collect();
         let key = |c: &Candidate| (c.label, c.voxels);
         if !found.iter().map(key).eq(sweep.candidates.iter().map(key)) {
@@ -193,12 +202,11 @@ impl Stage for Select {
         let annotated = target.map(|t| t.annotated_diameter_mm);
         let p = &self.params;
         let centres = localize::centres(
-            p.localize,
+            p,
             &density,
+            scored.region.as_deref(),
             cameras.frame.roi_center_mm,
             annotated,
-            &p.blob_scales_mm,
-            p.inside_mm,
             gt.as_ref().map(|g| g.coverage.as_slice()),
         );
         let dims = density.geometry.dims;
