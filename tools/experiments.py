@@ -38,6 +38,10 @@ ROWS = [
      "the same, centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
     ("blind", "presets/blind.toml", "C", "C",
      "the default method, scene centred on the lungs (roi_center = \"lungs\"), blind rule primary"),
+    ("blind-chest", "presets/blind_chest.toml", "C", "C",
+     "the same, with a box that holds the whole chest (380 × 280 × 400 mm) instead of the paper's"),
+    ("tv3d-strong", "presets/tv3d_strong.toml", "B", "C*",
+     "the default with ten times the 3-D TV (λ = 1e-3)"),
 ]
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
 LEVELS = {

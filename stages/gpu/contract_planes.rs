@@ -1,7 +1,7 @@
 //! Host of `shaders/contract_planes.wgsl`: `dL/dF` onto the plane factors (the plane half of
 //! `train::field::VmField::contract`), one invocation per plane entry.
 
-use super::kernel::{groups, whole, Binding, Bound, Kernel, WORKGROUP};
+use super::kernel::{ItemKernel, WORKGROUP};
 use super::Gpu;
 use bytemuck::{Pod, Zeroable};
 
@@ -17,28 +17,7 @@ pub struct Shape {
     pub _pad: u32,
 }
 
-pub struct ContractPlanes(Kernel);
-
-impl ContractPlanes {
-    pub fn new(gpu: &Gpu) -> anyhow::Result<ContractPlanes> {
-        let storage = |read_only| Binding::Storage { read_only };
-        let bindings = [Binding::Uniform, storage(true), storage(true), storage(false)];
-        Ok(ContractPlanes(Kernel::new(gpu, "contract_planes", SOURCE, &bindings)?))
-    }
-
-    pub fn bind(
-        &self,
-        gpu: &Gpu,
-        shape: (&wgpu::Buffer, Shape),
-        factors: &wgpu::Buffer,
-        dense_grad: &wgpu::Buffer,
-        grad: &wgpu::Buffer,
-    ) -> anyhow::Result<Bound> {
-        let group = self.0.bind(gpu, &[whole(shape.0), whole(factors), whole(dense_grad), whole(grad)]);
-        Ok(Bound { group, groups: groups(gpu, u64::from(shape.1.entries), WORKGROUP)? })
-    }
-
-    pub fn record(&self, encoder: &mut wgpu::CommandEncoder, bound: &Bound) {
-        self.0.record(encoder, bound);
-    }
+/// Compiles the kernel. Storage: factors, `dL/dF` (read), the factor gradient (written); items: plane entries.
+pub fn kernel(gpu: &Gpu) -> anyhow::Result<ItemKernel> {
+    ItemKernel::new(gpu, "contract_planes", SOURCE, [true, true, false], WORKGROUP)
 }

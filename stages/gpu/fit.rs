@@ -10,13 +10,13 @@ use super::adam::{self, Adam};
 use super::alpha_mask::{self, AlphaMask as AlphaMaskKernel};
 use super::buffers;
 use super::compose::{self, Compose};
-use super::contract_lines::{self, ContractLines};
-use super::contract_planes::{self, ContractPlanes};
-use super::kernel::Bound;
-use super::l1::{self, L1};
+use super::contract_lines;
+use super::contract_planes;
+use super::kernel::{Bound, ItemKernel};
+use super::l1;
 use super::render::{self, RaySamples, Render};
-use super::tv::{self, Tv};
-use super::tv_dense::{self, TvDense};
+use super::tv;
+use super::tv_dense;
 use super::Gpu;
 use crate::train::adam::AdamParams;
 use crate::train::field::VmField;
@@ -33,11 +33,11 @@ const IN_FLIGHT: usize = 8;
 pub struct Kernels {
     compose: Compose,
     render: Render,
-    contract_planes: ContractPlanes,
-    contract_lines: ContractLines,
-    l1: L1,
-    tv: Tv,
-    tv_dense: TvDense,
+    contract_planes: ItemKernel,
+    contract_lines: ItemKernel,
+    l1: ItemKernel,
+    tv: ItemKernel,
+    tv_dense: ItemKernel,
     adam: Adam,
     alpha_mask: AlphaMaskKernel,
 }
@@ -47,11 +47,11 @@ impl Kernels {
         Ok(Kernels {
             compose: Compose::new(gpu)?,
             render: Render::new(gpu)?,
-            contract_planes: ContractPlanes::new(gpu)?,
-            contract_lines: ContractLines::new(gpu)?,
-            l1: L1::new(gpu)?,
-            tv: Tv::new(gpu)?,
-            tv_dense: TvDense::new(gpu)?,
+            contract_planes: contract_planes::kernel(gpu)?,
+            contract_lines: contract_lines::kernel(gpu)?,
+            l1: l1::kernel(gpu)?,
+            tv: tv::kernel(gpu)?,
+            tv_dense: tv_dense::kernel(gpu)?,
             adam: Adam::new(gpu)?,
             alpha_mask: AlphaMaskKernel::new(gpu)?,
         })
@@ -240,26 +240,26 @@ impl<'g> DeviceFit<'g> {
         let planes =
             contract_planes::Shape { n: n as u32, rank: rank as u32, entries: (3 * rank * n * n) as u32, _pad: 0 };
         let planes_u = buffers::uniform(gpu, "contract planes", &planes);
-        let planes_b = k.contract_planes.bind(gpu, (&planes_u, planes), &factors, &dense_grad, &grad)?;
+        let planes_b = k.contract_planes.bind(gpu, &planes_u, [&factors, &dense_grad, &grad], planes.entries)?;
         let lines = contract_lines::Shape { n: n as u32, rank: rank as u32, entries: (3 * rank * n) as u32, _pad: 0 };
         let lines_u = buffers::uniform(gpu, "contract lines", &lines);
-        let lines_b = k.contract_lines.bind(gpu, (&lines_u, lines), &factors, &dense_grad, &grad)?;
+        let lines_b = k.contract_lines.bind(gpu, &lines_u, [&factors, &dense_grad, &grad], lines.entries)?;
         let l1_values = l1::Uniforms::new(n, rank, params.lambda_l1);
         let l1_u = buffers::uniform(gpu, "l1", &l1_values);
         let l1_count = l1::partials(gpu, l1_values.entries)?;
         let l1_partials = buffers::zeroed(gpu, "l1 partials", bytes(l1_count))?;
-        let l1_b = k.l1.bind(gpu, (&l1_u, l1_values), &factors, &grad, &l1_partials)?;
+        let l1_b = k.l1.bind(gpu, &l1_u, [&factors, &grad, &l1_partials], l1_values.entries)?;
         let tv_values = tv::Uniforms::new(n, rank, params.tv_norm, params.lambda_tv);
         let tv_u = buffers::uniform(gpu, "tv", &tv_values);
         let tv_count = l1::partials(gpu, tv_values.entries)?;
         let tv_partials = buffers::zeroed(gpu, "tv partials", bytes(tv_count))?;
-        let tv_b = k.tv.bind(gpu, (&tv_u, tv_values), &factors, &grad, &tv_partials)?;
+        let tv_b = k.tv.bind(gpu, &tv_u, [&factors, &grad, &tv_partials], tv_values.entries)?;
         let tv_dense_values = tv_dense::Uniforms::new(n, params.lambda_tv3d);
         let tv_dense_u = buffers::uniform(gpu, "tv dense", &tv_dense_values);
         let tv_dense_count = l1::partials(gpu, tv_dense_values.nodes)?;
         let tv_dense_partials = buffers::zeroed(gpu, "tv dense partials", bytes(tv_dense_count))?;
         let tv_dense_b =
-            k.tv_dense.bind(gpu, (&tv_dense_u, tv_dense_values), &dense, &dense_grad, &tv_dense_partials)?;
+            k.tv_dense.bind(gpu, &tv_dense_u, [&dense, &dense_grad, &tv_dense_partials], tv_dense_values.nodes)?;
         let adam_params = params.adam();
         let adam_u = buffers::uniform(gpu, "adam", &adam::Uniforms::new(entries, &adam_params, &adam_params.step(0)));
         let adam_b = k.adam.bind(gpu, &adam_u, &grad, &factors, [&moments[0], &moments[1]], entries)?;

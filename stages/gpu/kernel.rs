@@ -125,3 +125,44 @@ pub fn groups(gpu: &Gpu, items: u64, per_group: u32) -> anyhow::Result<[u32; 3]>
     }
     Ok([needed.div_ceil(y) as u32, y as u32, 1])
 }
+
+/// The shape five kernels share (contract planes and lines, L1, TV, 3-D TV): a uniform block,
+/// then three storage buffers, and a dispatch of `items_per_group` work items per workgroup
+/// (`WORKGROUP` for one invocation per item, 1 for one workgroup per item). Their host files
+/// keep what differs: the uniform struct and which buffers the shader only reads.
+pub struct ItemKernel {
+    kernel: Kernel,
+    items_per_group: u32,
+}
+
+impl ItemKernel {
+    /// Compiles `source` with bindings `[uniform, storage × 3]`, the storage buffers read only
+    /// where `read_only` says so.
+    pub fn new(
+        gpu: &Gpu,
+        name: &'static str,
+        source: &str,
+        read_only: [bool; 3],
+        items_per_group: u32,
+    ) -> anyhow::Result<ItemKernel> {
+        let [a, b, c] = read_only.map(|read_only| Binding::Storage { read_only });
+        Ok(ItemKernel { kernel: Kernel::new(gpu, name, source, &[Binding::Uniform, a, b, c])?, items_per_group })
+    }
+
+    /// Binds `uniforms` and `storage` (in the shader's order) for a dispatch over `items`.
+    pub fn bind(
+        &self,
+        gpu: &Gpu,
+        uniforms: &wgpu::Buffer,
+        storage: [&wgpu::Buffer; 3],
+        items: u32,
+    ) -> anyhow::Result<Bound> {
+        let [a, b, c] = storage;
+        let group = self.kernel.bind(gpu, &[whole(uniforms), whole(a), whole(b), whole(c)]);
+        Ok(Bound { group, groups: groups(gpu, u64::from(items), self.items_per_group)? })
+    }
+
+    pub fn record(&self, encoder: &mut wgpu::CommandEncoder, bound: &Bound) {
+        self.kernel.record(encoder, bound);
+    }
+}

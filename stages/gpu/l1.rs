@@ -1,7 +1,7 @@
 //! Host of `shaders/l1.wgsl`: the L1 regulariser's gradient and value
 //! (`train::regularize::l1`), one invocation per parameter.
 
-use super::kernel::{groups, whole, Binding, Bound, Kernel, WORKGROUP};
+use super::kernel::{groups, ItemKernel, WORKGROUP};
 use super::Gpu;
 use bytemuck::{Pod, Zeroable};
 
@@ -40,29 +40,7 @@ pub fn partials(gpu: &Gpu, entries: u32) -> anyhow::Result<usize> {
     Ok(x as usize * y as usize)
 }
 
-pub struct L1(Kernel);
-
-impl L1 {
-    pub fn new(gpu: &Gpu) -> anyhow::Result<L1> {
-        let storage = |read_only| Binding::Storage { read_only };
-        let bindings = [Binding::Uniform, storage(true), storage(false), storage(false)];
-        Ok(L1(Kernel::new(gpu, "l1", SOURCE, &bindings)?))
-    }
-
-    /// `partials` holds [`partials`]`(entries)` floats.
-    pub fn bind(
-        &self,
-        gpu: &Gpu,
-        uniforms: (&wgpu::Buffer, Uniforms),
-        factors: &wgpu::Buffer,
-        grad: &wgpu::Buffer,
-        partials: &wgpu::Buffer,
-    ) -> anyhow::Result<Bound> {
-        let group = self.0.bind(gpu, &[whole(uniforms.0), whole(factors), whole(grad), whole(partials)]);
-        Ok(Bound { group, groups: groups(gpu, u64::from(uniforms.1.entries), WORKGROUP)? })
-    }
-
-    pub fn record(&self, encoder: &mut wgpu::CommandEncoder, bound: &Bound) {
-        self.0.record(encoder, bound);
-    }
+/// Compiles the kernel. Storage: factors (read), the factor gradient (added to), [`partials`] of the value; items: `entries`.
+pub fn kernel(gpu: &Gpu) -> anyhow::Result<ItemKernel> {
+    ItemKernel::new(gpu, "l1", SOURCE, [true, false, false], WORKGROUP)
 }

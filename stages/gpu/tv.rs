@@ -1,7 +1,7 @@
 //! Host of `shaders/tv.wgsl`: the TV regulariser of the density planes, its gradient and value
 //! (`train::regularize::tv`), one invocation per plane entry.
 
-use super::kernel::{groups, whole, Binding, Bound, Kernel, WORKGROUP};
+use super::kernel::{ItemKernel, WORKGROUP};
 use super::Gpu;
 use crate::train::regularize::TvNorm;
 use bytemuck::{Pod, Zeroable};
@@ -37,29 +37,7 @@ impl Uniforms {
     }
 }
 
-pub struct Tv(Kernel);
-
-impl Tv {
-    pub fn new(gpu: &Gpu) -> anyhow::Result<Tv> {
-        let storage = |read_only| Binding::Storage { read_only };
-        let bindings = [Binding::Uniform, storage(true), storage(false), storage(false)];
-        Ok(Tv(Kernel::new(gpu, "tv", SOURCE, &bindings)?))
-    }
-
-    /// `partials` holds [`super::l1::partials`]`(entries)` floats.
-    pub fn bind(
-        &self,
-        gpu: &Gpu,
-        uniforms: (&wgpu::Buffer, Uniforms),
-        factors: &wgpu::Buffer,
-        grad: &wgpu::Buffer,
-        partials: &wgpu::Buffer,
-    ) -> anyhow::Result<Bound> {
-        let group = self.0.bind(gpu, &[whole(uniforms.0), whole(factors), whole(grad), whole(partials)]);
-        Ok(Bound { group, groups: groups(gpu, u64::from(uniforms.1.entries), WORKGROUP)? })
-    }
-
-    pub fn record(&self, encoder: &mut wgpu::CommandEncoder, bound: &Bound) {
-        self.0.record(encoder, bound);
-    }
+/// Compiles the kernel. Storage: factors (read), the factor gradient (added to), [`super::l1::partials`] of the value; items: `entries`.
+pub fn kernel(gpu: &Gpu) -> anyhow::Result<ItemKernel> {
+    ItemKernel::new(gpu, "tv", SOURCE, [true, false, false], WORKGROUP)
 }

@@ -1,7 +1,7 @@
 //! Host of `shaders/tv_dense.wgsl`: the 3-D TV of the composed field, its gradient added to
 //! dF and its value (`train::regularize::tv_dense`), one invocation per lattice node.
 
-use super::kernel::{groups, whole, Binding, Bound, Kernel, WORKGROUP};
+use super::kernel::{ItemKernel, WORKGROUP};
 use super::Gpu;
 use bytemuck::{Pod, Zeroable};
 
@@ -33,29 +33,7 @@ impl Uniforms {
     }
 }
 
-pub struct TvDense(Kernel);
-
-impl TvDense {
-    pub fn new(gpu: &Gpu) -> anyhow::Result<TvDense> {
-        let storage = |read_only| Binding::Storage { read_only };
-        let bindings = [Binding::Uniform, storage(true), storage(false), storage(false)];
-        Ok(TvDense(Kernel::new(gpu, "tv_dense", SOURCE, &bindings)?))
-    }
-
-    /// `partials` holds `l1::partials(nodes)` floats.
-    pub fn bind(
-        &self,
-        gpu: &Gpu,
-        uniforms: (&wgpu::Buffer, Uniforms),
-        dense: &wgpu::Buffer,
-        dense_grad: &wgpu::Buffer,
-        partials: &wgpu::Buffer,
-    ) -> anyhow::Result<Bound> {
-        let group = self.0.bind(gpu, &[whole(uniforms.0), whole(dense), whole(dense_grad), whole(partials)]);
-        Ok(Bound { group, groups: groups(gpu, u64::from(uniforms.1.nodes), WORKGROUP)? })
-    }
-
-    pub fn record(&self, encoder: &mut wgpu::CommandEncoder, bound: &Bound) {
-        self.0.record(encoder, bound);
-    }
+/// Compiles the kernel. Storage: `F` (read), `dL/dF` (added to), [`super::l1::partials`] of the value; items: `nodes`.
+pub fn kernel(gpu: &Gpu) -> anyhow::Result<ItemKernel> {
+    ItemKernel::new(gpu, "tv_dense", SOURCE, [true, false, false], WORKGROUP)
 }
