@@ -43,6 +43,7 @@ ROWS = [
     ("tv3d-strong", "presets/tv3d_strong.toml", "B", "C*",
      "the default with ten times the 3-D TV (λ = 1e-3)"),
 ]
+MEASURED = "experiment.json"
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
 LEVELS = {
     "A": "location and diameter known",
@@ -63,6 +64,19 @@ def run(binary, config_path):
     started = time.time()
     subprocess.run([binary, "run", config_path], check=True, cwd=ROOT)
     return time.time() - started
+
+
+def commit():
+    """The checkout's commit, marked `+changes` when the working tree differs from it."""
+    git = lambda *a: subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    head = git("rev-parse", "--short", "HEAD") or "unknown"
+    return head + ("+changes" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
+def record_run(out):
+    """Notes in the row's out dir which commit produced its numbers (the table's last column)."""
+    with open(os.path.join(out, MEASURED), "w") as f:
+        json.dump({"commit": commit(), "date": time.strftime("%Y-%m-%d")}, f)
 
 
 def pct(x):
@@ -100,7 +114,10 @@ def row_numbers(out):
     hits = [r for r in rows if r["hit"] == "1"]
     beats = sum(float(r["ape_pct"]) < float(r["sphere_ape_pct"]) for r in hits)
     seconds = [float(r["train_seconds"]) for r in rows if r["train_seconds"]]
+    measured = os.path.join(out, MEASURED)
+    at = json.load(open(measured))["commit"] if os.path.exists(measured) else None
     return dict(
+        at=at,
         ge10=group("ge10mm"),
         all=group("all"),
         hits_beating_sphere=f"{beats}/{len(hits)}",
@@ -112,20 +129,20 @@ def table(results):
     lines = [
         "| row | config | level (primary / blind) | ≥10 mm hit: primary / blind / oracle | ≥10 mm median Dice"
         " | median APE: all / ≥10 mm / ≥10 mm over hits | blind APE over hits (≥10 mm) | all 19: hit / blind"
-        " | hits beating the sphere | train s (median) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        " | hits beating the sphere | train s (median) | measured at |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, config, level, blind_level, _ in ROWS:
         r = results.get(name)
         if r is None:
-            lines.append(f"| {name} | `{config}` | {level} / {blind_level} | not run | | | | | | |")
+            lines.append(f"| {name} | `{config}` | {level} / {blind_level} | not run | | | | | | | |")
             continue
         g, a = r["ge10"], r["all"]
         lines.append(
             f"| {name} | `{config}` | {level} / {blind_level} | {pct(g['hit'])} / {pct(g['blind'])} / {pct(g['oracle'])}"
             f" | {num(g['dice'], '{:.2f}')} | {num(a['ape_all'])}% / {num(g['ape_all'])}% / {num(g['ape_hits'])}%"
             f" | {num(g['blind_ape_hits'])}% | {pct(a['hit'])} / {pct(a['blind'])} | {r['hits_beating_sphere']}"
-            f" | {num(r['train_s'])} |"
+            f" | {num(r['train_s'])} | {r['at'] or '–'} |"
         )
     return "\n".join(lines)
 
@@ -143,6 +160,7 @@ def main():
         if not args.no_run and (not args.only or name in args.only):
             print(f"== {name}: aret-pipe run {config}", flush=True)
             print(f"   {run(args.bin, path):.0f} s", flush=True)
+            record_run(out_dir(path))
         out = out_dir(path)
         if os.path.exists(os.path.join(out, "summary.json")):
             results[name] = row_numbers(out)
