@@ -67,10 +67,12 @@ def run(binary, config_path):
 
 
 def commit():
-    """The checkout's commit, marked `+changes` when the working tree differs from it."""
+    """The checkout's commit, marked `+changes` when a tracked file other than the table's own
+    document differs from it."""
     git = lambda *a: subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     head = git("rev-parse", "--short", "HEAD") or "unknown"
-    return head + ("+changes" if git("status", "--porcelain", "--untracked-files=no") else "")
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":!docs/experiments.md")
+    return head + ("+changes" if changed else "")
 
 
 def record_run(out):
