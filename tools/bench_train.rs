@@ -97,8 +97,7 @@ fn profile_kernels(params: &TrainParams, views: &Views, field: &VmField<f32>) {
         (
             "L1 + TV",
             median_ms(&mut || {
-                regularize::l1(field, 1e-4, &mut grad);
-                regularize::tv(field, params.tv_norm, 1e-5, &mut grad);
+                regularize::l1_and_tv(field, Some(1e-4), Some((params.tv_norm, 1e-5)), &mut grad);
             }),
         ),
         (

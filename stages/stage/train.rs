@@ -13,7 +13,7 @@ use crate::train::fit::{fit, LogRow, Views};
 use anyhow::bail;
 use std::fmt::Write as _;
 
-pub const VERSION: u32 = 3;
+pub const VERSION: u32 = 4;
 
 /// `[train]` is the fit's own parameter table.
 pub use crate::train::fit::{Backend, TrainParams as Params};

@@ -63,17 +63,24 @@ impl<T: Float + Send + Sync> Adam<T> {
         let (b1, b2) = (c(p.beta1), c(p.beta2));
         let (lr_t, eps) = (c(lr_t), c(p.eps));
         let sqrt_bias2 = c(sqrt_bias2);
-        for (((x, g), m), v) in field.params_mut().zip(grad.params()).zip(self.m.params_mut()).zip(self.v.params_mut())
-        {
-            let chunks = x.par_chunks_mut(CHUNK).zip(m.par_chunks_mut(CHUNK)).zip(v.par_chunks_mut(CHUNK));
-            chunks.zip(g.par_chunks(CHUNK)).for_each(|(((x, m), v), g)| {
-                for i in 0..x.len() {
-                    m[i] = b1 * m[i] + (T::one() - b1) * g[i];
-                    v[i] = b2 * v[i] + (T::one() - b2) * g[i] * g[i];
-                    x[i] = x[i] - lr_t * m[i] / (v[i].sqrt() / sqrt_bias2 + eps);
-                }
-            });
-        }
+        // Every factor's chunks in one parallel pass (one pass per factor cost more in the
+        // workers' hand-offs than the update itself).
+        let chunks: Vec<_> = field
+            .params_mut()
+            .zip(grad.params())
+            .zip(self.m.params_mut())
+            .zip(self.v.params_mut())
+            .flat_map(|(((x, g), m), v)| {
+                x.chunks_mut(CHUNK).zip(g.chunks(CHUNK)).zip(m.chunks_mut(CHUNK)).zip(v.chunks_mut(CHUNK))
+            })
+            .collect();
+        chunks.into_par_iter().for_each(|(((x, g), m), v)| {
+            for i in 0..x.len() {
+                m[i] = b1 * m[i] + (T::one() - b1) * g[i];
+                v[i] = b2 * v[i] + (T::one() - b2) * g[i] * g[i];
+                x[i] = x[i] - lr_t * m[i] / (v[i].sqrt() / sqrt_bias2 + eps);
+            }
+        });
         lr
     }
 }

@@ -8,7 +8,7 @@
 //! ([`VmField::contract`]): exact, and far cheaper than sampling the factors per point.
 //! Nodes sit at the N cell centres of the box (first node half a cell in from the face).
 
-use super::gemm::{gemm, give_spare, take_spare, Layout, Scalar, Shape};
+use super::gemm::{gemm, gemm_all, give_spare, take_spare, Layout, Product, Scalar, Shape};
 use num_traits::Float;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -128,38 +128,60 @@ impl<T: Scalar> VmField<T> {
         let line_shape = Shape { count: 1, m: r, k: nn, n };
         let [dp0, dp1, dp2] = &mut out.planes;
         let [dl0, dl1, dl2] = &mut out.lines;
-        gemm(plane_shape, (grad, dense_xy_z), (&self.lines[0], lines_t), zero, (dp0, planes_t));
-        gemm(
-            line_shape,
-            (&self.planes[0], Layout::new(0, nn, 1)),
-            (grad, dense_xy_z),
-            zero,
-            (dl0, Layout::new(0, n, 1)),
-        );
-        gemm(plane_shape, (grad, dense_yz_x), (&self.lines[2], lines_t), zero, (dp2, planes_t));
-        gemm(
-            line_shape,
-            (&self.planes[2], Layout::new(0, nn, 1)),
-            (grad, dense_yz_x),
-            zero,
-            (dl2, Layout::new(0, n, 1)),
-        );
         // XZ⊗Y, per z: dP1[·, z] (x × r) = dF_z (x × y) · L1ᵀ (y × r), and dL1 (r × y) sums
         // P1[·, z] (r × x) · dF_z (x × y) over z — per-z products first, then the sum in z order.
         let dense_z = Layout::new(0, 1, n).batched(nn);
         let per_z = |m, k, n| Shape { count: self.n, m, k, n };
-        gemm(per_z(n, n, r), (grad, dense_z), (&self.lines[1], lines_t), zero, (dp1, Layout::new(0, 1, nn).batched(n)));
         // Scratch kept between steps (a quarter megabyte).
         let mut partial: Vec<T> = take_spare();
         partial.resize(n * r * n, zero);
-        let p1_z = Layout::new(0, nn, 1).batched(n);
-        gemm(
-            per_z(r, n, n),
-            (&self.planes[1], p1_z),
-            (grad, dense_z),
-            zero,
-            (&mut partial, Layout::new(0, n, 1).batched(r * n)),
-        );
+        let line = Layout::new(0, n, 1);
+        let p_rows = Layout::new(0, nn, 1);
+        // All six products in one parallel pass (each writes its own factor).
+        gemm_all(vec![
+            Product {
+                shape: plane_shape,
+                a: (grad, dense_xy_z),
+                b: (&self.lines[0], lines_t),
+                beta: zero,
+                c: (dp0, planes_t),
+            },
+            Product {
+                shape: line_shape,
+                a: (&self.planes[0], p_rows),
+                b: (grad, dense_xy_z),
+                beta: zero,
+                c: (dl0, line),
+            },
+            Product {
+                shape: plane_shape,
+                a: (grad, dense_yz_x),
+                b: (&self.lines[2], lines_t),
+                beta: zero,
+                c: (dp2, planes_t),
+            },
+            Product {
+                shape: line_shape,
+                a: (&self.planes[2], p_rows),
+                b: (grad, dense_yz_x),
+                beta: zero,
+                c: (dl2, line),
+            },
+            Product {
+                shape: per_z(n, n, r),
+                a: (grad, dense_z),
+                b: (&self.lines[1], lines_t),
+                beta: zero,
+                c: (dp1, Layout::new(0, 1, nn).batched(n)),
+            },
+            Product {
+                shape: per_z(r, n, n),
+                a: (&self.planes[1], p_rows.batched(n)),
+                b: (grad, dense_z),
+                beta: zero,
+                c: (&mut partial, Layout::new(0, n, 1).batched(r * n)),
+            },
+        ]);
         let mut slabs = partial.chunks_exact(r * n);
         dl1.copy_from_slice(slabs.next().expect("n ≥ 1"));
         for slab in slabs {

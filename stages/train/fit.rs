@@ -285,8 +285,12 @@ pub fn gradient(
         0.0
     };
     field.contract_into(grad_dense, grad);
-    let l1 = regularize::l1(field, params.lambda_l1 as f32, grad);
-    let tv = regularize::tv(field, params.tv_norm, params.lambda_tv as f32, grad);
+    let (l1, tv) = regularize::l1_and_tv(
+        field,
+        Some(params.lambda_l1 as f32),
+        Some((params.tv_norm, params.lambda_tv as f32)),
+        grad,
+    );
     Terms { photo: result.mse, l1, tv, tv3d }
 }
 

@@ -142,58 +142,112 @@ const MIN_BLOCK: usize = 32;
 /// `C ← A·B + β·C` for every matrix of the batch (`β = 0` overwrites C).
 ///
 /// Panics if a layout addresses beyond its buffer or C's layout maps two elements to one.
-pub fn gemm<T: Scalar>(
-    shape: Shape,
-    (a, la): (&[T], Layout),
-    (b, lb): (&[T], Layout),
-    beta: T,
-    (c, lc): (&mut [T], Layout),
-) {
-    let Shape { count, m, k, n } = shape;
-    if count == 0 || m == 0 || n == 0 {
-        return;
-    }
-    assert!(lc.is_injective(count, m, n), "gemm: output layout {lc:?} aliases for {shape:?}");
-    assert!(lc.last_index(count, m, n) < c.len(), "gemm: output layout {lc:?} exceeds its buffer");
-    if k > 0 {
-        assert!(la.last_index(count, m, k) < a.len(), "gemm: A layout {la:?} exceeds its buffer");
-        assert!(lb.last_index(count, k, n) < b.len(), "gemm: B layout {lb:?} exceeds its buffer");
-    }
-    // Blocks: one per batch entry, or the larger of m and n cut into equal runs.
-    let (rows_per, cols_per) = if count > 1 {
-        (m, n)
-    } else if m >= n {
-        (m.div_ceil(MAX_BLOCKS).max(MIN_BLOCK), n)
-    } else {
-        (m, n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK))
-    };
-    let blocks: Vec<(usize, usize, usize)> = (0..count)
-        .flat_map(|q| (0..m).step_by(rows_per).flat_map(move |i| (0..n).step_by(cols_per).map(move |j| (q, i, j))))
+pub fn gemm<T: Scalar>(shape: Shape, a: (&[T], Layout), b: (&[T], Layout), beta: T, c: (&mut [T], Layout)) {
+    gemm_all(vec![Product { shape, a, b, beta, c }]);
+}
+
+/// One product of [`gemm_all`]: `C ← A·B + β·C` for every matrix of the batch.
+pub struct Product<'a, T> {
+    pub shape: Shape,
+    pub a: (&'a [T], Layout),
+    pub b: (&'a [T], Layout),
+    pub beta: T,
+    pub c: (&'a mut [T], Layout),
+}
+
+/// Several independent products (each its own output) in one parallel pass over all their
+/// blocks: the contraction's six products cost six hand-offs between the workers otherwise.
+///
+/// Panics as [`gemm`] does, for any of them.
+pub fn gemm_all<T: Scalar>(products: Vec<Product<T>>) {
+    let plans: Vec<Plan<T>> = products.into_iter().filter_map(Plan::new).collect();
+    let blocks: Vec<(usize, usize, usize, usize)> = plans
+        .iter()
+        .enumerate()
+        .flat_map(|(p, plan)| {
+            let Shape { count, m, n, .. } = plan.shape;
+            let (rows_per, cols_per) = (plan.rows_per, plan.cols_per);
+            (0..count).flat_map(move |q| {
+                (0..m).step_by(rows_per).flat_map(move |i| (0..n).step_by(cols_per).map(move |j| (p, q, i, j)))
+            })
+        })
         .collect();
-    let (a_ptr, b_ptr, c_ptr) =
-        (SharedPtr(a.as_ptr() as *mut T), SharedPtr(b.as_ptr() as *mut T), SharedPtr(c.as_mut_ptr()));
-    let signed = |l: Layout| [l.row as isize, l.col as isize];
-    blocks.into_par_iter().for_each(|(q, i, j)| {
-        let (rows, cols) = (rows_per.min(m - i), cols_per.min(n - j));
-        let (a_ptr, b_ptr, c_ptr) = (&a_ptr, &b_ptr, &c_ptr);
-        // SAFETY: the asserts above keep every addressed element inside its slice; C's layout is
-        // injective, so the blocks (disjoint (q, i, j) ranges) write disjoint elements, and `c`
-        // is borrowed mutably for the whole call.
-        unsafe {
-            T::gemm_raw(
-                rows,
-                k,
-                cols,
-                a_ptr.0.add(la.offset + q * la.batch + i * la.row),
-                signed(la),
-                b_ptr.0.add(lb.offset + q * lb.batch + j * lb.col),
-                signed(lb),
-                beta,
-                c_ptr.0.add(lc.offset + q * lc.batch + i * lc.row + j * lc.col),
-                signed(lc),
-            )
-        }
+    blocks.into_par_iter().for_each(|(p, q, i, j)| {
+        // SAFETY: `Plan::new` checked every addressed element against its slice and C's layout
+        // for injectivity; the blocks (disjoint (q, i, j) ranges) write disjoint elements of
+        // their own product's C, borrowed mutably for the whole call, and no two products share
+        // a C (each is its own `&mut`).
+        unsafe { plans[p].block(q, i, j) }
     });
+}
+
+/// A checked product of [`gemm_all`]: raw views of its operands and its block size.
+struct Plan<T> {
+    shape: Shape,
+    a: (SharedPtr<T>, Layout),
+    b: (SharedPtr<T>, Layout),
+    beta: T,
+    c: (SharedPtr<T>, Layout),
+    rows_per: usize,
+    cols_per: usize,
+}
+
+impl<T: Scalar> Plan<T> {
+    /// The product's plan, after checking its layouts; `None` when it is empty.
+    fn new(Product { shape, a: (a, la), b: (b, lb), beta, c: (c, lc) }: Product<T>) -> Option<Plan<T>> {
+        let Shape { count, m, k, n } = shape;
+        if count == 0 || m == 0 || n == 0 {
+            return None;
+        }
+        assert!(lc.is_injective(count, m, n), "gemm: output layout {lc:?} aliases for {shape:?}");
+        assert!(lc.last_index(count, m, n) < c.len(), "gemm: output layout {lc:?} exceeds its buffer");
+        if k > 0 {
+            assert!(la.last_index(count, m, k) < a.len(), "gemm: A layout {la:?} exceeds its buffer");
+            assert!(lb.last_index(count, k, n) < b.len(), "gemm: B layout {lb:?} exceeds its buffer");
+        }
+        // Blocks: one per batch entry, or the larger of m and n cut into equal runs.
+        let (rows_per, cols_per) = if count > 1 {
+            (m, n)
+        } else if m >= n {
+            (m.div_ceil(MAX_BLOCKS).max(MIN_BLOCK), n)
+        } else {
+            (m, n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK))
+        };
+        let shared = |p: &[T]| SharedPtr(p.as_ptr() as *mut T);
+        Some(Plan {
+            shape,
+            a: (shared(a), la),
+            b: (shared(b), lb),
+            beta,
+            c: (SharedPtr(c.as_mut_ptr()), lc),
+            rows_per,
+            cols_per,
+        })
+    }
+
+    /// The block of batch entry `q` at row `i`, column `j`.
+    ///
+    /// # Safety
+    /// The operands `new` checked must still be borrowed as then, and no other block writing
+    /// this one's elements may run at the same time.
+    unsafe fn block(&self, q: usize, i: usize, j: usize) {
+        let Shape { m, k, n, .. } = self.shape;
+        let ((a, la), (b, lb), (c, lc)) = (&self.a, &self.b, &self.c);
+        let (rows, cols) = (self.rows_per.min(m - i), self.cols_per.min(n - j));
+        let signed = |l: &Layout| [l.row as isize, l.col as isize];
+        T::gemm_raw(
+            rows,
+            k,
+            cols,
+            a.0.add(la.offset + q * la.batch + i * la.row),
+            signed(la),
+            b.0.add(lb.offset + q * lb.batch + j * lb.col),
+            signed(lb),
+            self.beta,
+            c.0.add(lc.offset + q * lc.batch + i * lc.row + j * lc.col),
+            signed(lc),
+        )
+    }
 }
 
 /// Scratch buffers the training kernels keep from one step to the next (at most this many).
@@ -220,9 +274,9 @@ pub(crate) fn give_spare<B: Any + Send>(buffers: B) {
     }
 }
 
-/// A raw pointer shared by the block tasks of one [`gemm`] call.
+/// A raw pointer shared by the block tasks of one [`gemm_all`] call.
 struct SharedPtr<T>(*mut T);
-// SAFETY: used only inside `gemm`, whose blocks read A and B and write disjoint parts of C.
+// SAFETY: used only inside `gemm_all`, whose blocks read A and B and write disjoint parts of C.
 unsafe impl<T: Send> Send for SharedPtr<T> {}
 unsafe impl<T: Sync> Sync for SharedPtr<T> {}
 
