@@ -12,6 +12,7 @@
 use super::components::{label, Connectivity};
 use super::filters::{blob_response, distance_inside_mm, fill_holes_per_slice, gaussian_mm, otsu_threshold};
 use super::morphology;
+use rayon::prelude::*;
 
 /// Smoothing before the levels are classified, mm.
 const SMOOTHING_MM: f64 = 3.0;
@@ -88,9 +89,11 @@ pub fn strongest_blob(
     scales_mm: &[f64],
     sites: &[bool],
 ) -> Option<BlobPeak> {
+    // The scales are independent; the search then runs in scale order, so ties resolve alike.
+    let responses: Vec<Vec<f32>> =
+        scales_mm.par_iter().map(|&scale_mm| blob_response(density, dims, spacing_mm, scale_mm)).collect();
     let mut best: Option<(usize, f32, f64)> = None;
-    for &scale_mm in scales_mm {
-        let response = blob_response(density, dims, spacing_mm, scale_mm);
+    for (&scale_mm, response) in scales_mm.iter().zip(&responses) {
         for (i, &r) in response.iter().enumerate() {
             // Strictly greater: ties keep the first scale, then the first voxel.
             if sites[i] && r > 0.0 && best.is_none_or(|(_, b, _)| r > b) {
