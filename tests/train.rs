@@ -6,7 +6,7 @@ use aret_pipe::stage::drr::{render_views, Params as DrrParams, RoiCenter};
 use aret_pipe::train::field::VmField;
 use aret_pipe::train::fit::{fit, renderer, TrainParams, Views};
 use aret_pipe::train::regularize::{self, TvNorm};
-use aret_pipe::train::render::{Lattice, Ray, Renderer};
+use aret_pipe::train::render::{Lattice, PhotoLoss, Ray, Renderer};
 use aret_pipe::volume::{Geometry, Volume};
 use glam::DVec3;
 
@@ -53,14 +53,21 @@ fn test_rays() -> Vec<Ray> {
 #[test]
 fn rendering_loss_gradient_matches_finite_differences() {
     let field: VmField<f64> = VmField::random(6, 2, 0.6, 11);
-    let r = Renderer { lattice: Lattice { n: 6, aabb: BOX }, shift: 0.4, scale: 1.3, step: 0.07 };
     let rays = test_rays();
     let offsets: Vec<f64> = (0..rays.len()).map(|k| 0.07 * ((k * 37 % 11) as f64 / 11.0)).collect();
-    let loss = |f: &VmField<f64>| r.batch(&f.compose(), None, &rays, &offsets, None).mse;
-    let dense = field.compose();
-    let mut grad_dense = vec![0.0; dense.len()];
-    r.batch(&dense, None, &rays, &offsets, Some(&mut grad_dense));
-    check_gradient(&field, &field.contract(&grad_dense), 3, loss);
+    for kind in [PhotoLoss::Intensity, PhotoLoss::Log] {
+        let r = Renderer { lattice: Lattice { n: 6, aabb: BOX }, shift: 0.4, scale: 1.3, step: 0.07, loss: kind };
+        let loss = |f: &VmField<f64>| r.batch(&f.compose(), None, &rays, &offsets, None).loss;
+        let dense = field.compose();
+        let mut grad_dense = vec![0.0; dense.len()];
+        let result = r.batch(&dense, None, &rays, &offsets, Some(&mut grad_dense));
+        // The loss is the mean of the per-ray errors the kind defines.
+        let by_ray = result.predicted.iter().zip(&rays).map(|(&p, ray)| kind.error(p, ray.target)).sum::<f64>();
+        assert!(rel(result.loss, by_ray / rays.len() as f64) < 1e-12, "{kind:?}");
+        check_gradient(&field, &field.contract(&grad_dense), 3, loss);
+    }
+    // Log: the squared difference of the optical depths.
+    assert!(rel(PhotoLoss::Log.error(0.5, 0.25), (0.25f64.ln() - 0.5f64.ln()).powi(2)) < 1e-15);
 }
 
 #[test]

@@ -42,6 +42,8 @@ ROWS = [
      "the same, with a box that holds the whole chest (380 × 280 × 400 mm) instead of the paper's"),
     ("tv3d-strong", "presets/tv3d_strong.toml", "B", "C*",
      "the default with ten times the 3-D TV (λ = 1e-3)"),
+    ("log-loss", "presets/log_loss.toml", "B", "C*",
+     "the default with the photometric loss on optical depths (−ln Î against −ln I)"),
 ]
 MEASURED = "experiment.json"
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"

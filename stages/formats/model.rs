@@ -9,7 +9,7 @@
 
 use crate::geometry::Aabb;
 use crate::train::field::VmField;
-use crate::train::render::{Lattice, Renderer};
+use crate::train::render::{Lattice, PhotoLoss, Renderer};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -31,13 +31,15 @@ pub struct ModelMeta {
 }
 
 impl ModelMeta {
-    /// The renderer the field was trained with (lattice, Δ, s, step).
+    /// The renderer the field was trained with (lattice, Δ, s, step), for rendering σ: the
+    /// loss it was trained on does not matter there.
     pub fn renderer(&self) -> Renderer {
         Renderer {
             lattice: Lattice { n: self.grid, aabb: self.aabb },
             shift: self.shift,
             scale: self.scale,
             step: self.step,
+            loss: PhotoLoss::default(),
         }
     }
 }

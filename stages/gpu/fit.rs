@@ -21,7 +21,7 @@ use super::Gpu;
 use crate::train::adam::AdamParams;
 use crate::train::field::VmField;
 use crate::train::fit::{self as cpu, log_row, ray_pool, renderer, Fitted, LogRow, Schedule, Step, TrainParams, Views};
-use crate::train::render::{AlphaMask, Ray, Renderer};
+use crate::train::render::{AlphaMask, PhotoLoss, Ray, Renderer};
 use std::collections::VecDeque;
 use std::time::Instant;
 
@@ -77,6 +77,7 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         lambda_tv: _,
         tv_norm: _,
         lambda_tv3d: _,
+        loss,
         init_scale: _,
         alpha_mask_iterations: _,
         alpha_threshold: _,
@@ -85,6 +86,12 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         backend: _,
         threads: _,
     } = params;
+    if *loss != PhotoLoss::Intensity {
+        anyhow::bail!(
+            "[train] loss = \"log\" is not implemented by the GPU backend's shaders; \
+             use [train] backend = \"cpu\" for it"
+        );
+    }
     Ok(())
 }
 

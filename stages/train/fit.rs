@@ -3,7 +3,7 @@
 use super::adam::{Adam, AdamParams};
 use super::field::VmField;
 use super::regularize::{self, TvNorm};
-use super::render::{AlphaMask, Lattice, Ray, Renderer, MAX_GRID};
+use super::render::{AlphaMask, BatchResult, Lattice, PhotoLoss, Ray, Renderer, MAX_GRID};
 use crate::geometry::{Aabb, Camera};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
@@ -32,6 +32,8 @@ pub struct TrainParams {
     pub tv_norm: TvNorm,
     /// Weight of the 3-D TV of the composed field F (0: off, as in the paper).
     pub lambda_tv3d: f64,
+    /// What the photometric term compares: intensities (the paper) or optical depths.
+    pub loss: PhotoLoss,
     /// Factors start as `init_scale · N(0, 1)`.
     pub init_scale: f64,
     /// Iterations after which the alpha mask is (re)computed.
@@ -100,6 +102,7 @@ impl Default for TrainParams {
             lambda_tv: 1e-5,
             tv_norm: TvNorm::L1,
             lambda_tv3d: 1e-4,
+            loss: PhotoLoss::Intensity,
             init_scale: 0.1,
             alpha_mask_iterations: vec![1500, 2500],
             alpha_threshold: 1e-3,
@@ -173,6 +176,7 @@ pub fn renderer(params: &TrainParams, aabb: Aabb) -> Renderer {
         shift: params.shift,
         scale: params.scale,
         step: 0.5 * mean_voxel,
+        loss: params.loss,
     }
 }
 
@@ -291,7 +295,7 @@ pub fn gradient(
         Some((params.tv_norm, params.lambda_tv as f32)),
         grad,
     );
-    Terms { photo: result.mse, l1, tv, tv3d }
+    Terms { photo: result.loss, l1, tv, tv3d }
 }
 
 /// The unweighted loss terms of `field` with `photo` as the photometric term (the initial row).
@@ -342,9 +346,8 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     let mut adam = Adam::new(params.adam(), &field);
     let mut mask: Option<AlphaMask> = None;
     let mut log = Vec::new();
-    // Row 0: the initial field, before any update (its "photo" is the full-view MSE).
-    let initial_mse = view_mse(&renderer, &field, None, &per_view);
-    let photo = initial_mse.iter().sum::<f64>() / initial_mse.len() as f64;
+    // Row 0: the initial field, before any update (its "photo" is the full views' loss).
+    let (initial_mse, photo) = view_errors(&renderer, &field, None, &per_view);
     let terms = terms_of(params, &field, photo);
     let initial = log_row(params, 0, terms, &initial_mse, params.lr, started.elapsed().as_secs_f64());
     on_log(&initial);
@@ -382,14 +385,23 @@ pub fn view_mse(
     mask: Option<&AlphaMask>,
     per_view: &[Vec<Ray>],
 ) -> Vec<f64> {
+    view_errors(renderer, field, mask, per_view).0
+}
+
+/// [`view_mse`], and the renderer's loss averaged over the views.
+pub fn view_errors(
+    renderer: &Renderer,
+    field: &VmField<f32>,
+    mask: Option<&AlphaMask>,
+    per_view: &[Vec<Ray>],
+) -> (Vec<f64>, f64) {
     let dense = field.compose();
-    per_view
+    let results: Vec<BatchResult<f32>> = per_view
         .iter()
-        .map(|rays| {
-            let offsets = vec![renderer.step / 2.0; rays.len()];
-            renderer.batch(&dense, mask, rays, &offsets, None).mse
-        })
-        .collect()
+        .map(|rays| renderer.batch(&dense, mask, rays, &vec![renderer.step / 2.0; rays.len()], None))
+        .collect();
+    let loss = results.iter().map(|r| r.loss).sum::<f64>() / results.len().max(1) as f64;
+    (results.iter().map(|r| r.mse).collect(), loss)
 }
 
 /// PSNR (dB) of a mean squared error, peak 1.

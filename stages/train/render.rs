@@ -43,19 +43,60 @@ pub struct Ray {
     pub target: f64,
 }
 
-/// Rendering constants: `Δ` (`shift`), `s` (`scale`) and the sample spacing.
+/// Rendering constants: `Δ` (`shift`), `s` (`scale`), the sample spacing, and what the
+/// photometric loss compares.
 #[derive(Debug, Clone, Copy)]
 pub struct Renderer {
     pub lattice: Lattice,
     pub shift: f64,
     pub scale: f64,
     pub step: f64,
+    pub loss: PhotoLoss,
 }
 
-/// A batch's predictions and its mean squared error.
+/// What the photometric loss compares, per ray, as a squared error averaged over the batch.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PhotoLoss {
+    /// The intensities `Î` and `I` (SPEC §3: MSE of the rendered against the DRR pixels).
+    #[default]
+    Intensity,
+    /// The optical depths `−ln Î` and `−ln I` (line integrals, as NAF fits them): every path
+    /// weighs alike, where intensities weigh the bright, thin ones most.
+    Log,
+}
+
+/// The smallest measured intensity whose logarithm the log loss takes (a fully blocked ray).
+const MIN_INTENSITY: f64 = 1e-6;
+
+impl PhotoLoss {
+    /// One ray's squared error, predicted `p` against measured `target`.
+    pub fn error(self, p: f64, target: f64) -> f64 {
+        match self {
+            PhotoLoss::Intensity => (p - target).powi(2),
+            PhotoLoss::Log => (target.max(MIN_INTENSITY).ln() - p.ln()).powi(2),
+        }
+    }
+
+    /// `dL/dσ_k` of a ray's active sample, `L` the mean error over a batch of `batch_len` and
+    /// `depth_scale` = s·δ (so `dτ̂/dσ_k = depth_scale`, with `τ̂ = −ln p`).
+    fn d_sigma(self, p: f64, target: f64, batch_len: usize, depth_scale: f64) -> f64 {
+        let b = batch_len as f64;
+        match self {
+            // dL/dÎ = 2(Î − I)/B;  dÎ/dσ_k = −s·δ·Î.
+            PhotoLoss::Intensity => 2.0 * (p - target) / b * (-depth_scale * p),
+            // dL/dτ̂ = 2(τ̂ − τ)/B.
+            PhotoLoss::Log => 2.0 * (target.max(MIN_INTENSITY).ln() - p.ln()) / b * depth_scale,
+        }
+    }
+}
+
+/// A batch's predictions, their intensity MSE (for PSNR), and the loss the renderer trains on
+/// (equal to `mse` for [`PhotoLoss::Intensity`]).
 pub struct BatchResult<T> {
     pub predicted: Vec<T>,
     pub mse: f64,
+    pub loss: f64,
 }
 
 /// The alpha mask: kept lattice nodes, and the cells with at least one kept corner (the
@@ -272,11 +313,15 @@ impl Renderer {
         let predicted: Vec<f64> = traced.iter().flat_map(|t| t.predicted.iter().copied()).collect();
         let b = rays.len() as f64;
         let mse = rays.iter().zip(&predicted).map(|(r, p)| (p - r.target).powi(2)).sum::<f64>() / b;
+        let loss = match self.loss {
+            PhotoLoss::Intensity => mse,
+            kind => rays.iter().zip(&predicted).map(|(r, &p)| kind.error(p, r.target)).sum::<f64>() / b,
+        };
         if let Some(grad) = grad {
             self.scatter(&traced, grad);
             traced.into_iter().for_each(give_spare);
         }
-        BatchResult { predicted: predicted.into_iter().map(|p| T::from(p).expect("finite")).collect(), mse }
+        BatchResult { predicted: predicted.into_iter().map(|p| T::from(p).expect("finite")).collect(), mse, loss }
     }
 
     /// Traces one group of rays of a batch of `batch_len`, recording each ray's footprints
@@ -298,8 +343,8 @@ impl Renderer {
             t.footprints.reserve_walk(walk.count);
             let (depth, len) = walk::march::<T, true>(walk, &mut t.footprints.list, t.footprints.used);
             let p = self.transmittance(depth);
-            // dL/dÎ = 2(Î − I)/B;  dÎ/dσ_k = −s·δ·Î;  dσ/dF = 1[F + Δ > 0] (the active samples).
-            let d_sigma = 2.0 * (p - ray.target) / batch_len as f64 * (-self.scale * self.step * p);
+            // dσ/dF = 1[F + Δ > 0]: the ray's active samples share its dL/dσ.
+            let d_sigma = self.loss.d_sigma(p, ray.target, batch_len, self.scale * self.step);
             let d_sigma = T::from(d_sigma).expect("finite");
             if d_sigma != T::zero() {
                 t.footprints.keep_ray(len, d_sigma);
