@@ -16,6 +16,7 @@ use aret_pipe::gpu::Backend;
 use aret_pipe::stage::drr::{render_views, Params as DrrParams, RoiCenter};
 use aret_pipe::train::fit::{fit, gradient, ray_pool, renderer, Schedule, Step, StepBuffers, TrainParams, Views};
 use aret_pipe::train::regularize::TvNorm;
+use aret_pipe::train::render::PhotoLoss;
 use aret_pipe::volume::{Geometry, Volume};
 use std::path::Path;
 use std::process::{Command, Output};
@@ -255,6 +256,13 @@ fn a_300_iteration_fit_reaches_the_cpu_loss_within_1_percent() {
     let field_err =
         on_gpu.field.params().zip(cpu.field.params()).map(|(g, c)| relative_to_max(g, c)).fold(0.0, f64::max);
     eprintln!("final factors: max |Δ| / max |cpu| = {field_err:.2e}; mask nodes differing: {differ}");
+}
+
+#[test]
+fn the_log_loss_is_refused_by_name_not_trained_differently() {
+    let params = TrainParams { loss: PhotoLoss::Log, ..TrainParams::default() };
+    let err = aret_pipe::gpu::fit::check_supported(&params).expect_err("the shaders train intensities only");
+    assert!(err.to_string().contains("[train] loss"), "{err}");
 }
 
 #[test]
