@@ -1,7 +1,8 @@
 // One ray per invocation through the composed field F (mirrors train::render::Renderer::batch
 // and its scatter): σ = ReLU(F + Δ) trilinear between nodes, Î = exp(−s·step·Σσ); then, when
 // training, dL/dσ = 2(Î − I)/B · (−s·step·Î) for each active sample (σ > 0, in a kept cell of
-// the alpha mask), scattered onto its cell's 8 nodes with its trilinear weights.
+// the alpha mask), scattered onto its cell's 8 nodes with its trilinear weights. With the log
+// loss (PhotoLoss::Log) dL/dσ = 2(τ̂ − τ)/B · s·step, τ̂ = s·step·Σσ and τ = −ln max(I, 1e-6).
 //
 // The host uploads each ray's first sample and per-sample increment in continuous lattice
 // index (Renderer::samples, in f64, rounded to f32 as the CPU renderer rounds them), so both
@@ -20,8 +21,12 @@ struct Render {
     depth_scale: f32,
     // −2 · s · step / B
     grad_scale: f32,
-    _pad: u32,
+    // 1: the loss compares optical depths (PhotoLoss::Log); 0: intensities.
+    log_loss: u32,
 }
+
+// The smallest measured intensity the log loss takes the logarithm of (render.rs MIN_INTENSITY).
+const MIN_INTENSITY: f32 = 1e-6;
 
 struct RaySamples {
     q0: vec3<f32>,
@@ -116,7 +121,10 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) g
     if (u.want_grad == 0u) {
         return;
     }
-    let g = u.grad_scale * (p - ray.target_value) * p;
+    var g = u.grad_scale * (p - ray.target_value) * p;
+    if (u.log_loss == 1u) {
+        g = -u.grad_scale * (u.depth_scale * depth + log(max(ray.target_value, MIN_INTENSITY)));
+    }
     if (g == 0.0) {
         return;
     }

@@ -219,6 +219,9 @@ fn one_step_factor_gradients_agree_within_1e_4_with_either_atomic_scatter() {
     assert_gradients_agree("heavy regularisers, l2 TV, 3-D TV", &cpu, &g);
     let (cpu, g) = compare_step(&native, &defaults, Some(0.97));
     assert_gradients_agree("alpha mask", &cpu, &g);
+    let log_loss = small(TrainParams { loss: PhotoLoss::Log, ..TrainParams::default() });
+    let (cpu, g) = compare_step(&native, &log_loss, None);
+    assert_gradients_agree("log loss", &cpu, &g);
 }
 
 #[test]
@@ -256,13 +259,6 @@ fn a_300_iteration_fit_reaches_the_cpu_loss_within_1_percent() {
     let field_err =
         on_gpu.field.params().zip(cpu.field.params()).map(|(g, c)| relative_to_max(g, c)).fold(0.0, f64::max);
     eprintln!("final factors: max |Δ| / max |cpu| = {field_err:.2e}; mask nodes differing: {differ}");
-}
-
-#[test]
-fn the_log_loss_is_refused_by_name_not_trained_differently() {
-    let params = TrainParams { loss: PhotoLoss::Log, ..TrainParams::default() };
-    let err = aret_pipe::gpu::fit::check_supported(&params).expect_err("the shaders train intensities only");
-    assert!(err.to_string().contains("[train] loss"), "{err}");
 }
 
 #[test]

@@ -77,7 +77,7 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         lambda_tv: _,
         tv_norm: _,
         lambda_tv3d: _,
-        loss,
+        loss: _,
         init_scale: _,
         alpha_mask_iterations: _,
         alpha_threshold: _,
@@ -86,12 +86,6 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         backend: _,
         threads: _,
     } = params;
-    if *loss != PhotoLoss::Intensity {
-        anyhow::bail!(
-            "[train] loss = \"log\" is not implemented by the GPU backend's shaders; \
-             use [train] backend = \"cpu\" for it"
-        );
-    }
     Ok(())
 }
 
@@ -109,7 +103,7 @@ pub fn fit(gpu: &Gpu, params: &TrainParams, views: &Views, mut on_log: impl FnMu
     let mut log = Vec::new();
     // Row 0: the initial field (its "photo" is the full-view MSE), regularisers at weight 0.
     let initial = device.initial_terms()?;
-    let photo = initial.view_mse.iter().sum::<f64>() / initial.view_mse.len() as f64;
+    let photo = initial.view_loss;
     let seconds = started.elapsed().as_secs_f64();
     let terms = cpu::Terms { photo, l1: initial.l1, tv: initial.tv, tv3d: initial.tv3d };
     let row = log_row(params, 0, terms, &initial.view_mse, params.lr, seconds);
@@ -140,20 +134,22 @@ pub fn fit(gpu: &Gpu, params: &TrainParams, views: &Views, mut on_log: impl FnMu
 
 /// What a logged row needs from the device.
 pub struct Terms {
-    /// MSE of the last batch (its predictions against its targets).
-    pub batch_mse: f64,
+    /// The photometric loss of the last batch (its predictions against its targets).
+    pub batch_loss: f64,
     /// Before their λ: the regularisers of the field the last gradient was taken at.
     pub l1: f64,
     pub tv: f64,
     pub tv3d: f64,
     /// Full-view MSE of each view, midpoint samples, the current field and mask.
     pub view_mse: Vec<f64>,
+    /// The photometric loss of the same, averaged over the views.
+    pub view_loss: f64,
 }
 
 impl Terms {
-    /// The row's loss terms (the batch's MSE as the photometric one).
+    /// The row's loss terms (the batch's as the photometric one).
     pub fn loss_terms(&self) -> cpu::Terms {
-        cpu::Terms { photo: self.batch_mse, l1: self.l1, tv: self.tv, tv3d: self.tv3d }
+        cpu::Terms { photo: self.batch_loss, l1: self.l1, tv: self.tv, tv3d: self.tv3d }
     }
 }
 
@@ -396,8 +392,12 @@ impl<'g> DeviceFit<'g> {
             factor.copy_from_slice(head);
             rest = tail;
         }
-        let terms =
-            cpu::Terms { photo: mse(&predicted, &self.batch_targets), l1: sum(&l1), tv: sum(&tv), tv3d: sum(&tv3d) };
+        let terms = cpu::Terms {
+            photo: mean_error(self.renderer.loss, &predicted, &self.batch_targets),
+            l1: sum(&l1),
+            tv: sum(&tv),
+            tv3d: sum(&tv3d),
+        };
         Ok(Step { grad: field, terms })
     }
 
@@ -500,18 +500,21 @@ impl<'g> DeviceFit<'g> {
             (&self.tv_dense_partials.0, self.tv_dense_partials.1),
         ])?;
         let mut view_mse = Vec::with_capacity(self.eval_targets.len());
+        let mut view_loss = 0.0;
         let mut rest = views.as_slice();
         for targets in &self.eval_targets {
             let (head, tail) = rest.split_at(targets.len());
-            view_mse.push(mse(head, targets));
+            view_mse.push(mean_error(PhotoLoss::Intensity, head, targets));
+            view_loss += mean_error(self.renderer.loss, head, targets) / self.eval_targets.len() as f64;
             rest = tail;
         }
         Ok(Terms {
-            batch_mse: mse(&predicted, &self.batch_targets),
+            batch_loss: mean_error(self.renderer.loss, &predicted, &self.batch_targets),
             l1: sum(&l1),
             tv: sum(&tv),
             tv3d: sum(&tv3d),
             view_mse,
+            view_loss,
         })
     }
 
@@ -545,9 +548,9 @@ impl<'g> DeviceFit<'g> {
     }
 }
 
-/// Mean squared error of f32 predictions against f64 targets, summed in f64 (as the CPU).
-fn mse(predicted: &[f32], targets: &[f64]) -> f64 {
-    let sum: f64 = predicted.iter().zip(targets).map(|(&p, &t)| (f64::from(p) - t).powi(2)).sum();
+/// The mean of `kind`'s error of f32 predictions against f64 targets, summed in f64 (as the CPU).
+fn mean_error(kind: PhotoLoss, predicted: &[f32], targets: &[f64]) -> f64 {
+    let sum: f64 = predicted.iter().zip(targets).map(|(&p, &t)| kind.error(f64::from(p), t)).sum();
     sum / targets.len() as f64
 }
 

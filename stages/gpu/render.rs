@@ -3,7 +3,7 @@
 
 use super::kernel::{groups, whole, Binding, Bound, Kernel, WORKGROUP};
 use super::Gpu;
-use crate::train::render::{Ray, Renderer};
+use crate::train::render::{PhotoLoss, Ray, Renderer};
 use bytemuck::{Pod, Zeroable};
 
 const SOURCE: &str = include_str!("../../shaders/render.wgsl");
@@ -23,7 +23,8 @@ pub struct Uniforms {
     pub depth_scale: f32,
     /// −2 · s · step / B
     pub grad_scale: f32,
-    pub _pad: u32,
+    /// 1: `PhotoLoss::Log`.
+    pub log_loss: u32,
 }
 
 impl Uniforms {
@@ -38,7 +39,7 @@ impl Uniforms {
             shift: renderer.shift as f32,
             depth_scale: depth_scale as f32,
             grad_scale: (-2.0 * depth_scale / rays.max(1) as f64) as f32,
-            _pad: 0,
+            log_loss: (renderer.loss == PhotoLoss::Log).into(),
         }
     }
 }
