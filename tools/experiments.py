@@ -77,10 +77,10 @@ def commit():
     return head + ("+changes" if changed else "")
 
 
-def record_run(out):
+def record_run(out, at):
     """Notes in the row's out dir which commit produced its numbers (the table's last column)."""
     with open(os.path.join(out, MEASURED), "w") as f:
-        json.dump({"commit": commit(), "date": time.strftime("%Y-%m-%d")}, f)
+        json.dump({"commit": at, "date": time.strftime("%Y-%m-%d")}, f)
 
 
 def pct(x):
@@ -163,8 +163,9 @@ def main():
         path = os.path.join(ROOT, config)
         if not args.no_run and (not args.only or name in args.only):
             print(f"== {name}: aret-pipe run {config}", flush=True)
+            at = commit()  # the code that runs, even if the checkout moves on meanwhile
             print(f"   {run(args.bin, path):.0f} s", flush=True)
-            record_run(out_dir(path))
+            record_run(out_dir(path), at)
         out = out_dir(path)
         if os.path.exists(os.path.join(out, "summary.json")):
             results[name] = row_numbers(out)
