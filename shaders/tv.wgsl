@@ -22,9 +22,7 @@ struct Tv {
 @group(0) @binding(0) var<uniform> u: Tv;
 @group(0) @binding(1) var<storage, read> factors: array<f32>;
 @group(0) @binding(2) var<storage, read_write> grad: array<f32>;
-@group(0) @binding(3) var<storage, read_write> partials: array<f32>;
-
-var<workgroup> lanes: array<f32, 64>;
+// binding 3: partials, with write_workgroup_sum, in the appended workgroup_sum.wgsl.
 
 fn penalty(d: f32) -> f32 {
     return select(abs(d), d * d, u.squared == 1u);
@@ -32,8 +30,7 @@ fn penalty(d: f32) -> f32 {
 
 // d penalty / d d, scaled by the weight per difference.
 fn slope(d: f32) -> f32 {
-    let sign = select(0.0, 1.0, d > 0.0) - select(0.0, 1.0, d < 0.0);
-    return u.scale * select(sign, d + d, u.squared == 1u);
+    return u.scale * select(sign_of(d), d + d, u.squared == 1u);
 }
 
 @compute @workgroup_size(64)
@@ -72,14 +69,5 @@ fn main(
         grad[j] = g;
         share = value * u.per_difference;
     }
-    lanes[lane] = share;
-    for (var half = 32u; half > 0u; half /= 2u) {
-        workgroupBarrier();
-        if (lane < half) {
-            lanes[lane] += lanes[lane + half];
-        }
-    }
-    if (lane == 0u) {
-        partials[group.x + group.y * groups.x] = lanes[0];
-    }
+    write_workgroup_sum(share, lane, group, groups);
 }

@@ -21,14 +21,7 @@ struct TvDense {
 @group(0) @binding(0) var<uniform> u: TvDense;
 @group(0) @binding(1) var<storage, read> dense: array<f32>;
 @group(0) @binding(2) var<storage, read_write> dense_grad: array<f32>;
-@group(0) @binding(3) var<storage, read_write> partials: array<f32>;
-
-var<workgroup> lanes: array<f32, 64>;
-
-// −1, 0 or 1 (0 at the kink, as the CPU's subgradient).
-fn sign_of(x: f32) -> f32 {
-    return select(0.0, 1.0, x > 0.0) - select(0.0, 1.0, x < 0.0);
-}
+// binding 3: partials, with write_workgroup_sum, in the appended workgroup_sum.wgsl.
 
 @compute @workgroup_size(64)
 fn main(
@@ -58,14 +51,5 @@ fn main(
         dense_grad[j] += g;
         share *= u.per_difference;
     }
-    lanes[lane] = share;
-    for (var half = 32u; half > 0u; half /= 2u) {
-        workgroupBarrier();
-        if (lane < half) {
-            lanes[lane] += lanes[lane + half];
-        }
-    }
-    if (lane == 0u) {
-        partials[group.x + group.y * groups.x] = lanes[0];
-    }
+    write_workgroup_sum(share, lane, group, groups);
 }

@@ -8,6 +8,10 @@ use super::Gpu;
 /// Threads per workgroup of every 1-D kernel (`@workgroup_size(64)` in the shaders).
 pub const WORKGROUP: u32 = 64;
 
+/// `shaders/workgroup_sum.wgsl`, which the regularisers' hosts append to their shader: the
+/// `partials` binding and the workgroup sum that fills it.
+pub const WORKGROUP_SUM: &str = include_str!("../../shaders/workgroup_sum.wgsl");
+
 /// One binding of a kernel's group 0.
 #[derive(Debug, Clone, Copy)]
 pub enum Binding {

@@ -1,7 +1,7 @@
-//! Host of `shaders/l1.wgsl`: the L1 regulariser's gradient and value
+//! Host of `shaders/l1.wgsl` (+ `workgroup_sum.wgsl`): the L1 regulariser's gradient and value
 //! (`train::regularize::l1`), one invocation per parameter.
 
-use super::kernel::{groups, ItemKernel, WORKGROUP};
+use super::kernel::{groups, ItemKernel, WORKGROUP, WORKGROUP_SUM};
 use super::Gpu;
 use bytemuck::{Pod, Zeroable};
 
@@ -42,5 +42,5 @@ pub fn partials(gpu: &Gpu, entries: u32) -> anyhow::Result<usize> {
 
 /// Compiles the kernel. Storage: factors (read), the factor gradient (added to), [`partials`] of the value; items: `entries`.
 pub fn kernel(gpu: &Gpu) -> anyhow::Result<ItemKernel> {
-    ItemKernel::new(gpu, "l1", SOURCE, [true, false, false], WORKGROUP)
+    ItemKernel::new(gpu, "l1", &[SOURCE, WORKGROUP_SUM].concat(), [true, false, false], WORKGROUP)
 }

@@ -1,7 +1,7 @@
-//! Host of `shaders/tv.wgsl`: the TV regulariser of the density planes, its gradient and value
+//! Host of `shaders/tv.wgsl` (+ `workgroup_sum.wgsl`): the TV regulariser of the density planes, its gradient and value
 //! (`train::regularize::tv`), one invocation per plane entry.
 
-use super::kernel::{ItemKernel, WORKGROUP};
+use super::kernel::{ItemKernel, WORKGROUP, WORKGROUP_SUM};
 use super::Gpu;
 use crate::train::regularize::TvNorm;
 use bytemuck::{Pod, Zeroable};
@@ -39,5 +39,5 @@ impl Uniforms {
 
 /// Compiles the kernel. Storage: factors (read), the factor gradient (added to), [`super::l1::partials`] of the value; items: `entries`.
 pub fn kernel(gpu: &Gpu) -> anyhow::Result<ItemKernel> {
-    ItemKernel::new(gpu, "tv", SOURCE, [true, false, false], WORKGROUP)
+    ItemKernel::new(gpu, "tv", &[SOURCE, WORKGROUP_SUM].concat(), [true, false, false], WORKGROUP)
 }

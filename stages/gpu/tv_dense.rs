@@ -1,7 +1,7 @@
-//! Host of `shaders/tv_dense.wgsl`: the 3-D TV of the composed field, its gradient added to
+//! Host of `shaders/tv_dense.wgsl` (+ `workgroup_sum.wgsl`): the 3-D TV of the composed field, its gradient added to
 //! dF and its value (`train::regularize::tv_dense`), one invocation per lattice node.
 
-use super::kernel::{ItemKernel, WORKGROUP};
+use super::kernel::{ItemKernel, WORKGROUP, WORKGROUP_SUM};
 use super::Gpu;
 use bytemuck::{Pod, Zeroable};
 
@@ -35,5 +35,5 @@ impl Uniforms {
 
 /// Compiles the kernel. Storage: `F` (read), `dL/dF` (added to), [`super::l1::partials`] of the value; items: `nodes`.
 pub fn kernel(gpu: &Gpu) -> anyhow::Result<ItemKernel> {
-    ItemKernel::new(gpu, "tv_dense", SOURCE, [true, false, false], WORKGROUP)
+    ItemKernel::new(gpu, "tv_dense", &[SOURCE, WORKGROUP_SUM].concat(), [true, false, false], WORKGROUP)
 }
