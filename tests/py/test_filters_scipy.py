@@ -13,52 +13,18 @@ with anisotropic spacing taken from the header:
 Arrays here are numpy's (z, y, x); our volumes are x-fastest, which is the same bytes, and
 spacing is written (x, y, z) in the header, so scipy's sampling is its reverse.
 """
-import json
-import os
-import subprocess
-from pathlib import Path
-
 import numpy as np
 import pytest
 import scipy.ndimage as ndi
 from skimage.filters import threshold_otsu
 
-REPO = Path(__file__).resolve().parents[2]
-BIN = os.environ.get("ARET_PIPE_BIN", str(REPO / "target" / "debug" / "aret-pipe"))
-MET = {np.dtype(np.uint8): "MET_UCHAR", np.dtype(np.float32): "MET_FLOAT", np.dtype(np.float64): "MET_DOUBLE"}
+from kernel_io import kernel, read_mhd, write_mhd
 
 SPACING = (3.75, 1.875, 2.1875)  # x, y, z in mm
 SHAPES = [(40, 48, 64), (13, 29, 31), (3, 11, 7)]  # (nz, ny, nx): 64 x 48 x 40, odd, thinner than a kernel
 # Gaussian / blob tolerance, relative to the reference's value range: ours is float64 rounded to
 # float32 once (about 6e-8 of the magnitude).
 RELATIVE = 1e-6
-
-
-def write_mhd(path: Path, array, spacing):
-    """A MetaImage of a (z, y, x) array; spacing in (x, y, z) order."""
-    array = np.ascontiguousarray(array)
-    nz, ny, nx = array.shape
-    path.with_suffix(".raw").write_bytes(array.astype(array.dtype.newbyteorder("<")).tobytes())
-    path.write_text(
-        "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
-        "TransformMatrix = 1 0 0 0 1 0 0 0 1\nOffset = 0 0 0\n"
-        f"ElementSpacing = {' '.join(map(repr, map(float, spacing)))}\n"
-        f"DimSize = {nx} {ny} {nz}\nElementType = {MET[array.dtype]}\n"
-        f"ElementDataFile = {path.with_suffix('.raw').name}\n"
-    )
-
-
-def read_mhd(path: Path):
-    header = dict(line.split(" = ", 1) for line in path.read_text().splitlines())
-    nx, ny, nz = map(int, header["DimSize"].split())
-    dtype = {v: k for k, v in MET.items()}[header["ElementType"]].newbyteorder("<")
-    return np.fromfile(path.parent / header["ElementDataFile"], dtype=dtype).reshape(nz, ny, nx)
-
-
-def kernel(*args):
-    proc = subprocess.run([BIN, "kernel", *map(str, args)], capture_output=True, text=True)
-    assert proc.returncode == 0, f"aret-pipe kernel {' '.join(map(str, args))} failed:\n{proc.stderr}"
-    return json.loads(proc.stdout)
 
 
 def run_filter(tmp_path, name, array, spacing, *options):
