@@ -17,10 +17,10 @@ use aret_pipe::stage::drr::{render_views, Params as DrrParams, RoiCenter};
 use aret_pipe::train::fit::{fit, gradient, ray_pool, renderer, Schedule, Step, StepBuffers, TrainParams, Views};
 use aret_pipe::train::regularize::TvNorm;
 use aret_pipe::train::render::PhotoLoss;
-use aret_pipe::volume::{Geometry, Volume};
 use std::path::Path;
 use std::process::{Command, Output};
 use std::sync::{Arc, OnceLock};
+use support::chest::chest_ct;
 use support::dicom_writer::{default_name, series, write_series};
 
 const BIN: &str = env!("CARGO_BIN_EXE_aret-pipe");
@@ -55,45 +55,13 @@ fn skip_or_fail<T>(reason: &str) -> Option<T> {
     None
 }
 
-/// A small chest-like CT (body, two lungs, a nodule) as the `hu` stage's [0, 1] values.
-fn chest_ct() -> Volume<f32> {
-    let geometry = Geometry {
-        dims: [48, 32, 32],
-        spacing_mm: [5.0, 4.0, 4.5],
-        origin_mm: [-117.5, -62.0, -69.75],
-        direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-    };
-    let mut data = Vec::with_capacity(geometry.len());
-    for k in 0..32 {
-        for j in 0..32 {
-            for i in 0..48 {
-                let [x, y, z] = geometry.voxel_to_patient_mm([i as f64, j as f64, k as f64]);
-                let body = (x / 110.0).powi(2) + (y / 55.0).powi(2) < 1.0;
-                let lung = ((x.abs() - 45.0) / 35.0).powi(2) + (y / 40.0).powi(2) + (z / 60.0).powi(2) < 1.0;
-                let nodule = (x - 40.0).powi(2) + y.powi(2) + (z - 10.0).powi(2) < 15.0f64.powi(2);
-                let spine = x.abs() < 12.0 && (y - 35.0).abs() < 12.0;
-                data.push(if nodule || spine {
-                    0.74 + 0.2 * f32::from(spine)
-                } else if lung && body {
-                    0.1
-                } else if body {
-                    0.74
-                } else {
-                    0.0
-                });
-            }
-        }
-    }
-    Volume { geometry, data }
-}
-
 fn drr_params(backend: Backend) -> DrrParams {
     DrrParams { width_px: 48, height_px: 48, roi_center: RoiCenter::Mm([0.0; 3]), backend, ..DrrParams::default() }
 }
 
 /// The CPU's three DRRs of [`chest_ct`]: what the training tests fit.
 fn views() -> (Vec<Camera>, Vec<Vec<f32>>, Aabb) {
-    let (set, images) = render_views(&drr_params(Backend::Cpu), &chest_ct(), [0.0; 3], "explicit").unwrap();
+    let (set, images) = render_views(&drr_params(Backend::Cpu), &chest_ct(true), [0.0; 3], "explicit").unwrap();
     (set.cameras, images, set.aabb)
 }
 
@@ -111,7 +79,7 @@ fn relative_to_max(a: &[f32], b: &[f32]) -> f64 {
 #[test]
 fn drr_pixels_agree_with_the_cpu_within_1e_5_relative() {
     let Some(_gpu) = device() else { return };
-    let ct = chest_ct();
+    let ct = chest_ct(true);
     // Oblique views too: rays that cross voxels at every angle.
     for offsets in [[0.0; 3], [17.0, -9.5, 6.0]] {
         let render = |backend| {

@@ -7,8 +7,10 @@ use aret_pipe::train::field::VmField;
 use aret_pipe::train::fit::{fit, renderer, TrainParams, Views};
 use aret_pipe::train::regularize::{self, TvNorm};
 use aret_pipe::train::render::{Lattice, PhotoLoss, Ray, Renderer};
-use aret_pipe::volume::{Geometry, Volume};
 use glam::DVec3;
+use support::chest::chest_ct;
+
+mod support;
 
 const BOX: Aabb = Aabb { min: [-1.0, -0.8, -0.6], max: [1.2, 0.9, 0.7] };
 
@@ -114,36 +116,10 @@ fn dense_tv_gradient_matches_finite_differences() {
     assert!(rel(value, sums.iter().sum::<f64>() / 100.0) < 1e-12);
 }
 
-/// Three 48² DRRs of a small chest-like CT: body, two lungs, a sphere ("nodule").
+/// Three 48² DRRs of the small chest-like CT without its spine: body, two lungs, a sphere.
 fn phantom_views() -> (Vec<Camera>, Vec<Vec<f32>>, Aabb) {
-    let geometry = Geometry {
-        dims: [48, 32, 32],
-        spacing_mm: [5.0, 4.0, 4.5],
-        origin_mm: [-117.5, -62.0, -69.75],
-        direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-    };
-    let mut data = Vec::with_capacity(geometry.len());
-    for k in 0..32 {
-        for j in 0..32 {
-            for i in 0..48 {
-                let [x, y, z] = geometry.voxel_to_patient_mm([i as f64, j as f64, k as f64]);
-                let body = (x / 110.0).powi(2) + (y / 55.0).powi(2) < 1.0;
-                let lung = ((x.abs() - 45.0) / 35.0).powi(2) + (y / 40.0).powi(2) + (z / 60.0).powi(2) < 1.0;
-                let nodule = (x - 40.0).powi(2) + y.powi(2) + (z - 10.0).powi(2) < 15.0f64.powi(2);
-                data.push(if nodule {
-                    0.74
-                } else if lung && body {
-                    0.1
-                } else if body {
-                    0.74
-                } else {
-                    0.0
-                });
-            }
-        }
-    }
     let drr = DrrParams { width_px: 48, height_px: 48, roi_center: RoiCenter::Mm([0.0; 3]), ..DrrParams::default() };
-    let (set, images) = render_views(&drr, &Volume { geometry, data }, [0.0; 3], "explicit").unwrap();
+    let (set, images) = render_views(&drr, &chest_ct(false), [0.0; 3], "explicit").unwrap();
     (set.cameras, images, set.aabb)
 }
 

@@ -1,1 +1,2 @@
+pub mod chest;
 pub mod dicom_writer;
