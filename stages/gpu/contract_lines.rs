@@ -3,19 +3,11 @@
 
 use super::kernel::ItemKernel;
 use super::Gpu;
-use bytemuck::{Pod, Zeroable};
 
 const SOURCE: &str = include_str!("../../shaders/contract_lines.wgsl");
 
-/// `struct Shape` of the shader; `entries` = 3 · rank · N.
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-pub struct Shape {
-    pub n: u32,
-    pub rank: u32,
-    pub entries: u32,
-    pub _pad: u32,
-}
+/// `struct Shape` of the shader, the planes' own layout; here `entries` = 3 · rank · N.
+pub use super::contract_planes::Shape;
 
 /// Compiles the kernel. Storage: factors, `dL/dF` (read), the factor gradient (written); one workgroup per line entry.
 pub fn kernel(gpu: &Gpu) -> anyhow::Result<ItemKernel> {

@@ -7,7 +7,7 @@ use bytemuck::{Pod, Zeroable};
 
 const SOURCE: &str = include_str!("../../shaders/contract_planes.wgsl");
 
-/// `struct Shape` of the shader; `entries` = 3 · rank · N².
+/// `struct Shape` of the shader (and of `contract_lines.wgsl`); `entries` = 3 · rank · N² here.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 pub struct Shape {
