@@ -8,11 +8,15 @@
 //! ([`VmField::contract`]): exact, and far cheaper than sampling the factors per point.
 //! Nodes sit at the N cell centres of the box (first node half a cell in from the face).
 
-use super::gemm::{gemm, gemm_all, give_spare, take_spare, Layout, Product, Scalar, Shape};
+use super::gemm::{gemm, gemm_all, gemm_serial, give_spare, take_spare, Layout, Product, Scalar, Shape};
 use num_traits::Float;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
+use rayon::prelude::*;
+
+/// z-planes of the dense field per task of the compose's second pass.
+const SLAB_PLANES: usize = 4;
 
 /// The three (plane axes, line axis) pairs, in factor order.
 pub const PAIRS: [([usize; 2], usize); 3] = [([0, 1], 2), ([0, 2], 1), ([1, 2], 0)];
@@ -85,6 +89,10 @@ impl<T: Scalar> VmField<T> {
 
     /// [`VmField::compose`] into `dense` (`N³` values, overwritten): a training loop keeps one
     /// buffer rather than allocating a megabyte a step.
+    ///
+    /// XY⊗Z needs all of P0 for every z, so it runs as one product; the other two pairs then
+    /// run slab by slab of z-planes in one parallel pass, adding to each slab while it is in
+    /// cache. Every value is summed in the order XY⊗Z, XZ⊗Y, YZ⊗X.
     pub fn compose_into(&self, dense: &mut [T]) {
         let (n, r) = (self.n, self.rank);
         let nn = n * n;
@@ -92,18 +100,24 @@ impl<T: Scalar> VmField<T> {
         let [p0, p1, p2] = &self.planes;
         let [l0, l1, l2] = &self.lines;
         let one = T::one();
-        let single = Shape { count: 1, m: nn, k: r, n };
+        let lines = Layout::new(0, n, 1);
         gemm(
-            single,
+            Shape { count: 1, m: nn, k: r, n },
             (p0, Layout::new(0, 1, nn)),
-            (l0, Layout::new(0, n, 1)),
+            (l0, lines),
             T::zero(),
             (dense, Layout::new(0, 1, nn)),
         );
-        let per_z = Shape { count: n, m: n, k: r, n };
-        let (a1, c1) = (Layout::new(0, 1, nn).batched(n), Layout::new(0, 1, n).batched(nn));
-        gemm(per_z, (p1, a1), (l1, Layout::new(0, n, 1)), one, (dense, c1));
-        gemm(single, (p2, Layout::new(0, 1, nn)), (l2, Layout::new(0, n, 1)), one, (dense, Layout::new(0, n, 1)));
+        dense.par_chunks_mut(nn * SLAB_PLANES).enumerate().for_each(|(slab, planes)| {
+            let (z0, depth) = (slab * SLAB_PLANES, planes.len() / nn);
+            // XZ⊗Y, per z: F_z (x × y) += P1[·, z]ᵀ (x × r) · L1 (r × y).
+            let per_z = Shape { count: depth, m: n, k: r, n };
+            let a1 = Layout::new(z0 * n, 1, nn).batched(n);
+            gemm_serial(per_z, (p1, a1), (l1, lines), one, (planes, Layout::new(0, 1, n).batched(nn)));
+            // YZ⊗X: F (yz × x) += P2ᵀ (yz × r) · L2 (r × x), the slab's rows.
+            let rows = Shape { count: 1, m: n * depth, k: r, n };
+            gemm_serial(rows, (p2, Layout::new(z0 * n, 1, nn)), (l2, lines), one, (planes, Layout::new(0, n, 1)));
+        });
     }
 
     /// The factors' gradient from the gradient `grad` of the loss with respect to `F`.

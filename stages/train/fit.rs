@@ -278,7 +278,6 @@ pub fn gradient(
 ) -> Terms {
     let StepBuffers { dense, grad_dense, grad } = buffers;
     field.compose_into(dense);
-    grad_dense.fill(0.0);
     let result = renderer.batch(dense, mask, batch, offsets, Some(grad_dense));
     // The 3-D TV acts on F itself: its gradient joins dL/dF before the contraction.
     let tv3d = if params.lambda_tv3d > 0.0 {

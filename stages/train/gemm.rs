@@ -161,7 +161,28 @@ pub struct Product<'a, T> {
 /// Panics as [`gemm`] does, for any of them.
 pub fn gemm_all<T: Scalar>(products: Vec<Product<T>>) {
     let plans: Vec<Plan<T>> = products.into_iter().filter_map(Plan::new).collect();
-    let blocks: Vec<(usize, usize, usize, usize)> = plans
+    blocks_of(&plans).into_par_iter().for_each(|(p, q, i, j)| {
+        // SAFETY: `Plan::new` checked every addressed element against its slice and C's layout
+        // for injectivity; the blocks (disjoint (q, i, j) ranges) write disjoint elements of
+        // their own product's C, borrowed mutably for the whole call, and no two products share
+        // a C (each is its own `&mut`).
+        unsafe { plans[p].block(q, i, j) }
+    });
+}
+
+/// [`gemm`] on the calling thread alone: for products that are already one task of a
+/// parallel pass. Its blocks are [`gemm`]'s, so its results are bit-identical.
+pub fn gemm_serial<T: Scalar>(shape: Shape, a: (&[T], Layout), b: (&[T], Layout), beta: T, c: (&mut [T], Layout)) {
+    let plans: Vec<Plan<T>> = Plan::new(Product { shape, a, b, beta, c }).into_iter().collect();
+    for (p, q, i, j) in blocks_of(&plans) {
+        // SAFETY: as in `gemm_all`, one block at a time.
+        unsafe { plans[p].block(q, i, j) }
+    }
+}
+
+/// Every block of every plan: (plan, batch entry, row, column).
+fn blocks_of<T>(plans: &[Plan<T>]) -> Vec<(usize, usize, usize, usize)> {
+    plans
         .iter()
         .enumerate()
         .flat_map(|(p, plan)| {
@@ -171,14 +192,7 @@ pub fn gemm_all<T: Scalar>(products: Vec<Product<T>>) {
                 (0..m).step_by(rows_per).flat_map(move |i| (0..n).step_by(cols_per).map(move |j| (p, q, i, j)))
             })
         })
-        .collect();
-    blocks.into_par_iter().for_each(|(p, q, i, j)| {
-        // SAFETY: `Plan::new` checked every addressed element against its slice and C's layout
-        // for injectivity; the blocks (disjoint (q, i, j) ranges) write disjoint elements of
-        // their own product's C, borrowed mutably for the whole call, and no two products share
-        // a C (each is its own `&mut`).
-        unsafe { plans[p].block(q, i, j) }
-    });
+        .collect()
 }
 
 /// A checked product of [`gemm_all`]: raw views of its operands and its block size.

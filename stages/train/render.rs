@@ -282,7 +282,7 @@ impl Renderer {
     }
 
     /// Renders `rays` (with their per-ray `offsets`), returns predictions and MSE, and when
-    /// `grad` is given adds `dMSE/dF` to it.
+    /// `grad` is given writes `dL/dF` into it (overwriting it).
     ///
     /// Rays trace in parallel, in fixed groups that record their footprints (already scaled by
     /// the ray's `dL/dσ`) indexed by z-plane; the scatter then runs in parallel over z-slabs of
@@ -354,7 +354,8 @@ impl Renderer {
         t
     }
 
-    /// Adds every footprint to the corners of its cell.
+    /// Writes the gradient: every footprint added to the corners of its cell, each slab of
+    /// `grad` zeroed first (in the same pass, while it is in cache).
     fn scatter<T: Scalar>(&self, traced: &[Traced<T>], grad: &mut [T]) {
         let n = self.lattice.n;
         let (sy, sz) = (n, n * n);
@@ -363,6 +364,7 @@ impl Renderer {
             // Node i is out[i − split]; cells on plane z0 − 1 reach into this slab with their
             // upper corners.
             let split = z0 * sz;
+            out.fill(T::zero());
             let (low, high) = (z0.saturating_sub(1) as u32, (z1 - 1) as u32);
             for f in traced.iter().flat_map(|t| t.footprints.on_planes(low, high)).flatten() {
                 let (cell, plane) = (f.cell as usize, f.plane as usize);
