@@ -366,14 +366,23 @@ impl Renderer {
             let split = z0 * sz;
             out.fill(T::zero());
             let (low, high) = (z0.saturating_sub(1) as u32, (z1 - 1) as u32);
-            for f in traced.iter().flat_map(|t| t.footprints.on_planes(low, high)).flatten() {
-                let (cell, plane) = (f.cell as usize, f.plane as usize);
-                let (lower, upper) = f.weights.split_at(4);
-                if plane >= z0 {
-                    add_face(out, cell - split, sy, lower);
+            // Each ray's run of footprints on these planes, in ray order: short runs far apart
+            // in memory, so the runs a few rays ahead are prefetched.
+            let slices: Vec<&[Footprint<T>]> =
+                traced.iter().flat_map(|t| t.footprints.on_planes(low, high)).filter(|s| !s.is_empty()).collect();
+            for (i, slice) in slices.iter().enumerate() {
+                if let Some(ahead) = slices.get(i + PREFETCH_AHEAD) {
+                    prefetch(ahead);
                 }
-                if plane + 1 < z1 {
-                    add_face(out, cell + sz - split, sy, upper);
+                for f in *slice {
+                    let (cell, plane) = (f.cell as usize, f.plane as usize);
+                    let (lower, upper) = f.weights.split_at(4);
+                    if plane >= z0 {
+                        add_face(out, cell - split, sy, lower);
+                    }
+                    if plane + 1 < z1 {
+                        add_face(out, cell + sz - split, sy, upper);
+                    }
                 }
             }
         });
@@ -434,5 +443,23 @@ fn add_face<T: Scalar>(out: &mut [T], origin: usize, sy: usize, w: &[T]) {
 fn add_pair<T: Scalar>(pair: &mut [T], w: &[T]) {
     if let ([a, b], [wa, wb]) = (pair, w) {
         (*a, *b) = (*a + *wa, *b + *wb);
+    }
+}
+
+/// Rays ahead whose footprints the scatter asks the cache for.
+const PREFETCH_AHEAD: usize = 8;
+
+/// Asks for the first cache lines of `records` (a ray's short run on a slab's planes: the
+/// hardware prefetcher cannot guess the jumps from one ray's run to the next).
+#[inline(always)]
+fn prefetch<T>(records: &[T]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let bytes = std::mem::size_of_val(records).min(256);
+        let start = records.as_ptr() as *const i8;
+        for offset in (0..bytes).step_by(64) {
+            // SAFETY: prefetching has no architectural effect; the address lies inside `records`.
+            unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(start.add(offset)) };
+        }
     }
 }
