@@ -64,6 +64,9 @@ fn profile_kernels(params: &TrainParams, views: &Views, field: &VmField<f32>) {
     picked.sort_unstable();
     let batch: Vec<_> = picked.iter().map(|&i| pool[i]).collect();
     let offsets: Vec<f64> = (0..batch.len()).map(|i| renderer.step * ((i * 37) % 101) as f64 / 101.0).collect();
+    // The batch's size for the floor estimate in docs/performance.md.
+    let samples: usize = batch.iter().zip(&offsets).map(|(ray, &off)| renderer.samples(ray, off).2).sum();
+    println!("batch: {} rays, {samples} samples ({:.0} a ray)", batch.len(), samples as f64 / batch.len() as f64);
     let dense = field.compose();
     let mut dense_out = dense.clone();
     let mut grad_dense = vec![0f32; dense.len()];
@@ -89,7 +92,6 @@ fn profile_kernels(params: &TrainParams, views: &Views, field: &VmField<f32>) {
         (
             "render + scatter",
             median_ms(&mut || {
-                grad_dense.fill(0.0);
                 renderer.batch(&dense, None, &batch, &offsets, Some(&mut grad_dense));
             }),
         ),
