@@ -103,6 +103,12 @@ fn profile_kernels(params: &TrainParams, views: &Views, field: &VmField<f32>) {
             }),
         ),
         (
+            "3-D TV (default only)",
+            median_ms(&mut || {
+                regularize::tv_dense(&dense, field.n, 1e-4, &mut grad_dense);
+            }),
+        ),
+        (
             "Adam",
             median_ms(&mut || {
                 adam.update(&mut scratch, &grad);

@@ -44,6 +44,12 @@ ROWS = [
      "the default with ten times the 3-D TV (λ = 1e-3)"),
     ("log-loss", "presets/log_loss.toml", "B", "C*",
      "the default with the photometric loss on optical depths (−ln Î against −ln I)"),
+    ("rank-32", "presets/rank32.toml", "B", "C*",
+     "the default with rank 32 per plane/line pair instead of 16"),
+    ("l1-strong", "presets/l1_strong.toml", "B", "C*",
+     "the default with ten times the L1 weight on the factors (λ1 = 1e-3)"),
+    ("iters-6000", "presets/iters6000.toml", "B", "C*",
+     "the default trained for 6000 iterations instead of 3000"),
 ]
 MEASURED = "experiment.json"
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"

@@ -183,11 +183,15 @@ pub fn tv_dense<T: Float + Send + Sync>(dense: &[T], n: usize, weight: T, grad_d
             };
             // Along x: rows of n, each with n − 1 differences.
             for (row, grow) in here.chunks_exact(n).zip(g.chunks_exact_mut(n)) {
-                difference(&row[..n - 1], &row[1..], &mut step[..n - 1], true);
-                for (k, &s) in step[..n - 1].iter().enumerate() {
-                    grow[k] = grow[k] - s;
-                    grow[k + 1] = grow[k + 1] + s;
+                let s = &mut step[..n - 1];
+                difference(&row[..n - 1], &row[1..], s, true);
+                // Node k gains the difference before it and loses its own, in that order (as
+                // adding pair by pair would), as one slice loop that vectorises.
+                grow[0] = grow[0] - s[0];
+                for ((gk, &before), &own) in grow[1..n - 1].iter_mut().zip(&s[..n - 2]).zip(&s[1..]) {
+                    *gk = (*gk + before) - own;
                 }
+                grow[n - 1] = grow[n - 1] + s[n - 2];
             }
             // Along y: the slice against itself shifted by one row.
             difference(&here[..nn - n], &here[n..], &mut step[..nn - n], true);
