@@ -25,3 +25,4 @@ pub mod raymarch;
 pub mod statistics;
 pub mod stats;
 pub mod trilinear;
+pub mod wide;

@@ -2,6 +2,7 @@
 //! exponentially to `decay_ratio ×` its start over the run (TensoRF's default schedule).
 
 use super::field::VmField;
+use crate::kernels::wide::with_avx2;
 use num_traits::Float;
 use rayon::prelude::*;
 
@@ -75,11 +76,16 @@ impl<T: Float + Send + Sync> Adam<T> {
             })
             .collect();
         chunks.into_par_iter().for_each(|(((x, g), m), v)| {
-            for i in 0..x.len() {
-                m[i] = b1 * m[i] + (T::one() - b1) * g[i];
-                v[i] = b2 * v[i] + (T::one() - b2) * g[i] * g[i];
-                x[i] = x[i] - lr_t * m[i] / (v[i].sqrt() / sqrt_bias2 + eps);
-            }
+            with_avx2(
+                #[inline(always)]
+                || {
+                    for i in 0..x.len() {
+                        m[i] = b1 * m[i] + (T::one() - b1) * g[i];
+                        v[i] = b2 * v[i] + (T::one() - b2) * g[i] * g[i];
+                        x[i] = x[i] - lr_t * m[i] / (v[i].sqrt() / sqrt_bias2 + eps);
+                    }
+                },
+            )
         });
         lr
     }

@@ -7,6 +7,7 @@
 //! L1 TV on the composed 3-D field (not in the paper: an option of `[train]`, `lambda_tv3d`).
 
 use super::field::VmField;
+use crate::kernels::wide::with_avx2;
 use num_traits::Float;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -19,7 +20,7 @@ pub enum TvNorm {
 }
 
 /// −1, 0 or 1, branch-free (selects, so loops over it vectorise).
-#[inline]
+#[inline(always)]
 fn sign<T: Float>(x: T) -> T {
     let positive = if x > T::zero() { T::one() } else { T::zero() };
     let negative = if x < T::zero() { T::one() } else { T::zero() };
@@ -68,18 +69,23 @@ pub fn l1_and_tv<T: Float + Send + Sync>(
     let partials: Vec<(T, T)> = components
         .into_par_iter()
         .map(|(is_plane, values, g)| {
-            let l1_sum = l1.map_or(T::zero(), |weight| {
-                let per_entry = weight / T::from(values.len() * rank).expect("length");
-                for (gi, &xi) in g.iter_mut().zip(values) {
-                    *gi = *gi + per_entry * sign(xi);
-                }
-                lane_sum(values, |v| v.abs())
-            });
-            let tv_sum = match tv {
-                Some((norm, weight)) if is_plane => tv_component(values, g, n, norm, weight / tv_count),
-                _ => T::zero(),
-            };
-            (l1_sum, tv_sum)
+            with_avx2(
+                #[inline(always)]
+                || {
+                    let l1_sum = l1.map_or(T::zero(), |weight| {
+                        let per_entry = weight / T::from(values.len() * rank).expect("length");
+                        for (gi, &xi) in g.iter_mut().zip(values) {
+                            *gi = *gi + per_entry * sign(xi);
+                        }
+                        lane_sum(values, |v| v.abs())
+                    });
+                    let tv_sum = match tv {
+                        Some((norm, weight)) if is_plane => tv_component(values, g, n, norm, weight / tv_count),
+                        _ => T::zero(),
+                    };
+                    (l1_sum, tv_sum)
+                },
+            )
         })
         .collect();
     let mut l1_value = 0.0;
@@ -93,7 +99,8 @@ pub fn l1_and_tv<T: Float + Send + Sync>(
 }
 
 /// One `n × n` component: the sum of its horizontal and vertical difference penalties, and
-/// their gradient, scaled, added to `g`.
+/// their gradient, scaled, added to `g`. (Inlined into its caller's AVX2 copy.)
+#[inline(always)]
 fn tv_component<T: Float>(comp: &[T], g: &mut [T], n: usize, norm: TvNorm, scale: T) -> T {
     // Each difference d_k = b_k − a_k adds |d| (or d²); ∂/∂d_k, scaled, goes to b_k with + and
     // to a_k with −. Differences run between contiguous slices (a row and itself shifted by
@@ -135,6 +142,7 @@ fn tv_component<T: Float>(comp: &[T], g: &mut [T], n: usize, norm: TvNorm, scale
 
 /// `Σ f(x)` over `values` in eight interleaved partial sums (so the loop vectorises), then
 /// the remainder, then the partials pairwise: one fixed order.
+#[inline(always)]
 fn lane_sum<T: Float>(values: &[T], f: impl Fn(T) -> T) -> T {
     let mut lanes = [T::zero(); 8];
     let chunks = values.chunks_exact(8);
@@ -169,48 +177,53 @@ pub fn tv_dense<T: Float + Send + Sync>(dense: &[T], n: usize, weight: T, grad_d
         .par_chunks_exact_mut(nn)
         .enumerate()
         .map(|(z, g)| {
-            let here = &dense[z * nn..(z + 1) * nn];
-            let mut value = T::zero();
-            let mut step = vec![T::zero(); nn];
-            let mut difference = |a: &[T], b: &[T], step: &mut [T], counted: bool| {
-                for ((s, &x), &y) in step.iter_mut().zip(a).zip(b) {
-                    *s = y - x;
-                }
-                if counted {
-                    value = value + lane_sum(step, |d| d.abs());
-                }
-                step.iter_mut().for_each(|s| *s = scale * sign(*s));
-            };
-            // Along x: rows of n, each with n − 1 differences.
-            for (row, grow) in here.chunks_exact(n).zip(g.chunks_exact_mut(n)) {
-                let s = &mut step[..n - 1];
-                difference(&row[..n - 1], &row[1..], s, true);
-                // Node k gains the difference before it and loses its own, in that order (as
-                // adding pair by pair would), as one slice loop that vectorises.
-                grow[0] = grow[0] - s[0];
-                for ((gk, &before), &own) in grow[1..n - 1].iter_mut().zip(&s[..n - 2]).zip(&s[1..]) {
-                    *gk = (*gk + before) - own;
-                }
-                grow[n - 1] = grow[n - 1] + s[n - 2];
-            }
-            // Along y: the slice against itself shifted by one row.
-            difference(&here[..nn - n], &here[n..], &mut step[..nn - n], true);
-            for (gi, &s) in g[..nn - n].iter_mut().zip(&step[..nn - n]) {
-                *gi = *gi - s;
-            }
-            for (gi, &s) in g[n..].iter_mut().zip(&step[..nn - n]) {
-                *gi = *gi + s;
-            }
-            // Along z: to the next slice (counted here) and from the previous one.
-            if z + 1 < n {
-                difference(here, &dense[(z + 1) * nn..(z + 2) * nn], &mut step, true);
-                g.iter_mut().zip(&step).for_each(|(gi, &s)| *gi = *gi - s);
-            }
-            if z > 0 {
-                difference(&dense[(z - 1) * nn..z * nn], here, &mut step, false);
-                g.iter_mut().zip(&step).for_each(|(gi, &s)| *gi = *gi + s);
-            }
-            value
+            with_avx2(
+                #[inline(always)]
+                || {
+                    let here = &dense[z * nn..(z + 1) * nn];
+                    let mut value = T::zero();
+                    let mut step = vec![T::zero(); nn];
+                    let mut difference = |a: &[T], b: &[T], step: &mut [T], counted: bool| {
+                        for ((s, &x), &y) in step.iter_mut().zip(a).zip(b) {
+                            *s = y - x;
+                        }
+                        if counted {
+                            value = value + lane_sum(step, |d| d.abs());
+                        }
+                        step.iter_mut().for_each(|s| *s = scale * sign(*s));
+                    };
+                    // Along x: rows of n, each with n − 1 differences.
+                    for (row, grow) in here.chunks_exact(n).zip(g.chunks_exact_mut(n)) {
+                        let s = &mut step[..n - 1];
+                        difference(&row[..n - 1], &row[1..], s, true);
+                        // Node k gains the difference before it and loses its own, in that order (as
+                        // adding pair by pair would), as one slice loop that vectorises.
+                        grow[0] = grow[0] - s[0];
+                        for ((gk, &before), &own) in grow[1..n - 1].iter_mut().zip(&s[..n - 2]).zip(&s[1..]) {
+                            *gk = (*gk + before) - own;
+                        }
+                        grow[n - 1] = grow[n - 1] + s[n - 2];
+                    }
+                    // Along y: the slice against itself shifted by one row.
+                    difference(&here[..nn - n], &here[n..], &mut step[..nn - n], true);
+                    for (gi, &s) in g[..nn - n].iter_mut().zip(&step[..nn - n]) {
+                        *gi = *gi - s;
+                    }
+                    for (gi, &s) in g[n..].iter_mut().zip(&step[..nn - n]) {
+                        *gi = *gi + s;
+                    }
+                    // Along z: to the next slice (counted here) and from the previous one.
+                    if z + 1 < n {
+                        difference(here, &dense[(z + 1) * nn..(z + 2) * nn], &mut step, true);
+                        g.iter_mut().zip(&step).for_each(|(gi, &s)| *gi = *gi - s);
+                    }
+                    if z > 0 {
+                        difference(&dense[(z - 1) * nn..z * nn], here, &mut step, false);
+                        g.iter_mut().zip(&step).for_each(|(gi, &s)| *gi = *gi + s);
+                    }
+                    value
+                },
+            )
         })
         .collect();
     let value = per_slice.into_iter().fold(T::zero(), |a, b| a + b);
