@@ -72,13 +72,16 @@ pub fn l1_and_tv<T: Float + Send + Sync>(
             with_avx2(
                 #[inline(always)]
                 || {
-                    let l1_sum = l1.map_or(T::zero(), |weight| {
-                        let per_entry = weight / T::from(values.len() * rank).expect("length");
-                        for (gi, &xi) in g.iter_mut().zip(values) {
-                            *gi = *gi + per_entry * sign(xi);
+                    let l1_sum = match l1 {
+                        Some(weight) => {
+                            let per_entry = weight / T::from(values.len() * rank).expect("length");
+                            for (gi, &xi) in g.iter_mut().zip(values) {
+                                *gi = *gi + per_entry * sign(xi);
+                            }
+                            lane_sum(values, |v| v.abs())
                         }
-                        lane_sum(values, |v| v.abs())
-                    });
+                        None => T::zero(),
+                    };
                     let tv_sum = match tv {
                         Some((norm, weight)) if is_plane => tv_component(values, g, n, norm, weight / tv_count),
                         _ => T::zero(),
@@ -108,36 +111,45 @@ fn tv_component<T: Float>(comp: &[T], g: &mut [T], n: usize, norm: TvNorm, scale
     // scaled derivative and is applied in two passes. Slice loops only: they vectorise.
     let mut step = vec![T::zero(); n * (n - 1)];
     let mut value = T::zero();
-    let mut penalise = |a: &[T], b: &[T], step: &mut [T]| {
-        for ((s, &x), &y) in step.iter_mut().zip(a).zip(b) {
-            *s = y - x;
-        }
-        match norm {
-            TvNorm::L1 => {
-                value = value + lane_sum(step, |d| d.abs());
-                step.iter_mut().for_each(|s| *s = scale * sign(*s));
-            }
-            TvNorm::L2 => {
-                value = value + lane_sum(step, |d| d * d);
-                step.iter_mut().for_each(|s| *s = scale * (*s + *s));
-            }
-        }
-    };
-    let apply = |g: &mut [T], shift: usize, step: &[T]| {
-        for (gi, &s) in g.iter_mut().zip(step) {
-            *gi = *gi - s;
-        }
-        for (gi, &s) in g[shift..].iter_mut().zip(step) {
-            *gi = *gi + s;
-        }
-    };
     for (row, grow) in comp.chunks_exact(n).zip(g.chunks_exact_mut(n)) {
-        penalise(&row[..n - 1], &row[1..], &mut step[..n - 1]);
-        apply(grow, 1, &step[..n - 1]);
+        value = value + penalise(&row[..n - 1], &row[1..], &mut step[..n - 1], norm, scale);
+        apply_step(grow, 1, &step[..n - 1]);
     }
-    penalise(&comp[..n * (n - 1)], &comp[n..], &mut step);
-    apply(g, n, &step);
+    value = value + penalise(&comp[..n * (n - 1)], &comp[n..], &mut step, norm, scale);
+    apply_step(g, n, &step);
     value
+}
+
+/// The differences `b − a` into `step`; returns their penalty summed, and leaves in `step` the
+/// penalty's derivative, scaled.
+#[inline(always)]
+fn penalise<T: Float>(a: &[T], b: &[T], step: &mut [T], norm: TvNorm, scale: T) -> T {
+    for ((s, &x), &y) in step.iter_mut().zip(a).zip(b) {
+        *s = y - x;
+    }
+    match norm {
+        TvNorm::L1 => {
+            let sum = lane_sum(step, |d| d.abs());
+            step.iter_mut().for_each(|s| *s = scale * sign(*s));
+            sum
+        }
+        TvNorm::L2 => {
+            let sum = lane_sum(step, |d| d * d);
+            step.iter_mut().for_each(|s| *s = scale * (*s + *s));
+            sum
+        }
+    }
+}
+
+/// Each difference's derivative `step[k]` taken from `g[k]` and added to `g[k + shift]`.
+#[inline(always)]
+fn apply_step<T: Float>(g: &mut [T], shift: usize, step: &[T]) {
+    for (gi, &s) in g.iter_mut().zip(step) {
+        *gi = *gi - s;
+    }
+    for (gi, &s) in g[shift..].iter_mut().zip(step) {
+        *gi = *gi + s;
+    }
 }
 
 /// `Σ f(x)` over `values` in eight interleaved partial sums (so the loop vectorises), then
