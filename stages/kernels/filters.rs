@@ -122,48 +122,33 @@ fn along(src: &[f64], dims: [usize; 3], axis: usize, kernel: &[f64]) -> Vec<f64>
     let (w0, wings) = (kernel[r], &kernel[r + 1..]);
     match axis {
         0 => out.par_chunks_mut(plane).zip(src.par_chunks(plane)).for_each(|(dst, src)| {
-            with_avx2(
-                #[inline(always)]
-                || {
-                    let mut padded = vec![0.0; nx + 2 * r];
-                    for (dst, row) in dst.chunks_exact_mut(nx).zip(src.chunks_exact(nx)) {
-                        padded[..r].fill(row[0]);
-                        padded[r..r + nx].copy_from_slice(row);
-                        padded[r + nx..].fill(row[nx - 1]);
-                        let padded = &padded;
-                        accumulate(dst, w0, wings, |k| {
-                            let start = (r as i64 + k) as usize;
-                            &padded[start..start + nx]
-                        });
-                    }
-                },
-            )
+            let mut padded = vec![0.0; nx + 2 * r];
+            for (dst, row) in dst.chunks_exact_mut(nx).zip(src.chunks_exact(nx)) {
+                padded[..r].fill(row[0]);
+                padded[r..r + nx].copy_from_slice(row);
+                padded[r + nx..].fill(row[nx - 1]);
+                let padded = &padded;
+                accumulate(dst, w0, wings, |k| {
+                    let start = (r as i64 + k) as usize;
+                    &padded[start..start + nx]
+                });
+            }
         }),
         1 => out.par_chunks_mut(plane).zip(src.par_chunks(plane)).for_each(|(dst, src)| {
-            with_avx2(
-                #[inline(always)]
-                || {
-                    let row = |y: i64| {
-                        let y = y.clamp(0, ny as i64 - 1) as usize;
-                        &src[y * nx..(y + 1) * nx]
-                    };
-                    for (y, dst) in dst.chunks_exact_mut(nx).enumerate() {
-                        accumulate(dst, w0, wings, |k| row(y as i64 + k));
-                    }
-                },
-            )
+            let row = |y: i64| {
+                let y = y.clamp(0, ny as i64 - 1) as usize;
+                &src[y * nx..(y + 1) * nx]
+            };
+            for (y, dst) in dst.chunks_exact_mut(nx).enumerate() {
+                accumulate(dst, w0, wings, |k| row(y as i64 + k));
+            }
         }),
         2 => out.par_chunks_mut(plane).enumerate().for_each(|(z, dst)| {
-            with_avx2(
-                #[inline(always)]
-                || {
-                    let slab = |k: i64| {
-                        let z = k.clamp(0, nz as i64 - 1) as usize;
-                        &src[z * plane..(z + 1) * plane]
-                    };
-                    accumulate(dst, w0, wings, |k| slab(z as i64 + k));
-                },
-            )
+            let slab = |k: i64| {
+                let z = k.clamp(0, nz as i64 - 1) as usize;
+                &src[z * plane..(z + 1) * plane]
+            };
+            accumulate(dst, w0, wings, |k| slab(z as i64 + k));
         }),
         _ => panic!("axis {axis} is not 0, 1 or 2"),
     }
@@ -171,19 +156,23 @@ fn along(src: &[f64], dims: [usize; 3], axis: usize, kernel: &[f64]) -> Vec<f64>
 }
 
 /// `dst = w0·line(0) + Σ_j w_j·(line(−j) + line(+j))`, elementwise over whole rows or planes,
-/// j ascending. (Keeping blocks of sums in registers across the kernel instead was measured
-/// slower.) Inlined into the passes' AVX2 copies.
-#[inline(always)]
+/// j ascending, in its AVX2 copy where the CPU has it. (Keeping blocks of sums in registers
+/// across the kernel instead was measured slower.)
 fn accumulate<'a>(dst: &mut [f64], w0: f64, wings: &[f64], line: impl Fn(i64) -> &'a [f64]) {
-    for (d, &c) in dst.iter_mut().zip(line(0)) {
-        *d = w0 * c;
-    }
-    for (j, &w) in wings.iter().enumerate() {
-        let k = j as i64 + 1;
-        for ((d, &a), &b) in dst.iter_mut().zip(line(-k)).zip(line(k)) {
-            *d += w * (a + b);
-        }
-    }
+    with_avx2(
+        #[inline(always)]
+        || {
+            for (d, &c) in dst.iter_mut().zip(line(0)) {
+                *d = w0 * c;
+            }
+            for (j, &w) in wings.iter().enumerate() {
+                let k = j as i64 + 1;
+                for ((d, &a), &b) in dst.iter_mut().zip(line(-k)).zip(line(k)) {
+                    *d += w * (a + b);
+                }
+            }
+        },
+    )
 }
 
 fn check(len: usize, dims: [usize; 3], spacing_mm: [f64; 3], sigma_mm: f64) {
