@@ -195,19 +195,10 @@ pub fn tv_dense<T: Float + Send + Sync>(dense: &[T], n: usize, weight: T, grad_d
                     let here = &dense[z * nn..(z + 1) * nn];
                     let mut value = T::zero();
                     let mut step = vec![T::zero(); nn];
-                    let mut difference = |a: &[T], b: &[T], step: &mut [T], counted: bool| {
-                        for ((s, &x), &y) in step.iter_mut().zip(a).zip(b) {
-                            *s = y - x;
-                        }
-                        if counted {
-                            value = value + lane_sum(step, |d| d.abs());
-                        }
-                        step.iter_mut().for_each(|s| *s = scale * sign(*s));
-                    };
                     // Along x: rows of n, each with n − 1 differences.
                     for (row, grow) in here.chunks_exact(n).zip(g.chunks_exact_mut(n)) {
                         let s = &mut step[..n - 1];
-                        difference(&row[..n - 1], &row[1..], s, true);
+                        value = value + penalise(&row[..n - 1], &row[1..], s, TvNorm::L1, scale);
                         // Node k gains the difference before it and loses its own, in that order (as
                         // adding pair by pair would), as one slice loop that vectorises.
                         grow[0] = grow[0] - s[0];
@@ -217,20 +208,17 @@ pub fn tv_dense<T: Float + Send + Sync>(dense: &[T], n: usize, weight: T, grad_d
                         grow[n - 1] = grow[n - 1] + s[n - 2];
                     }
                     // Along y: the slice against itself shifted by one row.
-                    difference(&here[..nn - n], &here[n..], &mut step[..nn - n], true);
-                    for (gi, &s) in g[..nn - n].iter_mut().zip(&step[..nn - n]) {
-                        *gi = *gi - s;
-                    }
-                    for (gi, &s) in g[n..].iter_mut().zip(&step[..nn - n]) {
-                        *gi = *gi + s;
-                    }
-                    // Along z: to the next slice (counted here) and from the previous one.
+                    value = value + penalise(&here[..nn - n], &here[n..], &mut step[..nn - n], TvNorm::L1, scale);
+                    apply_step(g, n, &step[..nn - n]);
+                    // Along z: to the next slice (counted here) and from the previous one (counted
+                    // there, so its penalty is not added again).
                     if z + 1 < n {
-                        difference(here, &dense[(z + 1) * nn..(z + 2) * nn], &mut step, true);
+                        value =
+                            value + penalise(here, &dense[(z + 1) * nn..(z + 2) * nn], &mut step, TvNorm::L1, scale);
                         g.iter_mut().zip(&step).for_each(|(gi, &s)| *gi = *gi - s);
                     }
                     if z > 0 {
-                        difference(&dense[(z - 1) * nn..z * nn], here, &mut step, false);
+                        penalise(&dense[(z - 1) * nn..z * nn], here, &mut step, TvNorm::L1, scale);
                         g.iter_mut().zip(&step).for_each(|(gi, &s)| *gi = *gi + s);
                     }
                     value
