@@ -1,5 +1,6 @@
 //! Strided matrix products for composing the VM factors into the dense field and contracting
-//! its gradient back: a bounds-checked, safe front to `matrixmultiply` (which picks AVX/FMA
+//! its gradient back (in f64, and on CPUs without FMA; f32 on FMA CPUs contracts by
+//! [`super::contract`]'s bit-identical chains): a bounds-checked, safe front to `matrixmultiply` (which picks AVX/FMA
 //! kernels at run time), split into blocks that run in parallel.
 //!
 //! Blocks depend only on the shape, never on the thread count, and no block splits the inner
@@ -24,6 +25,9 @@ pub trait Scalar: Float + Default + Send + Sync + 'static {
     /// The values as f32, when that is their type: the way into f32-only vector kernels.
     fn as_f32(values: &[Self]) -> Option<&[f32]>;
 
+    /// [`Scalar::as_f32`], writable.
+    fn as_f32_mut(values: &mut [Self]) -> Option<&mut [f32]>;
+
     /// `C ← A·B + β·C` on raw strided views.
     ///
     /// # Safety
@@ -45,7 +49,7 @@ pub trait Scalar: Float + Default + Send + Sync + 'static {
 }
 
 macro_rules! scalar {
-    ($t:ty, $kernel:path, $as_f32:expr) => {
+    ($t:ty, $kernel:path, $as_f32:expr, $as_f32_mut:expr) => {
         impl Scalar for $t {
             #[inline]
             fn trunc_index(self) -> usize {
@@ -59,6 +63,10 @@ macro_rules! scalar {
 
             fn as_f32(values: &[Self]) -> Option<&[f32]> {
                 $as_f32(values)
+            }
+
+            fn as_f32_mut(values: &mut [Self]) -> Option<&mut [f32]> {
+                $as_f32_mut(values)
             }
 
             unsafe fn gemm_raw(
@@ -78,8 +86,8 @@ macro_rules! scalar {
         }
     };
 }
-scalar!(f32, matrixmultiply::sgemm, Some);
-scalar!(f64, matrixmultiply::dgemm, |_| None);
+scalar!(f32, matrixmultiply::sgemm, Some, Some);
+scalar!(f64, matrixmultiply::dgemm, |_| None, |_| None);
 
 /// Where a (batch of) matrices lives in a flat buffer: element `(i, j)` of matrix `b` is at
 /// `offset + b·batch + i·row + j·col`.
