@@ -50,6 +50,8 @@ ROWS = [
      "the default with ten times the L1 weight on the factors (λ1 = 1e-3)"),
     ("iters-6000", "presets/iters6000.toml", "B", "C*",
      "the default trained for 6000 iterations instead of 3000"),
+    ("lr-high", "presets/lr_high.toml", "B", "C*",
+     "the default with twice the learning rate (0.04, same decay)"),
 ]
 MEASURED = "experiment.json"
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
