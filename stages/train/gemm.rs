@@ -1,7 +1,8 @@
 //! Strided matrix products for composing the VM factors into the dense field and contracting
-//! its gradient back (in f64, and on CPUs without FMA; f32 on FMA CPUs contracts by
-//! [`super::contract`]'s bit-identical chains): a bounds-checked, safe front to `matrixmultiply` (which picks AVX/FMA
-//! kernels at run time), split into blocks that run in parallel.
+//! its gradient back (the contraction only in f64 and on CPUs without FMA: f32 on FMA CPUs
+//! contracts by [`super::contract`]'s bit-identical chains): a bounds-checked, safe front to
+//! `matrixmultiply` (which picks AVX/FMA kernels at run time), split into blocks that run in
+//! parallel.
 //!
 //! Blocks depend only on the shape, never on the thread count, and no block splits the inner
 //! (k) dimension, so every output element is summed in one fixed order: results are
