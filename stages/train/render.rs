@@ -132,8 +132,10 @@ pub const MAX_GRID: usize = 512;
 /// One ray's gradient footprint on one cell: the trilinear weights of the ray's active
 /// samples in that cell, summed (consecutive samples of a ray often share a cell), then
 /// scaled by the ray's `dL/dσ` once the ray is traced. Corners in the order x fastest, then
-/// y, then z (the first four on the cell's lower plane).
+/// y, then z (the first four on the cell's lower plane). `repr(C)`: the vector walk writes
+/// the cell and plane as one 8-byte value.
 #[derive(Debug, Clone, Copy)]
+#[repr(C)]
 struct Footprint<T> {
     /// The cell's lower corner node, `x + N·(y + N·z)`.
     cell: u32,
@@ -199,18 +201,20 @@ impl<T: Scalar> Footprints<T> {
 
     /// Keeps the `len` records the walk wrote after the used ones (monotone in plane, either
     /// way), scaled by the ray's `dL/dσ`, in ascending plane order, and indexes them by plane.
+    /// Records without an active sample (all weights +0) are dropped.
     fn keep_ray(&mut self, len: usize, d_sigma: T) {
         let first = self.used;
-        let records = &mut self.list[first..first + len];
+        let mut end = first;
+        for i in first..first + len {
+            let f = self.list[i];
+            self.list[end] = Footprint { weights: f.weights.map(|w| w * d_sigma), ..f };
+            end += usize::from(f.weights.iter().any(|&w| w != T::zero()));
+        }
+        let records = &mut self.list[first..end];
         let (Some(head), Some(tail)) = (records.first(), records.last()) else { return };
         let (low, high) = (head.plane.min(tail.plane), head.plane.max(tail.plane));
         if head.plane > tail.plane {
             records.reverse();
-        }
-        for f in records.iter_mut() {
-            for w in &mut f.weights {
-                *w = *w * d_sigma;
-            }
         }
         let starts = self.plane_starts.len() as u32;
         let mut plane = low;
@@ -220,7 +224,7 @@ impl<T: Scalar> Footprints<T> {
                 plane += 1;
             }
         }
-        self.used += len;
+        self.used = end;
         self.plane_starts.push(self.used as u32);
         self.rays.push(RayFootprints { low, high, starts });
     }
@@ -359,7 +363,7 @@ impl Renderer {
     fn scatter<T: Scalar>(&self, traced: &[Traced<T>], grad: &mut [T]) {
         let n = self.lattice.n;
         let (sy, sz) = (n, n * n);
-        grad.par_chunks_mut(sz * PLANES_PER_SLAB).enumerate().for_each(|(slab, out)| {
+        grad.par_chunks_mut(sz * PLANES_PER_SLAB).enumerate().for_each(move |(slab, out)| {
             let (z0, z1) = (slab * PLANES_PER_SLAB, ((slab + 1) * PLANES_PER_SLAB).min(n));
             // Node i is out[i − split]; cells on plane z0 − 1 reach into this slab with their
             // upper corners.
@@ -376,12 +380,14 @@ impl Renderer {
                 }
                 for f in *slice {
                     let (cell, plane) = (f.cell as usize, f.plane as usize);
-                    let (lower, upper) = f.weights.split_at(4);
+                    let [l0, l1, l2, l3, u0, u1, u2, u3] = f.weights;
+                    // The record's faces on this slab's planes; their last node (the face's
+                    // origin + sy + 1) must lie in `out`, checked once per face.
                     if plane >= z0 {
-                        add_face(out, cell - split, sy, lower);
+                        add_face(out, cell - split, sy, [l0, l1, l2, l3]);
                     }
                     if plane + 1 < z1 {
-                        add_face(out, cell + sz - split, sy, upper);
+                        add_face(out, cell + sz - split, sy, [u0, u1, u2, u3]);
                     }
                 }
             }
@@ -431,18 +437,20 @@ impl Renderer {
 }
 
 /// Adds the weights `w` of a cell face's 4 corners (x fastest, then y) to `out`, the face's
-/// first corner at `origin`: two pairs of x-neighbours.
+/// first corner at `origin`: two pairs of x-neighbours, `sy` apart.
+///
+/// # Panics
+/// If the face's last node, `origin + sy + 1`, is outside `out`.
 #[inline(always)]
-fn add_face<T: Scalar>(out: &mut [T], origin: usize, sy: usize, w: &[T]) {
-    add_pair(&mut out[origin..origin + 2], &w[..2]);
-    add_pair(&mut out[origin + sy..origin + sy + 2], &w[2..4]);
-}
-
-/// `pair += w` for two neighbouring values (one 8-byte vector operation in f32).
-#[inline(always)]
-fn add_pair<T: Scalar>(pair: &mut [T], w: &[T]) {
-    if let ([a, b], [wa, wb]) = (pair, w) {
-        (*a, *b) = (*a + *wa, *b + *wb);
+fn add_face<T: Scalar>(out: &mut [T], origin: usize, sy: usize, w: [T; 4]) {
+    assert!(origin + sy + 1 < out.len(), "scatter: a footprint's face lies outside its slab");
+    // SAFETY: the four nodes origin, origin + 1, origin + sy, origin + sy + 1 are at most
+    // origin + sy + 1, inside `out` (checked above).
+    unsafe {
+        let face = out.as_mut_ptr().add(origin);
+        for (node, w) in [(0, w[0]), (1, w[1]), (sy, w[2]), (sy + 1, w[3])] {
+            *face.add(node) = *face.add(node) + w;
+        }
     }
 }
 

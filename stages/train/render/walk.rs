@@ -81,50 +81,64 @@ fn as_f32_walk<'a, T: Scalar>(walk: &RayWalk<'a, T>, dense: &'a [f32]) -> RayWal
     }
 }
 
-/// The footprint being built while walking: records are closed when the cell changes and
-/// they hold an active sample (branch-free: cell changes and the sign of σ are unpredictable).
+/// The footprint being built while walking. Every run of consecutive samples in one cell is
+/// a record, closed when the cell changes (branch-free: cell changes and the sign of σ are
+/// unpredictable); a run without an active sample leaves a record of +0 weights, which
+/// [`super::Footprints`] drops when it keeps the ray. Whole blocks without an active sample
+/// leave at most one such record.
 struct Recorder<'s, T> {
     slots: &'s mut [Footprint<T>],
+    /// The open record's slot; `usize::MAX` before the first sample.
     len: usize,
     open: Footprint<T>,
-    open_active: bool,
 }
 
 impl<'s, T: Scalar> Recorder<'s, T> {
     fn new(slots: &'s mut [Footprint<T>]) -> Self {
-        Recorder { slots, len: 0, open: Footprint::none(), open_active: false }
+        Recorder { slots, len: usize::MAX, open: Footprint::none() }
     }
 
     /// Adds one sample: its cell, the cell's plane, whether σ > 0, its corner weights.
     #[inline(always)]
     fn add(&mut self, cell: u32, plane: u32, active: bool, weights: [T; 8]) {
         let same = cell == self.open.cell;
-        self.len += usize::from(!same & self.open_active);
+        self.len = self.len.wrapping_add(usize::from(!same));
         let (keep, add) = (T::from_index(usize::from(same)), T::from_index(usize::from(active)));
         self.open.weights = std::array::from_fn(|i| self.open.weights[i] * keep + weights[i] * add);
         (self.open.cell, self.open.plane) = (cell, plane);
-        self.open_active = (self.open_active & same) | active;
         self.slots[self.len] = self.open;
     }
 
-    /// Adds samples none of which is active, of the cells `cells` with planes `planes`: the
-    /// same records as adding them one by one (a run of inactive samples leaves only an empty
-    /// open record on the last one's cell, the open record closed if the cell changed).
+    /// Adds a block of samples none of which is active, of the cells `cells` with planes
+    /// `planes`: if one leaves the open record's cell, a new empty record opens on the last
+    /// one's cell (the runs in between would only have left empty records).
     #[inline(always)]
     fn add_inactive(&mut self, cells: &[u32], planes: &[u32]) {
         if let (Some(&cell), Some(&plane)) = (cells.last(), planes.last()) {
             if cells.iter().any(|&c| c != self.open.cell) {
-                self.len += usize::from(self.open_active);
+                self.len = self.len.wrapping_add(1);
                 self.open = Footprint { cell, plane, weights: [T::zero(); 8] };
-                self.open_active = false;
                 self.slots[self.len] = self.open;
             }
         }
     }
 
-    /// The number of records.
+    /// Adds a block of samples: all inactive ones at once (see [`Recorder::add_inactive`]),
+    /// else one by one.
+    #[inline(always)]
+    fn add_block(&mut self, cells: &[u32], planes: &[u32], active: &[bool], weights: &[[T; 8]]) {
+        if active.iter().any(|&a| a) {
+            for (((&cell, &plane), &active), &weights) in cells.iter().zip(planes).zip(active).zip(weights) {
+                self.add(cell, plane, active, weights);
+            }
+        } else {
+            self.add_inactive(cells, planes);
+        }
+    }
+
+    /// The number of records (empty ones included).
     fn finish(self) -> usize {
-        self.len + usize::from(self.open_active)
+        self.len.wrapping_add(1)
     }
 }
 
@@ -156,6 +170,9 @@ fn portable<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, slots: &mut [Footp
     let mut depth = [T::zero(); LANES];
     let mut recorder = Recorder::new(slots);
     for k0 in (0..walk.count).step_by(LANES) {
+        let valid = (walk.count - k0).min(LANES);
+        let (mut cells, mut planes, mut actives) = ([0u32; LANES], [0u32; LANES], [false; LANES]);
+        let mut corner_weights = [[T::zero(); 8]; LANES];
         for (lane, depth) in depth.iter_mut().enumerate() {
             let k = T::from_index(k0) + T::from_index(lane);
             let mut base = [0usize; 3];
@@ -170,12 +187,14 @@ fn portable<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, slots: &mut [Footp
             let weights = trilinear_weights(frac);
             let s: [T; 4] = std::array::from_fn(|i| weights[i] * corners[i] + weights[i + 4] * corners[i + 4]);
             let sigma = ((s[0] + s[1]) + (s[2] + s[3])) + walk.shift;
-            let live = k0 + lane < walk.count && walk.kept.is_none_or(|kept| kept[cell] != 0);
+            let live = lane < valid && walk.kept.is_none_or(|kept| kept[cell] != 0);
             let active = live && sigma > T::zero();
             *depth = *depth + if active { sigma } else { T::zero() };
-            if RECORD && k0 + lane < walk.count {
-                recorder.add(cell as u32, base[2] as u32, active, weights);
-            }
+            (cells[lane], planes[lane], actives[lane], corner_weights[lane]) =
+                (cell as u32, base[2] as u32, active, weights);
+        }
+        if RECORD {
+            recorder.add_block(&cells[..valid], &planes[..valid], &actives[..valid], &corner_weights[..valid]);
         }
     }
     let half: [T; 4] = std::array::from_fn(|i| depth[i] + depth[i + 4]);
@@ -303,9 +322,10 @@ mod avx2 {
         }
     }
 
-    /// Hands the block's first `valid` samples to the recorder: their weights masked to +0
-    /// where not active (as multiplying by 0 does: the weights are ≥ +0) and transposed to one
-    /// row per sample, and for each sample whether its cell is the previous one's.
+    /// Hands the block's first `valid` samples to the recorder ([`Recorder::add`] for each in
+    /// turn): their weights masked to +0 where not active (as multiplying by 0 does: the
+    /// weights are ≥ +0) and transposed to one row per sample, and where each starts a record
+    /// (its cell is not the previous sample's, or the open record's).
     #[inline(always)]
     fn record(
         recorder: &mut Recorder<f32>,
@@ -315,63 +335,65 @@ mod avx2 {
         active: __m256,
         weights: [__m256; 8],
     ) {
-        let (mut cells, mut planes, mut same) = ([0u32; LANES], [0u32; LANES], [0u32; LANES]);
-        let mut rows = [[0f32; 8]; LANES];
+        let mut block = Block { keep: [0; LANES], places: [0; LANES], rows: [[0.0; 8]; LANES], starts: 0 };
         // SAFETY (of the intrinsics): only called from `march`, which has AVX2; the stores
         // write whole local arrays of the vectors' sizes.
         unsafe {
             let previous = _mm256_permutevar8x32_epi32(cell, _mm256_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6));
             let previous = _mm256_blend_epi32::<1>(previous, _mm256_set1_epi32(recorder.open.cell as i32));
             let same_cell = _mm256_cmpeq_epi32(cell, previous);
-            _mm256_storeu_si256(cells.as_mut_ptr() as *mut __m256i, cell);
-            _mm256_storeu_si256(planes.as_mut_ptr() as *mut __m256i, plane);
-            _mm256_storeu_si256(same.as_mut_ptr() as *mut __m256i, same_cell);
-            for (row, v) in rows.iter_mut().zip(transpose(weights.map(|w| _mm256_and_ps(w, active)))) {
+            _mm256_storeu_si256(block.keep.as_mut_ptr() as *mut __m256i, same_cell);
+            block.starts = !(_mm256_movemask_ps(_mm256_castsi256_ps(same_cell)) as u32);
+            // (cell, plane) pairs as a record's first 8 bytes: samples 0, 1, 4, 5 and 2, 3, 6, 7.
+            let (low, high) = (_mm256_unpacklo_epi32(cell, plane), _mm256_unpackhi_epi32(cell, plane));
+            let places = block.places.as_mut_ptr() as *mut __m256i;
+            _mm256_storeu_si256(places, _mm256_permute2x128_si256::<0x20>(low, high));
+            _mm256_storeu_si256(places.add(1), _mm256_permute2x128_si256::<0x31>(low, high));
+            for (row, v) in block.rows.iter_mut().zip(transpose(weights.map(|w| _mm256_and_ps(w, active)))) {
                 _mm256_storeu_ps(row.as_mut_ptr(), v);
             }
-            let bits = |mask: __m256| _mm256_movemask_ps(mask) as u32;
-            let blocks = Block { cells, planes, same, same_bits: bits(_mm256_castsi256_ps(same_cell)), rows };
-            add_samples(recorder, &blocks, valid, bits(active));
+            add_samples(recorder, &block, valid);
         }
     }
 
     /// A block's samples for the recorder (see [`record`]).
     struct Block {
-        cells: [u32; LANES],
-        planes: [u32; LANES],
         /// All ones where the sample's cell is the previous sample's (or the open record's).
-        same: [u32; LANES],
-        same_bits: u32,
+        keep: [u32; LANES],
+        /// Each sample's cell and plane, as [`Footprint`] lays them out.
+        places: [u64; LANES],
         /// Each sample's 8 weights, +0 where the sample is not active.
         rows: [[f32; 8]; LANES],
+        /// A bit per sample that starts a record.
+        starts: u32,
     }
 
     /// [`Recorder::add`] for the first `valid` samples of `block` in turn, its 0/1 factors as
-    /// lane masks (as 0/1 floats they compiled to unpredictable branches); `active` has a bit
-    /// per sample. Not inlined: inside the walk's loop the open record's vector was spilled,
-    /// putting a store and a load on its dependency chain.
+    /// lane masks (as 0/1 floats they compiled to unpredictable branches). Not inlined: inside
+    /// the walk's loop the open record's vector was spilled, putting a store and a load on its
+    /// dependency chain.
     #[target_feature(enable = "avx2")]
     #[inline(never)]
-    fn add_samples(recorder: &mut Recorder<f32>, block: &Block, valid: usize, active: u32) {
-        // SAFETY: the loads and stores address whole arrays of 8 f32 (or one u32).
+    fn add_samples(recorder: &mut Recorder<f32>, block: &Block, valid: usize) {
+        let valid = valid.min(LANES);
+        let mut slot = recorder.len;
+        // SAFETY: the loads address whole arrays of 8 f32 (or one u32); the record's first 8
+        // bytes are its cell and plane (`Footprint` is `repr(C)`), written unaligned.
         unsafe {
             let mut open = _mm256_loadu_ps(recorder.open.weights.as_ptr());
-            let (mut len, mut open_active) = (recorder.len, u32::from(recorder.open_active));
-            for lane in 0..valid.min(LANES) {
-                let (same, is_active) = (block.same_bits >> lane & 1, active >> lane & 1);
-                len += ((same ^ 1) & open_active) as usize;
-                open_active = (open_active & same) | is_active;
-                let keep = _mm256_broadcast_ss(&*(block.same.as_ptr().add(lane) as *const f32));
+            for lane in 0..valid {
+                slot = slot.wrapping_add((block.starts >> lane & 1) as usize);
+                let keep = _mm256_broadcast_ss(&*(block.keep.as_ptr().add(lane) as *const f32));
                 open = _mm256_add_ps(_mm256_and_ps(open, keep), _mm256_loadu_ps(block.rows[lane].as_ptr()));
-                let slot = &mut recorder.slots[len];
-                (slot.cell, slot.plane) = (block.cells[lane], block.planes[lane]);
-                _mm256_storeu_ps(slot.weights.as_mut_ptr(), open);
+                let record = &mut recorder.slots[slot];
+                (record as *mut Footprint<f32> as *mut u64).write_unaligned(block.places[lane]);
+                _mm256_storeu_ps(record.weights.as_mut_ptr(), open);
             }
             if valid > 0 {
-                let last = valid.min(LANES) - 1;
-                (recorder.open.cell, recorder.open.plane) = (block.cells[last], block.planes[last]);
+                let place = block.places[valid - 1];
+                (recorder.open.cell, recorder.open.plane) = (place as u32, (place >> 32) as u32);
             }
-            (recorder.len, recorder.open_active) = (len, open_active == 1);
+            recorder.len = slot;
             _mm256_storeu_ps(recorder.open.weights.as_mut_ptr(), open);
         }
     }
@@ -463,14 +485,14 @@ mod tests {
                     ..walk_with(&dense, None, n, ray)
                 };
                 let mut slot = vec![Footprint::none(); 2];
-                let (sigma, active) = portable::<f32, true>(&one, &mut slot);
+                let (sigma, _) = portable::<f32, true>(&one, &mut slot);
                 expected_depth += f64::from(sigma);
-                if active == 1 {
+                if slot[0].weights.iter().any(|&w| w != 0.0) {
                     let w: &mut [f64; 8] = expected.entry(slot[0].cell).or_insert([0.0; 8]);
                     w.iter_mut().zip(slot[0].weights).for_each(|(a, b)| *a += f64::from(b));
                 }
             }
-            for f in &slots[..len] {
+            for f in slots[..len].iter().filter(|f| f.weights.iter().any(|&w| w != 0.0)) {
                 let w: &mut [f64; 8] = from_records.entry(f.cell).or_insert([0.0; 8]);
                 w.iter_mut().zip(f.weights).for_each(|(a, b)| *a += f64::from(b));
             }
