@@ -274,7 +274,7 @@ mod tests {
         }
         // The training size, odd sizes with partial runs and rank groups, chains over the
         // plane longer than one block of k (N² > 256), and values that underflow.
-        for (n, rank, seed) in [(64, 16, 1), (5, 3, 2), (20, 17, 3), (9, 4, 4)] {
+        for (n, rank, seed) in [(64, 16, 1), (5, 3, 2), (20, 17, 3), (9, 4, 4), (9, 8, 5)] {
             let f: VmField<f32> = VmField::random(n, rank, 0.5, seed);
             let mut grad: Vec<f32> = VmField::<f32>::random(n, n, 1.0, seed + 10).planes[0].clone();
             for (i, g) in grad.iter_mut().enumerate().step_by(7) {

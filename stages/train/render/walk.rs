@@ -212,6 +212,7 @@ fn trilinear_weights<T: Scalar>([fx, fy, fz]: [T; 3]) -> [T; 8] {
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use super::{Footprint, RayWalk, Recorder, LANES};
+    use crate::kernels::wide::transpose_8x8;
     use std::arch::x86_64::*;
 
     /// The walk with 8-lane AVX2 vectors: [`super::portable`] lane for lane.
@@ -349,7 +350,7 @@ mod avx2 {
             let places = block.places.as_mut_ptr() as *mut __m256i;
             _mm256_storeu_si256(places, _mm256_permute2x128_si256::<0x20>(low, high));
             _mm256_storeu_si256(places.add(1), _mm256_permute2x128_si256::<0x31>(low, high));
-            for (row, v) in block.rows.iter_mut().zip(transpose(weights.map(|w| _mm256_and_ps(w, active)))) {
+            for (row, v) in block.rows.iter_mut().zip(transpose_8x8(weights.map(|w| _mm256_and_ps(w, active)))) {
                 _mm256_storeu_ps(row.as_mut_ptr(), v);
             }
             add_samples(recorder, &block, valid);
@@ -395,44 +396,6 @@ mod avx2 {
             }
             recorder.len = slot;
             _mm256_storeu_ps(recorder.open.weights.as_mut_ptr(), open);
-        }
-    }
-
-    /// The 8 × 8 transpose: rows (corners × samples) to rows (samples × corners).
-    #[inline(always)]
-    fn transpose(r: [__m256; 8]) -> [__m256; 8] {
-        // SAFETY (of the intrinsics): only called from `march`, which has AVX2.
-        unsafe {
-            let t: [__m256; 8] = [
-                _mm256_unpacklo_ps(r[0], r[1]),
-                _mm256_unpackhi_ps(r[0], r[1]),
-                _mm256_unpacklo_ps(r[2], r[3]),
-                _mm256_unpackhi_ps(r[2], r[3]),
-                _mm256_unpacklo_ps(r[4], r[5]),
-                _mm256_unpackhi_ps(r[4], r[5]),
-                _mm256_unpacklo_ps(r[6], r[7]),
-                _mm256_unpackhi_ps(r[6], r[7]),
-            ];
-            let u: [__m256; 8] = [
-                _mm256_shuffle_ps::<0x44>(t[0], t[2]),
-                _mm256_shuffle_ps::<0xEE>(t[0], t[2]),
-                _mm256_shuffle_ps::<0x44>(t[1], t[3]),
-                _mm256_shuffle_ps::<0xEE>(t[1], t[3]),
-                _mm256_shuffle_ps::<0x44>(t[4], t[6]),
-                _mm256_shuffle_ps::<0xEE>(t[4], t[6]),
-                _mm256_shuffle_ps::<0x44>(t[5], t[7]),
-                _mm256_shuffle_ps::<0xEE>(t[5], t[7]),
-            ];
-            [
-                _mm256_permute2f128_ps::<0x20>(u[0], u[4]),
-                _mm256_permute2f128_ps::<0x20>(u[1], u[5]),
-                _mm256_permute2f128_ps::<0x20>(u[2], u[6]),
-                _mm256_permute2f128_ps::<0x20>(u[3], u[7]),
-                _mm256_permute2f128_ps::<0x31>(u[0], u[4]),
-                _mm256_permute2f128_ps::<0x31>(u[1], u[5]),
-                _mm256_permute2f128_ps::<0x31>(u[2], u[6]),
-                _mm256_permute2f128_ps::<0x31>(u[3], u[7]),
-            ]
         }
     }
 }
