@@ -1,0 +1,171 @@
+//! The f32 compose of the dense field as direct FMA chains in registers: the three products of
+//! [`super::field::VmField::compose`] without `matrixmultiply`, whose packing and 16-long
+//! chains ran the compose at ≈ 40 % of the FMA units' peak.
+//!
+//! Bit-identical to the GEMM path, and used only where that path runs `matrixmultiply`'s
+//! AVX2 + FMA kernel ([`available`]). That kernel computes every output of a product as an FMA
+//! chain over the rank from zero, in rank order (one block of k: the rank is below
+//! [`KC`]); the first product (β = 0) stores `chain + 0` and the other two (β = 1) add their
+//! chain to F. So `F = ((XY⊗Z + 0) + XZ⊗Y) + YZ⊗X`, each term a chain here too; which
+//! outputs share a vector or a tile does not matter.
+//!
+//! A tile is 16 x (two vectors) × 2 y × 2 z: eight output vectors, eight independent chains,
+//! which keep both FMA units busy. Per rank each product loads four (XY⊗Z, XZ⊗Y) or two
+//! (YZ⊗X) vectors of factors and broadcasts two or four scalars for its eight FMAs. The planes
+//! are first packed rank-innermost ([`Packed`]): in their own layout a tile's 16 ranks lie
+//! 16 KB apart, in one set of L1 (8 ways), and evicted one another.
+
+use super::contract::{Factors, KC};
+use super::gemm::{give_spare, take_spare};
+use crate::kernels::wide;
+use rayon::prelude::*;
+
+/// x per tile: two AVX2 vectors.
+const TILE_X: usize = 16;
+/// z-planes per task.
+const TASK_PLANES: usize = 4;
+
+/// Whether the kernel here reproduces the GEMM path for an `n³` field of rank `rank`: the CPU
+/// has AVX2 and FMA (with which `matrixmultiply` runs its FMA kernel), tiles cover the lattice
+/// (`n` a multiple of 16), and the rank fits one block of k.
+pub fn available(n: usize, rank: usize) -> bool {
+    wide::has_avx2_fma() && n > 0 && n.is_multiple_of(TILE_X) && rank <= KC
+}
+
+/// The planes packed with the rank innermost: P0 and P1 by row (y, resp. z), then by 8 x, then
+/// by rank, 8 x per rank (`((row·N/8 + x/8)·R + r)·8 + x % 8`); P2 by node (`(z·N + y)·R + r`).
+#[derive(Default)]
+struct Packed {
+    p0: Vec<f32>,
+    p1: Vec<f32>,
+    p2: Vec<f32>,
+}
+
+/// The dense pre-activation `F[x + N·(y + N·z)]` of `f` into `dense` (`N³` values,
+/// overwritten): the planes packed in one parallel pass, then F in slabs of z-planes.
+///
+/// # Panics
+/// If [`available`] is false for `f`, or a factor or `dense` has the wrong length.
+pub fn compose(f: Factors, dense: &mut [f32]) {
+    let (n, nn, rank) = (f.n, f.n * f.n, f.rank);
+    assert!(available(n, rank), "compose: the FMA kernel needs AVX2 + FMA and N a multiple of {TILE_X}");
+    assert_eq!(dense.len(), nn * n, "compose: the dense field has N³ values");
+    assert!(f.planes.iter().all(|p| p.len() == rank * nn) && f.lines.iter().all(|l| l.len() == rank * n));
+    let mut packed: Packed = take_spare();
+    for v in [&mut packed.p0, &mut packed.p1, &mut packed.p2] {
+        v.resize(rank * nn, 0.0);
+    }
+    let rows = rank * n;
+    let jobs = packed.p0.chunks_mut(rows).map(|out| (f.planes[0], out, true));
+    let jobs = jobs.chain(packed.p1.chunks_mut(rows).map(|out| (f.planes[1], out, true)));
+    let jobs = jobs.chain(packed.p2.chunks_mut(rows).map(|out| (f.planes[2], out, false)));
+    let jobs: Vec<_> = jobs.enumerate().map(|(i, (plane, out, by_x))| (i % n, plane, out, by_x)).collect();
+    jobs.into_par_iter().for_each(|(row, plane, out, by_x)| pack_row(plane, n, rank, row, out, by_x));
+    let planes = [packed.p0.as_slice(), packed.p1.as_slice(), packed.p2.as_slice()];
+    dense.par_chunks_mut(nn * TASK_PLANES).enumerate().for_each(|(task, slab)| {
+        // SAFETY: `available` checked AVX2 + FMA and the tiling; the factor lengths are
+        // checked above and the packed planes have the same; `slab` is whole z-planes
+        // (TASK_PLANES divides N, a multiple of 16).
+        unsafe { compose_planes(n, rank, planes, f.lines, task * TASK_PLANES, slab) }
+    });
+    give_spare(packed);
+}
+
+/// Packs row `row` of `plane` (all ranks) into `out` (`rank·N` values): by 8 x then rank when
+/// `by_x` (P0, P1), else by node then rank (P2, whose row is a z: nodes y + N·z).
+fn pack_row(plane: &[f32], n: usize, rank: usize, row: usize, out: &mut [f32], by_x: bool) {
+    let nn = n * n;
+    for r in 0..rank {
+        let source = &plane[r * nn + row * n..][..n];
+        if by_x {
+            for (b, eight) in source.chunks_exact(8).enumerate() {
+                out[(b * rank + r) * 8..][..8].copy_from_slice(eight);
+            }
+        } else {
+            for (y, &v) in source.iter().enumerate() {
+                out[y * rank + r] = v;
+            }
+        }
+    }
+}
+
+/// [`compose`] for the z-planes from `z0` that `slab` holds, from the packed `planes`.
+///
+/// # Safety
+/// The CPU must have AVX2 and FMA; `N` a multiple of [`TILE_X`]; every packed plane `rank·N²`
+/// values, every line `rank·N`; `slab` an even number of whole z-planes from `z0`.
+#[target_feature(enable = "avx2,fma")]
+unsafe fn compose_planes(n: usize, rank: usize, planes: [&[f32]; 3], lines: [&[f32]; 3], z0: usize, slab: &mut [f32]) {
+    use std::arch::x86_64::*;
+    let (nn, blocks) = (n * n, n / 8);
+    let [p0, p1, p2] = planes.map(|p| p.as_ptr());
+    let [l0, l1, l2] = lines.map(|l| l.as_ptr());
+    let out = slab.as_mut_ptr();
+    let zero = _mm256_setzero_ps();
+    let depth = slab.len() / nn;
+    // Output vector v of a tile: x + 8·(v % 2), y + (v / 2) % 2, z + v / 4.
+    let at = |y: usize, dz: usize, x: usize, v: usize| (dz + v / 4) * nn + (y + (v / 2) % 2) * n + x + 8 * (v % 2);
+    // A packed P0/P1 row's vector of 8 x from block `b`, rank `r`.
+    let packed = |p: *const f32, row: usize, b: usize, r: usize| p.add(((row * blocks + b) * rank + r) * 8);
+    for dz in (0..depth).step_by(2) {
+        let z = z0 + dz;
+        for y in (0..n).step_by(2) {
+            for x in (0..n).step_by(TILE_X) {
+                let b = x / 8;
+                // XY⊗Z: P0[r, x, y] · L0[r, z], stored as chain + 0.
+                let mut acc = [zero; 8];
+                for r in 0..rank {
+                    let line = [_mm256_broadcast_ss(&*l0.add(r * n + z)), _mm256_broadcast_ss(&*l0.add(r * n + z + 1))];
+                    for yx in 0..4 {
+                        let p = _mm256_loadu_ps(packed(p0, y + yx / 2, b + yx % 2, r));
+                        for (dz, l) in line.iter().enumerate() {
+                            acc[4 * dz + yx] = _mm256_fmadd_ps(p, *l, acc[4 * dz + yx]);
+                        }
+                    }
+                }
+                for (v, a) in acc.iter().enumerate() {
+                    _mm256_storeu_ps(out.add(at(y, dz, x, v)), _mm256_add_ps(*a, zero));
+                }
+                // XZ⊗Y: P1[r, x, z] · L1[r, y], added.
+                let mut acc = [zero; 8];
+                for r in 0..rank {
+                    let line = [_mm256_broadcast_ss(&*l1.add(r * n + y)), _mm256_broadcast_ss(&*l1.add(r * n + y + 1))];
+                    for zx in 0..4 {
+                        let p = _mm256_loadu_ps(packed(p1, z + zx / 2, b + zx % 2, r));
+                        for (dy, l) in line.iter().enumerate() {
+                            let v = 4 * (zx / 2) + 2 * dy + zx % 2;
+                            acc[v] = _mm256_fmadd_ps(p, *l, acc[v]);
+                        }
+                    }
+                }
+                add_tile(out, &acc, |v| at(y, dz, x, v));
+                // YZ⊗X: P2[r, y, z] · L2[r, x], added.
+                let mut acc = [zero; 8];
+                for r in 0..rank {
+                    let line = [_mm256_loadu_ps(l2.add(r * n + x)), _mm256_loadu_ps(l2.add(r * n + x + 8))];
+                    for yz in 0..4 {
+                        let p = _mm256_broadcast_ss(&*p2.add(((z + yz / 2) * n + y + yz % 2) * rank + r));
+                        for (xv, l) in line.iter().enumerate() {
+                            let v = 4 * (yz / 2) + 2 * (yz % 2) + xv;
+                            acc[v] = _mm256_fmadd_ps(*l, p, acc[v]);
+                        }
+                    }
+                }
+                add_tile(out, &acc, |v| at(y, dz, x, v));
+            }
+        }
+    }
+}
+
+/// `out[at(v)..][..8] += acc[v]` for the tile's eight vectors.
+///
+/// # Safety
+/// The CPU must have AVX; every `at(v) + 8` must lie inside `out`'s allocation.
+#[inline(always)]
+unsafe fn add_tile(out: *mut f32, acc: &[std::arch::x86_64::__m256; 8], at: impl Fn(usize) -> usize) {
+    use std::arch::x86_64::*;
+    for (v, a) in acc.iter().enumerate() {
+        let p = out.add(at(v));
+        _mm256_storeu_ps(p, _mm256_add_ps(_mm256_loadu_ps(p), *a));
+    }
+}
