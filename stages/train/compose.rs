@@ -97,7 +97,7 @@ fn pack_row(plane: &[f32], n: usize, rank: usize, row: usize, out: &mut [f32], b
 #[target_feature(enable = "avx2,fma")]
 unsafe fn compose_planes(n: usize, rank: usize, planes: [&[f32]; 3], lines: [&[f32]; 3], z0: usize, slab: &mut [f32]) {
     use std::arch::x86_64::*;
-    let (nn, blocks) = (n * n, n / 8);
+    let nn = n * n;
     let [p0, p1, p2] = planes.map(|p| p.as_ptr());
     let [l0, l1, l2] = lines.map(|l| l.as_ptr());
     let out = slab.as_mut_ptr();
@@ -105,40 +105,18 @@ unsafe fn compose_planes(n: usize, rank: usize, planes: [&[f32]; 3], lines: [&[f
     let depth = slab.len() / nn;
     // Output vector v of a tile: x + 8·(v % 2), y + (v / 2) % 2, z + v / 4.
     let at = |y: usize, dz: usize, x: usize, v: usize| (dz + v / 4) * nn + (y + (v / 2) % 2) * n + x + 8 * (v % 2);
-    // A packed P0/P1 row's vector of 8 x from block `b`, rank `r`.
-    let packed = |p: *const f32, row: usize, b: usize, r: usize| p.add(((row * blocks + b) * rank + r) * 8);
     for dz in (0..depth).step_by(2) {
         let z = z0 + dz;
         for y in (0..n).step_by(2) {
             for x in (0..n).step_by(TILE_X) {
-                let b = x / 8;
+                let tile = Tile { n, rank, x };
                 // XY⊗Z: P0[r, x, y] · L0[r, z], stored as chain + 0.
-                let mut acc = [zero; 8];
-                for r in 0..rank {
-                    let line = [_mm256_broadcast_ss(&*l0.add(r * n + z)), _mm256_broadcast_ss(&*l0.add(r * n + z + 1))];
-                    for yx in 0..4 {
-                        let p = _mm256_loadu_ps(packed(p0, y + yx / 2, b + yx % 2, r));
-                        for (dz, l) in line.iter().enumerate() {
-                            acc[4 * dz + yx] = _mm256_fmadd_ps(p, *l, acc[4 * dz + yx]);
-                        }
-                    }
-                }
+                let acc = tile.plane_rows::<true>(p0, y, l0, z);
                 for (v, a) in acc.iter().enumerate() {
                     _mm256_storeu_ps(out.add(at(y, dz, x, v)), _mm256_add_ps(*a, zero));
                 }
                 // XZ⊗Y: P1[r, x, z] · L1[r, y], added.
-                let mut acc = [zero; 8];
-                for r in 0..rank {
-                    let line = [_mm256_broadcast_ss(&*l1.add(r * n + y)), _mm256_broadcast_ss(&*l1.add(r * n + y + 1))];
-                    for zx in 0..4 {
-                        let p = _mm256_loadu_ps(packed(p1, z + zx / 2, b + zx % 2, r));
-                        for (dy, l) in line.iter().enumerate() {
-                            let v = 4 * (zx / 2) + 2 * dy + zx % 2;
-                            acc[v] = _mm256_fmadd_ps(p, *l, acc[v]);
-                        }
-                    }
-                }
-                add_tile(out, &acc, |v| at(y, dz, x, v));
+                add_tile(out, &tile.plane_rows::<false>(p1, z, l1, y), |v| at(y, dz, x, v));
                 // YZ⊗X: P2[r, y, z] · L2[r, x], added.
                 let mut acc = [zero; 8];
                 for r in 0..rank {
@@ -154,6 +132,49 @@ unsafe fn compose_planes(n: usize, rank: usize, planes: [&[f32]; 3], lines: [&[f
                 add_tile(out, &acc, |v| at(y, dz, x, v));
             }
         }
+    }
+}
+
+/// A tile's place: its first x, and the field's size.
+struct Tile {
+    n: usize,
+    rank: usize,
+    x: usize,
+}
+
+impl Tile {
+    /// The chains of a product whose plane is read by rows of x (XY⊗Z, XZ⊗Y): `P[r, x, row +
+    /// i] · L[r, at + d]` for i, d ∈ {0, 1}, from the packed plane `plane` and the line `line`.
+    /// `ROWS_ALONG_Y`: the plane's rows are the tile's y and the line runs along its z (XY⊗Z);
+    /// else the other way round (XZ⊗Y). Returned in the tile's vector order.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2 and FMA; `plane` a packed plane and `line` a line of the field,
+    /// with `row + 1` and `at + 1` inside the lattice.
+    #[inline(always)]
+    unsafe fn plane_rows<const ROWS_ALONG_Y: bool>(
+        &self,
+        plane: *const f32,
+        row: usize,
+        line: *const f32,
+        at: usize,
+    ) -> [std::arch::x86_64::__m256; 8] {
+        use std::arch::x86_64::*;
+        let (n, rank, b) = (self.n, self.rank, self.x / 8);
+        let mut acc = [_mm256_setzero_ps(); 8];
+        for r in 0..rank {
+            let l = [_mm256_broadcast_ss(&*line.add(r * n + at)), _mm256_broadcast_ss(&*line.add(r * n + at + 1))];
+            for ix in 0..4 {
+                let (i, xv) = (ix / 2, ix % 2);
+                // The packed row's vector of 8 x from block b + xv, rank r.
+                let p = _mm256_loadu_ps(plane.add((((row + i) * (n / 8) + b + xv) * rank + r) * 8));
+                for (d, l) in l.iter().enumerate() {
+                    let v = if ROWS_ALONG_Y { 4 * d + 2 * i + xv } else { 4 * i + 2 * d + xv };
+                    acc[v] = _mm256_fmadd_ps(p, *l, acc[v]);
+                }
+            }
+        }
+        acc
     }
 }
 
