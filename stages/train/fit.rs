@@ -193,9 +193,6 @@ pub struct Schedule {
     order: Vec<usize>,
     cursor: usize,
     drawn: Vec<(usize, f64)>,
-    /// The sort's buffers (see [`sort_by_pool_index`]).
-    scratch: Vec<(usize, f64)>,
-    unsorted: Vec<(usize, f64)>,
 }
 
 impl Schedule {
@@ -205,8 +202,7 @@ impl Schedule {
         let field = VmField::random(params.grid, params.rank, params.init_scale, rng.gen());
         let order: Vec<usize> = (0..pool_len).collect();
         let cursor = order.len(); // reshuffle on first use
-        let drawn = Vec::with_capacity(params.batch_rays);
-        (field, Schedule { rng, order, cursor, drawn, scratch: Vec::new(), unsorted: Vec::new() })
+        (field, Schedule { rng, order, cursor, drawn: Vec::with_capacity(params.batch_rays) })
     }
 
     /// The next batch: (pool index, offset in [0, step)) per ray, in pool order — neighbouring
@@ -222,44 +218,8 @@ impl Schedule {
             self.drawn.push((self.order[self.cursor], self.rng.gen::<f64>() * step));
             self.cursor += 1;
         }
-        sort_by_pool_index(&mut self.drawn, &mut self.scratch, &mut self.unsorted);
+        self.drawn.sort_unstable_by_key(|&(i, _)| i);
         &self.drawn
-    }
-}
-
-/// Sorts drawn rays by pool index: a radix sort, a byte of the index a pass (the comparison
-/// sort took most of a batch's drawing). A batch that spans two epochs can draw a ray twice;
-/// such a batch is sorted with `sort_unstable_by_key`, the sort earlier versions used for
-/// every batch, so that the two copies keep the order (and the fit its bits) they had.
-/// `scratch` and `unsorted` are buffers kept across calls.
-fn sort_by_pool_index(
-    drawn: &mut Vec<(usize, f64)>,
-    scratch: &mut Vec<(usize, f64)>,
-    unsorted: &mut Vec<(usize, f64)>,
-) {
-    let largest = drawn.iter().map(|&(i, _)| i).max().unwrap_or(0);
-    let passes = (usize::BITS - largest.leading_zeros()).div_ceil(8);
-    unsorted.clone_from(drawn);
-    scratch.resize(drawn.len(), (0, 0.0));
-    for pass in 0..passes {
-        let digit = |i: usize| (i >> (8 * pass)) & 0xFF;
-        let mut starts = [0usize; 257];
-        for &(i, _) in drawn.iter() {
-            starts[digit(i) + 1] += 1;
-        }
-        for d in 0..256 {
-            starts[d + 1] += starts[d];
-        }
-        for &ray in drawn.iter() {
-            let d = digit(ray.0);
-            scratch[starts[d]] = ray;
-            starts[d] += 1;
-        }
-        std::mem::swap(drawn, scratch);
-    }
-    if drawn.windows(2).any(|pair| pair[0].0 == pair[1].0) {
-        drawn.clone_from(unsorted);
-        drawn.sort_unstable_by_key(|&(i, _)| i);
     }
 }
 
@@ -446,29 +406,4 @@ pub fn view_errors(
 /// PSNR (dB) of a mean squared error, peak 1.
 pub fn psnr_db(mse: f64) -> f64 {
     10.0 * (1.0 / mse.max(1e-20)).log10()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_radix_sort_orders_draws_as_the_comparison_sort_does() {
-        let mut rng = ChaCha8Rng::seed_from_u64(7);
-        let (mut scratch, mut unsorted) = (Vec::new(), Vec::new());
-        // Distinct indices of one to three bytes, and draws with repeats (an epoch boundary).
-        for (len, pool, distinct) in [(2048, 49_152, true), (150, 200, true), (500, 70_000, true), (2048, 1000, false)]
-        {
-            let mut order: Vec<usize> = (0..pool).collect();
-            order.shuffle(&mut rng);
-            let mut drawn: Vec<(usize, f64)> = (0..len)
-                .map(|i| (if distinct { order[i] } else { rng.gen_range(0..pool) }, rng.gen::<f64>()))
-                .collect();
-            let mut expected = drawn.clone();
-            expected.sort_unstable_by_key(|&(i, _)| i);
-            sort_by_pool_index(&mut drawn, &mut scratch, &mut unsorted);
-            let bits = |v: &[(usize, f64)]| v.iter().map(|&(i, o)| (i, o.to_bits())).collect::<Vec<_>>();
-            assert_eq!(bits(&drawn), bits(&expected), "{len} draws from {pool}");
-        }
-    }
 }
