@@ -1,7 +1,8 @@
 //! Training a TensoRF attenuation field to three radiographs (SPEC §3 train), as separate
 //! kernels the GPU backend can mirror one for one: compose the dense field ([`field`]), march
 //! and render a ray batch with its loss and the scatter of `dL/dF` ([`render`]), contract to
-//! the factors ([`field`], [`contract`] for f32; [`compose`] is the f32 compose), regularisers ([`regularize`]), Adam ([`adam`]).
+//! the factors ([`field`]; in f32, [`compose`] and [`contract`]), regularisers
+//! ([`regularize`]), Adam ([`adam`]).
 
 pub mod adam;
 #[cfg(target_arch = "x86_64")]

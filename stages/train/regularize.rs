@@ -121,11 +121,7 @@ fn tv_component<T: Float>(comp: &[T], g: &mut [T], n: usize, norm: TvNorm, scale
         horizontal = horizontal + penalise(&row[..n - 1], &row[1..], &mut step[..n - 1], norm, scale);
         apply_step(grow, 1, &step[..n - 1]);
         if let Some(next) = comp.get((j + 1) * n..(j + 2) * n) {
-            for ((s, &x), &y) in step.iter_mut().zip(row).zip(next) {
-                *s = y - x;
-            }
-            vertical.add(&step, |d| penalty(d, norm));
-            step.iter_mut().for_each(|s| *s = derivative(*s, norm, scale));
+            differences_into(row, next, &mut step, norm, scale, |d| vertical.add(d, |x| penalty(x, norm)));
             for (gi, &s) in grow.iter_mut().zip(&step) {
                 *gi = *gi - s;
             }
@@ -205,12 +201,20 @@ impl<T: Float> LaneSum<T> {
 /// penalty's derivative, scaled.
 #[inline(always)]
 fn penalise<T: Float>(a: &[T], b: &[T], step: &mut [T], norm: TvNorm, scale: T) -> T {
+    let mut sum = T::zero();
+    differences_into(a, b, step, norm, scale, |d| sum = lane_sum(d, |x| penalty(x, norm)));
+    sum
+}
+
+/// The differences `b − a` into `step`, handed to `sum` (to add up their penalties), then
+/// replaced in `step` by the penalty's derivative, scaled.
+#[inline(always)]
+fn differences_into<T: Float>(a: &[T], b: &[T], step: &mut [T], norm: TvNorm, scale: T, sum: impl FnOnce(&[T])) {
     for ((s, &x), &y) in step.iter_mut().zip(a).zip(b) {
         *s = y - x;
     }
-    let sum = lane_sum(step, |d| penalty(d, norm));
+    sum(step);
     step.iter_mut().for_each(|s| *s = derivative(*s, norm, scale));
-    sum
 }
 
 /// Each difference's derivative `step[k]` taken from `g[k]` and added to `g[k + shift]`.

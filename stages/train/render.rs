@@ -149,6 +149,11 @@ impl<T: Scalar> Footprint<T> {
     fn none() -> Self {
         Footprint { cell: u32::MAX, plane: u32::MAX, weights: [T::zero(); 8] }
     }
+
+    /// Whether an active sample left weight here (records of inactive runs hold +0 only).
+    fn holds_weight(&self) -> bool {
+        self.weights.iter().any(|&w| w != T::zero())
+    }
 }
 
 /// Rays per tracing task; fixed, so the work split never depends on the thread count.
@@ -208,7 +213,7 @@ impl<T: Scalar> Footprints<T> {
         for i in first..first + len {
             let f = self.list[i];
             self.list[end] = Footprint { weights: f.weights.map(|w| w * d_sigma), ..f };
-            end += usize::from(f.weights.iter().any(|&w| w != T::zero()));
+            end += usize::from(f.holds_weight());
         }
         let records = &mut self.list[first..end];
         let (Some(head), Some(tail)) = (records.first(), records.last()) else { return };

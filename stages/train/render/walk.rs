@@ -450,12 +450,12 @@ mod tests {
                 let mut slot = vec![Footprint::none(); 2];
                 let (sigma, _) = portable::<f32, true>(&one, &mut slot);
                 expected_depth += f64::from(sigma);
-                if slot[0].weights.iter().any(|&w| w != 0.0) {
+                if slot[0].holds_weight() {
                     let w: &mut [f64; 8] = expected.entry(slot[0].cell).or_insert([0.0; 8]);
                     w.iter_mut().zip(slot[0].weights).for_each(|(a, b)| *a += f64::from(b));
                 }
             }
-            for f in slots[..len].iter().filter(|f| f.weights.iter().any(|&w| w != 0.0)) {
+            for f in slots[..len].iter().filter(|f| f.holds_weight()) {
                 let w: &mut [f64; 8] = from_records.entry(f.cell).or_insert([0.0; 8]);
                 w.iter_mut().zip(f.weights).for_each(|(a, b)| *a += f64::from(b));
             }
