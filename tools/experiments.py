@@ -52,6 +52,8 @@ ROWS = [
      "the default trained for 6000 iterations instead of 3000"),
     ("lr-high", "presets/lr_high.toml", "B", "C*",
      "the default with twice the learning rate (0.04, same decay)"),
+    ("grid-128", "presets/grid128.toml", "B", "C*",
+     "the default on a 128³ lattice instead of 64³ (same box and views)"),
 ]
 MEASURED = "experiment.json"
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
