@@ -112,11 +112,7 @@ pub fn fit(gpu: &Gpu, params: &TrainParams, views: &Views, mut on_log: impl FnMu
     let mut batch = Vec::with_capacity(batch_len);
     let mut offsets = Vec::with_capacity(batch_len);
     for it in 0..params.iterations {
-        let drawn = schedule.next_batch(params.batch_rays, renderer.step);
-        batch.clear();
-        offsets.clear();
-        batch.extend(drawn.iter().map(|&(i, _)| pool[i]));
-        offsets.extend(drawn.iter().map(|&(_, o)| o));
+        schedule.next_rays(&pool, params.batch_rays, renderer.step, &mut batch, &mut offsets);
         let lr = device.iterate(&batch, &offsets)?;
         if params.remasks_after(it + 1) {
             device.remask()?;

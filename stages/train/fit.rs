@@ -221,6 +221,23 @@ impl Schedule {
         self.drawn.sort_unstable_by_key(|&(i, _)| i);
         &self.drawn
     }
+
+    /// The next batch as rays of `pool` into `batch` and their offsets into `offsets` (both
+    /// overwritten).
+    pub fn next_rays(
+        &mut self,
+        pool: &[Ray],
+        batch_rays: usize,
+        step: f64,
+        batch: &mut Vec<Ray>,
+        offsets: &mut Vec<f64>,
+    ) {
+        let drawn = self.next_batch(batch_rays, step);
+        batch.clear();
+        offsets.clear();
+        batch.extend(drawn.iter().map(|&(i, _)| pool[i]));
+        offsets.extend(drawn.iter().map(|&(_, o)| o));
+    }
 }
 
 /// The loss terms of one iteration, each before its weight.
@@ -351,18 +368,27 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     let initial = log_row(params, 0, terms, &initial_mse, params.lr, started.elapsed().as_secs_f64());
     on_log(&initial);
     log.push(initial);
-    let mut batch = Vec::with_capacity(params.batch_rays);
-    let mut offsets = Vec::with_capacity(params.batch_rays);
+    let (mut batch, mut offsets) = (Vec::with_capacity(params.batch_rays), Vec::with_capacity(params.batch_rays));
+    let mut draw = |batch: &mut Vec<Ray>, offsets: &mut Vec<f64>| {
+        schedule.next_rays(&pool, params.batch_rays, renderer.step, batch, offsets)
+    };
+    if params.iterations > 0 {
+        draw(&mut batch, &mut offsets);
+    }
     let mut buffers = StepBuffers::new(field.n, field.rank);
     for it in 0..params.iterations {
-        let drawn = schedule.next_batch(params.batch_rays, renderer.step);
-        batch.clear();
-        offsets.clear();
-        batch.extend(drawn.iter().map(|&(i, _)| pool[i]));
-        offsets.extend(drawn.iter().map(|&(_, o)| o));
         let logged = params.logs_after(it + 1);
         let terms = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, logged, &mut buffers);
-        let lr = adam.update(&mut field, &buffers.grad);
+        // The next batch does not depend on the field: it is drawn (on the single-threaded
+        // random stream) while Adam updates, so neither core waits for the draw.
+        let (lr, ()) = rayon::join(
+            || adam.update(&mut field, &buffers.grad),
+            || {
+                if it + 1 < params.iterations {
+                    draw(&mut batch, &mut offsets);
+                }
+            },
+        );
         if params.remasks_after(it + 1) {
             mask = Some(renderer.alpha_mask(&field.compose(), params.alpha_threshold));
         }
