@@ -3,7 +3,10 @@
 //!
 //! `cargo run --release --example bench_train -- [DRR_DIR] [ITERATIONS] [RUNS]`: DRR_DIR holds
 //! `cameras.json` and `drr_*.exr` (default `out/LIDC-IDRI-0001` of the default pipeline).
-//! Prints the median over RUNS of the time per iteration, and the projected time for 3000.
+//! Prints the median over RUNS of the time per iteration, and the projected time for 3000; the
+//! loop's time per iteration without the setup; and the median over the 100-iteration stretches
+//! between logged rows ("steady", what `tools/bench_train_vs_reference` compares). It runs
+//! inside a rayon pool, as the train stage does.
 //! The fit logs as the pipeline does (`log_every` = 100: a full three-view evaluation every
 //! 100 iterations), so the time is what a patient costs.
 
