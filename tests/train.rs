@@ -3,8 +3,9 @@
 
 use aret_pipe::geometry::{Aabb, Camera};
 use aret_pipe::stage::drr::{render_views, Params as DrrParams, RoiCenter};
+use aret_pipe::train::adam::Adam;
 use aret_pipe::train::field::VmField;
-use aret_pipe::train::fit::{fit, renderer, TrainParams, Views};
+use aret_pipe::train::fit::{fit, regularize_and_update, renderer, TrainParams, Views};
 use aret_pipe::train::regularize::{self, TvNorm};
 use aret_pipe::train::render::{Lattice, PhotoLoss, Ray, Renderer};
 use glam::DVec3;
@@ -82,6 +83,29 @@ fn regulariser_gradients_match_finite_differences() {
         let mut grad = VmField::zeros(5, 2);
         regularize::tv(&field, norm, 1.0, &mut grad);
         check_gradient(&field, &grad, 1, |f| regularize::tv(f, norm, 0.0, &mut VmField::zeros(5, 2)));
+    }
+}
+
+#[test]
+fn the_fused_regularise_and_update_pass_equals_its_two_passes_bit_for_bit() {
+    // The training loop adds L1 + TV and updates by Adam in one pass per factor component;
+    // the result must be l1_and_tv, then Adam::update, to the last bit.
+    for (norm, seed) in [(TvNorm::L1, 3), (TvNorm::L2, 4)] {
+        let params = TrainParams { lambda_l1: 0.3, lambda_tv: 0.7, tv_norm: norm, ..TrainParams::default() };
+        let field: VmField<f32> = VmField::random(16, 3, 1.0, seed);
+        let grad: VmField<f32> = VmField::random(16, 3, 0.1, seed + 10);
+        let (mut a_field, mut a_grad, mut a_adam) = (field.clone(), grad.clone(), Adam::new(params.adam(), &field));
+        let (mut b_field, mut b_grad, mut b_adam) = (field.clone(), grad.clone(), Adam::new(params.adam(), &field));
+        for _ in 0..3 {
+            let (l1, tv) = regularize::l1_and_tv(&a_field, Some(0.3), Some((norm, 0.7)), &mut a_grad);
+            let lr = a_adam.update(&mut a_field, &a_grad);
+            let fused = regularize_and_update(&params, &mut b_field, &mut b_grad, &mut b_adam);
+            assert_eq!(fused, (lr, (l1, tv)));
+            assert_eq!(a_grad, b_grad, "{norm:?}: gradients");
+            assert_eq!(a_field, b_field, "{norm:?}: updated factors");
+            (a_grad, b_grad) = (grad.clone(), grad.clone());
+        }
+        assert_ne!(a_field, field, "the update moved the factors");
     }
 }
 

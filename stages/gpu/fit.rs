@@ -125,7 +125,7 @@ pub fn fit(gpu: &Gpu, params: &TrainParams, views: &Views, mut on_log: impl FnMu
             log.push(row);
         }
     }
-    Ok(Fitted { field: device.field()?, log, mask: device.mask()?, renderer })
+    Ok(Fitted { field: device.field()?, log, mask: device.mask()?, renderer, step_seconds: Vec::new() })
 }
 
 /// What a logged row needs from the device.

@@ -57,20 +57,14 @@ impl<T: Float + Send + Sync> Adam<T> {
 
     /// One update of `field` by `grad`; returns the learning rate used.
     pub fn update(&mut self, field: &mut VmField<T>, grad: &VmField<T>) -> f64 {
-        let AdamStep { lr, lr_t, sqrt_bias2 } = self.params.step(self.step);
-        self.step += 1;
-        let p = self.params;
-        let c = |x: f64| T::from(x).expect("finite");
-        let (b1, b2) = (c(p.beta1), c(p.beta2));
-        let (lr_t, eps) = (c(lr_t), c(p.eps));
-        let sqrt_bias2 = c(sqrt_bias2);
+        let (lr, update, m, v) = self.begin_update();
         // Every factor's chunks in one parallel pass (one pass per factor cost more in the
         // workers' hand-offs than the update itself).
         let chunks: Vec<_> = field
             .params_mut()
             .zip(grad.params())
-            .zip(self.m.params_mut())
-            .zip(self.v.params_mut())
+            .zip(m.params_mut())
+            .zip(v.params_mut())
             .flat_map(|(((x, g), m), v)| {
                 x.chunks_mut(CHUNK).zip(g.chunks(CHUNK)).zip(m.chunks_mut(CHUNK)).zip(v.chunks_mut(CHUNK))
             })
@@ -78,15 +72,46 @@ impl<T: Float + Send + Sync> Adam<T> {
         chunks.into_par_iter().for_each(|(((x, g), m), v)| {
             with_avx2(
                 #[inline(always)]
-                || {
-                    for i in 0..x.len() {
-                        m[i] = b1 * m[i] + (T::one() - b1) * g[i];
-                        v[i] = b2 * v[i] + (T::one() - b2) * g[i] * g[i];
-                        x[i] = x[i] - lr_t * m[i] / (v[i].sqrt() / sqrt_bias2 + eps);
-                    }
-                },
+                || update.apply(x, g, m, v),
             )
         });
         lr
+    }
+
+    /// Starts the next update for a caller that applies it piece by piece: its learning rate,
+    /// the update, and the first and second moments (laid out as the field).
+    pub fn begin_update(&mut self) -> (f64, Update<T>, &mut VmField<T>, &mut VmField<T>) {
+        let AdamStep { lr, lr_t, sqrt_bias2 } = self.params.step(self.step);
+        self.step += 1;
+        let p = self.params;
+        let c = |x: f64| T::from(x).expect("finite");
+        let update = Update { b1: c(p.beta1), b2: c(p.beta2), lr_t: c(lr_t), eps: c(p.eps), sqrt_bias2: c(sqrt_bias2) };
+        (lr, update, &mut self.m, &mut self.v)
+    }
+}
+
+/// One Adam update's scalars, in the field's precision.
+#[derive(Debug, Clone, Copy)]
+pub struct Update<T> {
+    b1: T,
+    b2: T,
+    lr_t: T,
+    eps: T,
+    sqrt_bias2: T,
+}
+
+impl<T: Float> Update<T> {
+    /// Updates the entries `x` by their gradient `g` and moments `m`, `v` (elementwise: how a
+    /// caller splits the field cannot change any result). Inline it into an AVX2 copy
+    /// ([`with_avx2`]), as [`Adam::update`] does.
+    #[inline(always)]
+    pub fn apply(&self, x: &mut [T], g: &[T], m: &mut [T], v: &mut [T]) {
+        let Update { b1, b2, lr_t, eps, sqrt_bias2 } = *self;
+        let (g, m, v) = (&g[..x.len()], &mut m[..x.len()], &mut v[..x.len()]);
+        for i in 0..x.len() {
+            m[i] = b1 * m[i] + (T::one() - b1) * g[i];
+            v[i] = b2 * v[i] + (T::one() - b2) * g[i] * g[i];
+            x[i] = x[i] - lr_t * m[i] / (v[i].sqrt() / sqrt_bias2 + eps);
+        }
     }
 }

@@ -72,6 +72,26 @@ impl<T: Float + Send + Sync> VmField<T> {
     pub fn params_mut(&mut self) -> impl Iterator<Item = &mut Vec<T>> {
         self.planes.iter_mut().chain(self.lines.iter_mut())
     }
+
+    /// Every factor component (one rank's plane, `n²` values, or line, `n`) with its
+    /// factor's index in [`VmField::params`] order: planes 0–2, then lines 3–5.
+    pub fn components(&self) -> impl Iterator<Item = (usize, &[T])> {
+        let rank = self.rank;
+        // An empty field (rank or n zero) has no components.
+        self.params().enumerate().filter(|(_, v)| !v.is_empty()).flat_map(move |(f, v)| {
+            let len = v.len() / rank;
+            v.chunks_exact(len).map(move |c| (f, c))
+        })
+    }
+
+    /// [`VmField::components`], mutable.
+    pub fn components_mut(&mut self) -> impl Iterator<Item = (usize, &mut [T])> {
+        let rank = self.rank;
+        self.params_mut().enumerate().filter(|(_, v)| !v.is_empty()).flat_map(move |(f, v)| {
+            let len = v.len() / rank;
+            v.chunks_exact_mut(len).map(move |c| (f, c))
+        })
+    }
 }
 
 // Compose and contract are matrix products over the rank axis (GEMMs). With the dense field

@@ -2,12 +2,14 @@
 
 use super::adam::{Adam, AdamParams};
 use super::field::VmField;
-use super::regularize::{self, TvNorm};
+use super::regularize::{self, Penalties, TvNorm};
 use super::render::{AlphaMask, BatchResult, Lattice, PhotoLoss, Ray, Renderer, MAX_GRID};
 use crate::geometry::{Aabb, Camera};
+use crate::kernels::wide::with_avx2;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
@@ -166,6 +168,10 @@ pub struct Fitted {
     pub log: Vec<LogRow>,
     pub mask: Option<AlphaMask>,
     pub renderer: Renderer,
+    /// Each iteration's wall time in seconds: its gradient and update, without evaluations,
+    /// logging or re-masking (what a per-iteration benchmark compares). Empty where the steps
+    /// run asynchronously (the GPU backend queues them).
+    pub step_seconds: Vec<f64>,
 }
 
 /// The renderer of `params` on `aabb`: samples every half mean voxel.
@@ -293,6 +299,25 @@ pub fn gradient(
     logged: bool,
     buffers: &mut StepBuffers,
 ) -> Terms {
+    let mut terms = photometric_gradient(params, renderer, field, mask, batch, offsets, logged, buffers);
+    (terms.l1, terms.tv) =
+        regularize::l1_and_tv(field, Some(params.lambda_l1 as f32), tv_weight(params), &mut buffers.grad);
+    terms
+}
+
+/// [`gradient`] without the factors' regularisers (L1, TV), which [`regularize_and_update`]
+/// adds; their terms are left 0.
+#[allow(clippy::too_many_arguments)]
+fn photometric_gradient(
+    params: &TrainParams,
+    renderer: &Renderer,
+    field: &VmField<f32>,
+    mask: Option<&AlphaMask>,
+    batch: &[Ray],
+    offsets: &[f64],
+    logged: bool,
+    buffers: &mut StepBuffers,
+) -> Terms {
     let StepBuffers { dense, grad_dense, grad } = buffers;
     field.compose_into(dense);
     let result = renderer.batch(dense, mask, batch, offsets, Some(grad_dense));
@@ -305,13 +330,47 @@ pub fn gradient(
         0.0
     };
     field.contract_into(grad_dense, grad);
-    let (l1, tv) = regularize::l1_and_tv(
-        field,
-        Some(params.lambda_l1 as f32),
-        Some((params.tv_norm, params.lambda_tv as f32)),
-        grad,
-    );
-    Terms { photo: result.loss, l1, tv, tv3d }
+    Terms { photo: result.loss, l1: 0.0, tv: 0.0, tv3d }
+}
+
+/// The planes' TV norm and weight.
+fn tv_weight(params: &TrainParams) -> Option<(TvNorm, f32)> {
+    Some((params.tv_norm, params.lambda_tv as f32))
+}
+
+/// Adds the L1 and TV gradients to `grad` and updates `field` by Adam, in one parallel pass
+/// of one task per factor component: the component, its gradient and moments stay in cache
+/// from the regularisers to the update. The result is that of `l1_and_tv` then
+/// `Adam::update`, bit for bit (both work entry by entry within a component). Returns the
+/// learning rate and the unweighted (L1, TV) of `field` before the update.
+pub fn regularize_and_update(
+    params: &TrainParams,
+    field: &mut VmField<f32>,
+    grad: &mut VmField<f32>,
+    adam: &mut Adam<f32>,
+) -> (f64, (f64, f64)) {
+    let penalties = Penalties::new(field, Some(params.lambda_l1 as f32), tv_weight(params));
+    let (lr, update, m, v) = adam.begin_update();
+    let tasks: Vec<_> = field
+        .components_mut()
+        .zip(grad.components_mut())
+        .zip(m.components_mut().zip(v.components_mut()))
+        .map(|(((factor, x), (_, g)), ((_, m), (_, v)))| (factor, x, g, m, v))
+        .collect();
+    let partials: Vec<(f32, f32)> = tasks
+        .into_par_iter()
+        .map(|(factor, x, g, m, v)| {
+            with_avx2(
+                #[inline(always)]
+                || {
+                    let sums = penalties.add_gradient(factor, &*x, g);
+                    update.apply(x, g, m, v);
+                    sums
+                },
+            )
+        })
+        .collect();
+    (lr, penalties.values(field, &partials))
 }
 
 /// The unweighted loss terms of `field` with `photo` as the photometric term (the initial row).
@@ -376,19 +435,24 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
         draw(&mut batch, &mut offsets);
     }
     let mut buffers = StepBuffers::new(field.n, field.rank);
+    let mut step_seconds = Vec::with_capacity(params.iterations);
     for it in 0..params.iterations {
         let logged = params.logs_after(it + 1);
-        let terms = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, logged, &mut buffers);
+        let step_start = Instant::now();
+        let mut terms =
+            photometric_gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, logged, &mut buffers);
         // The next batch does not depend on the field: it is drawn (on the single-threaded
-        // random stream) while Adam updates, so neither core waits for the draw.
-        let (lr, ()) = rayon::join(
-            || adam.update(&mut field, &buffers.grad),
+        // random stream) while the regularisers and Adam update, so neither core waits for it.
+        let ((lr, (l1, tv)), ()) = rayon::join(
+            || regularize_and_update(params, &mut field, &mut buffers.grad, &mut adam),
             || {
                 if it + 1 < params.iterations {
                     draw(&mut batch, &mut offsets);
                 }
             },
         );
+        (terms.l1, terms.tv) = (l1, tv);
+        step_seconds.push(step_start.elapsed().as_secs_f64());
         if params.remasks_after(it + 1) {
             mask = Some(renderer.alpha_mask(&field.compose(), params.alpha_threshold));
         }
@@ -400,7 +464,7 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
             log.push(row);
         }
     }
-    Fitted { field, log, mask, renderer }
+    Fitted { field, log, mask, renderer, step_seconds }
 }
 
 /// Mean squared error of each view rendered in full with midpoint samples.

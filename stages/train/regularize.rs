@@ -49,56 +49,78 @@ pub fn l1_and_tv<T: Float + Send + Sync>(
     tv: Option<(TvNorm, T)>,
     grad: &mut VmField<T>,
 ) -> (f64, f64) {
-    let (n, rank) = (field.n, field.rank);
-    if rank == 0 || n == 0 {
-        return (0.0, 0.0);
-    }
-    let tv = tv.filter(|_| n >= 2);
-    let tv_count = T::from(rank * n * n.saturating_sub(1)).expect("count");
-    // Every component with its gradient, planes first (factor order), and whether it is a plane.
-    let components: Vec<(bool, &[T], &mut [T])> = field
-        .params()
-        .zip(grad.params_mut())
-        .enumerate()
-        .flat_map(|(factor, (values, g))| {
-            let len = values.len() / rank;
-            values.chunks_exact(len).zip(g.chunks_exact_mut(len)).map(move |(v, g)| (factor < 3, v, g))
-        })
-        .collect();
-    // Per component: (Σ|x|, its TV).
+    let penalties = Penalties::new(field, l1, tv);
+    let components: Vec<_> = field.components().zip(grad.components_mut()).collect();
     let partials: Vec<(T, T)> = components
         .into_par_iter()
-        .map(|(is_plane, values, g)| {
+        .map(|((factor, values), (_, g))| {
             with_avx2(
                 #[inline(always)]
-                || {
-                    let l1_sum = match l1 {
-                        Some(weight) => {
-                            let per_entry = weight / T::from(values.len() * rank).expect("length");
-                            for (gi, &xi) in g.iter_mut().zip(values) {
-                                *gi = *gi + per_entry * sign(xi);
-                            }
-                            lane_sum(values, |v| v.abs())
-                        }
-                        None => T::zero(),
-                    };
-                    let tv_sum = match tv {
-                        Some((norm, weight)) if is_plane => tv_component(values, g, n, norm, weight / tv_count),
-                        _ => T::zero(),
-                    };
-                    (l1_sum, tv_sum)
-                },
+                || penalties.add_gradient(factor, values, g),
             )
         })
         .collect();
-    let mut l1_value = 0.0;
-    for (factor, per_component) in field.params().zip(partials.chunks_exact(rank)) {
-        let sum = per_component.iter().fold(T::zero(), |a, p| a + p.0);
-        l1_value += sum.to_f64().expect("finite") / factor.len() as f64;
+    penalties.values(field, &partials)
+}
+
+/// L1 and the planes' TV, component by component: what [`l1_and_tv`] runs in each of its
+/// tasks, for a caller that wants more done in the same task (the training loop's Adam).
+#[derive(Clone, Copy)]
+pub struct Penalties<T> {
+    n: usize,
+    rank: usize,
+    l1: Option<T>,
+    /// TV's norm and weight; `None` too when a plane has no neighbours (`n` < 2).
+    tv: Option<(TvNorm, T)>,
+    /// Differences per plane factor: the TV's mean divides by it.
+    tv_count: T,
+}
+
+impl<T: Float + Send + Sync> Penalties<T> {
+    /// The penalties of `field`'s shape, with L1's weight `l1` and TV's norm and weight `tv`.
+    pub fn new(field: &VmField<T>, l1: Option<T>, tv: Option<(TvNorm, T)>) -> Self {
+        let (n, rank) = (field.n, field.rank);
+        let tv_count = T::from(rank * n * n.saturating_sub(1)).expect("count");
+        Penalties { n, rank, l1, tv: tv.filter(|_| n >= 2), tv_count }
     }
-    let tv_sum = partials[..3 * rank].iter().fold(T::zero(), |a, p| a + p.1);
-    let tv_value = if tv.is_some() { (tv_sum / tv_count).to_f64().expect("finite") } else { 0.0 };
-    (if l1.is_some() { l1_value } else { 0.0 }, tv_value)
+
+    /// Adds the penalties' gradient on one component of factor `factor` (planes are 0–2),
+    /// `values`, to its gradient `g`; returns its (Σ|x|, TV sum). Inline it into an AVX2 copy
+    /// ([`with_avx2`]), as [`l1_and_tv`] does.
+    #[inline(always)]
+    pub fn add_gradient(&self, factor: usize, values: &[T], g: &mut [T]) -> (T, T) {
+        let l1_sum = match self.l1 {
+            Some(weight) => {
+                let per_entry = weight / T::from(values.len() * self.rank).expect("length");
+                for (gi, &xi) in g.iter_mut().zip(values) {
+                    *gi = *gi + per_entry * sign(xi);
+                }
+                lane_sum(values, |v| v.abs())
+            }
+            None => T::zero(),
+        };
+        let tv_sum = match self.tv {
+            Some((norm, weight)) if factor < 3 => tv_component(values, g, self.n, norm, weight / self.tv_count),
+            _ => T::zero(),
+        };
+        (l1_sum, tv_sum)
+    }
+
+    /// The unweighted (L1, TV) from every component's [`Penalties::add_gradient`] result, in
+    /// `field`'s component order; 0 for a term not asked for.
+    pub fn values(&self, field: &VmField<T>, partials: &[(T, T)]) -> (f64, f64) {
+        if self.rank == 0 || self.n == 0 {
+            return (0.0, 0.0);
+        }
+        let mut l1_value = 0.0;
+        for (factor, per_component) in field.params().zip(partials.chunks_exact(self.rank)) {
+            let sum = per_component.iter().fold(T::zero(), |a, p| a + p.0);
+            l1_value += sum.to_f64().expect("finite") / factor.len() as f64;
+        }
+        let tv_sum = partials[..3 * self.rank].iter().fold(T::zero(), |a, p| a + p.1);
+        let tv_value = if self.tv.is_some() { (tv_sum / self.tv_count).to_f64().expect("finite") } else { 0.0 };
+        (if self.l1.is_some() { l1_value } else { 0.0 }, tv_value)
+    }
 }
 
 /// One `n × n` component: the sum of its horizontal and vertical difference penalties, and
