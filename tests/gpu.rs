@@ -14,7 +14,9 @@ use aret_pipe::gpu::device::{Gpu, GpuOptions};
 use aret_pipe::gpu::fit::DeviceFit;
 use aret_pipe::gpu::Backend;
 use aret_pipe::stage::drr::{render_views, Params as DrrParams, RoiCenter};
-use aret_pipe::train::fit::{fit, gradient, ray_pool, renderer, Schedule, Step, StepBuffers, TrainParams, Views};
+use aret_pipe::train::fit::{
+    fit, gradient, ray_pool, renderer, BatchStep, Schedule, Step, StepBuffers, TrainParams, Views,
+};
 use aret_pipe::train::regularize::TvNorm;
 use aret_pipe::train::render::PhotoLoss;
 use std::path::Path;
@@ -139,7 +141,15 @@ fn compare_step(gpu: &Gpu, params: &TrainParams, mask_percentile: Option<f64>) -
         mask = Some(cpu_mask);
     }
     let mut buffers = StepBuffers::new(field.n, field.rank);
-    let terms = gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, true, &mut buffers);
+    let step = BatchStep {
+        renderer: &renderer,
+        field: &field,
+        mask: mask.as_ref(),
+        rays: &batch,
+        offsets: &offsets,
+        logged: true,
+    };
+    let terms = gradient(params, step, &mut buffers);
     let cpu = Step { grad: buffers.grad, terms };
     let gpu = device.gradient(&batch, &offsets).unwrap();
     (cpu, gpu)

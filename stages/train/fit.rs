@@ -285,42 +285,35 @@ impl StepBuffers {
     }
 }
 
+/// One iteration's batch on the CPU: the rays and their jitter offsets, traced through
+/// `field` (masked by `mask`) with `renderer`; `logged` when the iteration writes a log row.
+#[derive(Clone, Copy)]
+pub struct BatchStep<'a> {
+    pub renderer: &'a Renderer,
+    pub field: &'a VmField<f32>,
+    pub mask: Option<&'a AlphaMask>,
+    pub rays: &'a [Ray],
+    pub offsets: &'a [f64],
+    pub logged: bool,
+}
+
 /// The CPU's gradient of one iteration into `buffers.grad`: compose, render and scatter,
 /// 3-D TV, contract, regularisers. Returns the loss terms; the 3-D TV's value is computed
 /// when it is trained or `logged` (else 0).
-#[allow(clippy::too_many_arguments)]
-pub fn gradient(
-    params: &TrainParams,
-    renderer: &Renderer,
-    field: &VmField<f32>,
-    mask: Option<&AlphaMask>,
-    batch: &[Ray],
-    offsets: &[f64],
-    logged: bool,
-    buffers: &mut StepBuffers,
-) -> Terms {
-    let mut terms = photometric_gradient(params, renderer, field, mask, batch, offsets, logged, buffers);
+pub fn gradient(params: &TrainParams, step: BatchStep, buffers: &mut StepBuffers) -> Terms {
+    let mut terms = photometric_gradient(params, step, buffers);
     (terms.l1, terms.tv) =
-        regularize::l1_and_tv(field, Some(params.lambda_l1 as f32), tv_weight(params), &mut buffers.grad);
+        regularize::l1_and_tv(step.field, Some(params.lambda_l1 as f32), tv_weight(params), &mut buffers.grad);
     terms
 }
 
 /// [`gradient`] without the factors' regularisers (L1, TV), which [`regularize_and_update`]
 /// adds; their terms are left 0.
-#[allow(clippy::too_many_arguments)]
-fn photometric_gradient(
-    params: &TrainParams,
-    renderer: &Renderer,
-    field: &VmField<f32>,
-    mask: Option<&AlphaMask>,
-    batch: &[Ray],
-    offsets: &[f64],
-    logged: bool,
-    buffers: &mut StepBuffers,
-) -> Terms {
+fn photometric_gradient(params: &TrainParams, step: BatchStep, buffers: &mut StepBuffers) -> Terms {
+    let BatchStep { renderer, field, mask, rays, offsets, logged } = step;
     let StepBuffers { dense, grad_dense, grad } = buffers;
     field.compose_into(dense);
-    let result = renderer.batch(dense, mask, batch, offsets, Some(grad_dense));
+    let result = renderer.batch(dense, mask, rays, offsets, Some(grad_dense));
     // The 3-D TV acts on F itself: its gradient joins dL/dF before the contraction.
     let tv3d = if params.lambda_tv3d > 0.0 {
         regularize::tv_dense(dense, field.n, params.lambda_tv3d as f32, grad_dense)
@@ -439,8 +432,15 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     for it in 0..params.iterations {
         let logged = params.logs_after(it + 1);
         let step_start = Instant::now();
-        let mut terms =
-            photometric_gradient(params, &renderer, &field, mask.as_ref(), &batch, &offsets, logged, &mut buffers);
+        let step = BatchStep {
+            renderer: &renderer,
+            field: &field,
+            mask: mask.as_ref(),
+            rays: &batch,
+            offsets: &offsets,
+            logged,
+        };
+        let mut terms = photometric_gradient(params, step, &mut buffers);
         // The next batch does not depend on the field: it is drawn (on the single-threaded
         // random stream) while the regularisers and Adam update, so neither core waits for it.
         let ((lr, (l1, tv)), ()) = rayon::join(
