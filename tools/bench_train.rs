@@ -4,10 +4,9 @@
 //! `cargo run --release --example bench_train -- [DRR_DIR] [ITERATIONS] [RUNS]`: DRR_DIR holds
 //! `cameras.json` and `drr_*.exr` (default `out/LIDC-IDRI-0001` of the default pipeline).
 //! Prints the median over RUNS of the time per iteration, and the projected time for 3000; the
-//! loop's time per iteration without the setup; the median over the 100-iteration stretches
-//! between logged rows ("steady"); and the median of the iterations' own times after 10 of
-//! warm-up ("per step": what the references print and `tools/bench_train_vs_reference`
-//! compares). It runs inside a rayon pool, as the train stage does.
+//! loop's time per iteration without the setup; and the median of the iterations' own times
+//! after 10 of warm-up ("per step": what the references print and
+//! `tools/bench_train_vs_reference` compares). It runs inside a rayon pool, as the train stage does.
 //! The fit logs as the pipeline does (`log_every` = 100: a full three-view evaluation every
 //! 100 iterations), so the time is what a patient costs.
 
@@ -43,7 +42,7 @@ fn bench() -> anyhow::Result<()> {
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
     // The paper's configuration: the defaults without the 3-D TV (issue 8's addition).
     let params = TrainParams { iterations, lambda_tv3d: 0.0, ..TrainParams::default() };
-    let (mut per_iteration, mut in_loop, mut windows, mut steps) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut per_iteration, mut in_loop, mut steps) = (Vec::new(), Vec::new(), Vec::new());
     let mut last_field = None;
     for run in 0..runs {
         let t = Instant::now();
@@ -55,12 +54,6 @@ fn bench() -> anyhow::Result<()> {
         // The loop alone: from the initial row (rays, pool and the initial evaluation done)
         // to the last, logging included.
         in_loop.push((last.seconds - first.seconds) / iterations as f64);
-        // Per iteration over each stretch between logged rows (100 iterations and one
-        // evaluation): their median shrugs off a moment's slowdown of the machine, as the
-        // references' median of per-iteration times does.
-        windows.extend(
-            fitted.log.windows(2).map(|w| (w[1].seconds - w[0].seconds) / (w[1].iteration - w[0].iteration) as f64),
-        );
         // As the references time theirs: each iteration's step, the first 10 left out.
         steps.extend(fitted.step_seconds.iter().skip(WARM_UP));
         last_field = Some(fitted.field);
@@ -69,8 +62,7 @@ fn bench() -> anyhow::Result<()> {
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
-    let (whole, in_loop, window) = (median(&mut per_iteration), median(&mut in_loop), median(&mut windows));
-    let step = median(&mut steps);
+    let (whole, in_loop, step) = (median(&mut per_iteration), median(&mut in_loop), median(&mut steps));
     println!(
         "median {:.2} ms per iteration on {} threads → {:.1} s per patient at 3000 iterations (target ≤ 10 s)",
         whole * 1e3,
@@ -79,11 +71,6 @@ fn bench() -> anyhow::Result<()> {
     );
     // What to set beside a reference's per-iteration time (its setup is not in it either).
     println!("training loop alone: median {:.2} ms per iteration", in_loop * 1e3);
-    println!(
-        "steady: median {:.2} ms per iteration over {} stretches between logged rows (evaluations included)",
-        window * 1e3,
-        windows.len()
-    );
     println!(
         "per step: median {:.2} ms over {} iterations' steps (evaluations excluded, as the references time theirs)",
         step * 1e3,
