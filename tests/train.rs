@@ -74,6 +74,33 @@ fn rendering_loss_gradient_matches_finite_differences() {
 }
 
 #[test]
+fn the_gradient_holds_for_rays_through_many_scatter_slabs_both_ways() {
+    // On a 20³ lattice the scatter works in several z-slabs; steep rays cross them upwards and
+    // downwards (their footprints stored in walk order, read backwards when descending), and
+    // flat ones stay in one.
+    let n = 20;
+    let field: VmField<f64> = VmField::random(n, 2, 0.6, 5);
+    let rays: Vec<Ray> = (0..16)
+        .map(|k| {
+            let a = k as f64 * 0.9;
+            let (up, flat) = (if k % 2 == 0 { 1.0 } else { -1.0 }, k % 4 == 3);
+            let origin = DVec3::new(0.3 * a.cos(), 0.25 * a.sin(), if flat { 0.1 } else { -2.0 * up });
+            let aim = DVec3::new(0.1 * a.sin(), -0.1 * a.cos(), if flat { 0.12 } else { 0.05 * up });
+            let dir = if flat { DVec3::new(a.cos(), a.sin(), 0.01) } else { aim - origin };
+            Ray { origin, dir: dir.normalize(), target: 0.4 + 0.01 * k as f64 }
+        })
+        .collect();
+    let offsets: Vec<f64> = (0..rays.len()).map(|k| 0.03 * ((k * 7 % 5) as f64 / 5.0)).collect();
+    let r =
+        Renderer { lattice: Lattice { n, aabb: BOX }, shift: 0.4, scale: 1.3, step: 0.03, loss: PhotoLoss::Intensity };
+    let loss = |f: &VmField<f64>| r.batch(&f.compose(), None, &rays, &offsets, None).loss;
+    let dense = field.compose();
+    let mut grad_dense = vec![0.0; dense.len()];
+    r.batch(&dense, None, &rays, &offsets, Some(&mut grad_dense));
+    check_gradient(&field, &field.contract(&grad_dense), 7, loss);
+}
+
+#[test]
 fn regulariser_gradients_match_finite_differences() {
     let field: VmField<f64> = VmField::random(5, 2, 1.0, 5);
     let mut grad = VmField::zeros(5, 2);

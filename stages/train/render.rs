@@ -151,8 +151,9 @@ impl<T: Scalar> Footprint<T> {
     }
 
     /// Whether an active sample left weight here (records of inactive runs hold +0 only).
+    /// Branch-free: which records are empty is unpredictable.
     fn holds_weight(&self) -> bool {
-        self.weights.iter().any(|&w| w != T::zero())
+        self.weights.iter().fold(false, |any, &w| any | (w != T::zero()))
     }
 }
 
@@ -170,8 +171,8 @@ struct Traced<T> {
     footprints: Footprints<T>,
 }
 
-/// Rays' footprints, ray after ray, each ray's in ascending plane order (a straight ray's
-/// planes are monotone), indexed by plane. The walk writes a ray's records straight into
+/// Rays' footprints, ray after ray, each ray's in the walk's order (a straight ray's planes
+/// are monotone), indexed by plane. The walk writes a ray's records straight into
 /// `list` past the `used` ones (no copy); `list` only grows, and is reused batch to batch.
 #[derive(Default)]
 struct Footprints<T> {
@@ -184,12 +185,15 @@ struct Footprints<T> {
 
 /// Where one ray's footprints lie: on planes `low..=high`, plane p's (possibly none) from
 /// `plane_starts[starts + p − low]` up to the next plane's start; `plane_starts[starts +
-/// high − low + 1]` is the end of the ray's footprints.
+/// high − low + 1]` is the end of the ray's footprints. A `descending` ray's footprints are
+/// stored in descending plane order, so there the starts count down: plane p's lie from
+/// `plane_starts[starts + p − low + 1]` up to `plane_starts[starts + p − low]`.
 #[derive(Debug, Clone, Copy)]
 struct RayFootprints {
     low: u32,
     high: u32,
     starts: u32,
+    descending: bool,
 }
 
 impl<T: Scalar> Footprints<T> {
@@ -207,41 +211,59 @@ impl<T: Scalar> Footprints<T> {
     }
 
     /// Keeps the `len` records the walk wrote after the used ones (monotone in plane, either
-    /// way), scaled by the ray's `dL/dσ`, in ascending plane order, and indexes them by plane.
-    /// Records without an active sample (all weights +0) are dropped.
+    /// way), scaled by the ray's `dL/dσ`, and indexes them by plane. Records without an
+    /// active sample (all weights +0) are dropped. A ray whose planes descend keeps its
+    /// records in walk order and is marked `descending`: the scatter reads it backwards
+    /// (reversing it here cost ≈ 1.5 % of an iteration).
     fn keep_ray(&mut self, len: usize, d_sigma: T) {
         let first = self.used;
-        let mut end = first;
-        for i in first..first + len {
-            let f = self.list[i];
-            self.list[end] = Footprint { weights: f.weights.map(|w| w * d_sigma), ..f };
-            end += usize::from(f.holds_weight());
+        let records = &mut self.list[first..first + len];
+        let mut kept = 0;
+        for i in 0..records.len() {
+            let f = records[i];
+            records[kept] = Footprint { weights: f.weights.map(|w| w * d_sigma), ..f };
+            kept += usize::from(f.holds_weight());
         }
-        let records = &mut self.list[first..end];
-        let (Some(head), Some(tail)) = (records.first(), records.last()) else { return };
+        let records = &records[..kept];
+        let (Some(&head), Some(&tail)) = (records.first(), records.last()) else { return };
+        let descending = head.plane > tail.plane;
         let (low, high) = (head.plane.min(tail.plane), head.plane.max(tail.plane));
-        if head.plane > tail.plane {
-            records.reverse();
+        let starts = self.plane_starts.len();
+        self.plane_starts.resize(starts + (high - low) as usize + 2, 0);
+        let index = &mut self.plane_starts[starts..];
+        // In ascending plane order (the walk's order read backwards if descending),
+        // index[p − low + 1] becomes one past plane p's last record, or 0 where p has none;
+        // a running maximum then fills those planes (branch-free: a plane's records end at
+        // unpredictable places).
+        let mut mark = |rank: usize, f: &Footprint<T>| index[(f.plane - low) as usize + 1] = rank as u32 + 1;
+        if descending {
+            records.iter().rev().enumerate().for_each(|(rank, f)| mark(rank, f));
+        } else {
+            records.iter().enumerate().for_each(|(rank, f)| mark(rank, f));
         }
-        let starts = self.plane_starts.len() as u32;
-        let mut plane = low;
-        for (i, f) in records.iter().enumerate() {
-            while plane <= f.plane {
-                self.plane_starts.push((first + i) as u32);
-                plane += 1;
-            }
+        let end = (first + kept) as u32;
+        let mut running = 0;
+        for start in index.iter_mut() {
+            running = running.max(*start);
+            // As positions in `list`: counted from the ray's end when it is stored backwards.
+            *start = if descending { end - running } else { first as u32 + running };
         }
-        self.used = end;
-        self.plane_starts.push(self.used as u32);
-        self.rays.push(RayFootprints { low, high, starts });
+        self.used = first + kept;
+        self.rays.push(RayFootprints { low, high, starts: starts as u32, descending });
     }
 
-    /// The footprints on planes `low..=high`, ray by ray.
-    fn on_planes(&self, low: u32, high: u32) -> impl Iterator<Item = &[Footprint<T>]> {
+    /// The footprints on planes `low..=high`, ray by ray, each run in ascending plane order:
+    /// a slice, and whether to read it backwards.
+    fn on_planes(&self, low: u32, high: u32) -> impl Iterator<Item = (&[Footprint<T>], bool)> {
         self.rays.iter().filter(move |r| r.low <= high && r.high >= low).map(move |r| {
             let (from, to) = (low.max(r.low), high.min(r.high));
             let starts = &self.plane_starts[r.starts as usize..];
-            &self.list[starts[(from - r.low) as usize] as usize..starts[(to - r.low + 1) as usize] as usize]
+            let (a, b) = (starts[(from - r.low) as usize] as usize, starts[(to - r.low + 1) as usize] as usize);
+            if r.descending {
+                (&self.list[b..a], true)
+            } else {
+                (&self.list[a..b], false)
+            }
         })
     }
 }
@@ -379,23 +401,28 @@ impl Renderer {
             let (low, high) = (z0.saturating_sub(1) as u32, (z1 - 1) as u32);
             // Each ray's run of footprints on these planes, in ray order: short runs far apart
             // in memory, so the runs a few rays ahead are prefetched.
-            let slices: Vec<&[Footprint<T>]> =
-                traced.iter().flat_map(|t| t.footprints.on_planes(low, high)).filter(|s| !s.is_empty()).collect();
-            for (i, slice) in slices.iter().enumerate() {
-                if let Some(ahead) = slices.get(i + PREFETCH_AHEAD) {
-                    prefetch(ahead);
+            let slices: Vec<(&[Footprint<T>], bool)> =
+                traced.iter().flat_map(|t| t.footprints.on_planes(low, high)).filter(|(s, _)| !s.is_empty()).collect();
+            let add = |out: &mut [T], f: &Footprint<T>| {
+                let (cell, plane) = (f.cell as usize, f.plane as usize);
+                let [l0, l1, l2, l3, u0, u1, u2, u3] = f.weights;
+                // The record's faces on this slab's planes; their last node (the face's
+                // origin + sy + 1) must lie in `out`, checked once per face.
+                if plane >= z0 {
+                    add_face(out, cell - split, sy, [l0, l1, l2, l3]);
                 }
-                for f in *slice {
-                    let (cell, plane) = (f.cell as usize, f.plane as usize);
-                    let [l0, l1, l2, l3, u0, u1, u2, u3] = f.weights;
-                    // The record's faces on this slab's planes; their last node (the face's
-                    // origin + sy + 1) must lie in `out`, checked once per face.
-                    if plane >= z0 {
-                        add_face(out, cell - split, sy, [l0, l1, l2, l3]);
-                    }
-                    if plane + 1 < z1 {
-                        add_face(out, cell + sz - split, sy, [u0, u1, u2, u3]);
-                    }
+                if plane + 1 < z1 {
+                    add_face(out, cell + sz - split, sy, [u0, u1, u2, u3]);
+                }
+            };
+            for (i, &(slice, backwards)) in slices.iter().enumerate() {
+                if let Some(&(ahead, backwards)) = slices.get(i + PREFETCH_AHEAD) {
+                    prefetch(ahead, backwards);
+                }
+                if backwards {
+                    slice.iter().rev().for_each(|f| add(out, f));
+                } else {
+                    slice.iter().for_each(|f| add(out, f));
                 }
             }
         });
@@ -464,17 +491,23 @@ fn add_face<T: Scalar>(out: &mut [T], origin: usize, sy: usize, w: [T; 4]) {
 /// Rays ahead whose footprints the scatter asks the cache for.
 const PREFETCH_AHEAD: usize = 8;
 
-/// Asks for the first cache lines of `records` (a ray's short run on a slab's planes: the
-/// hardware prefetcher cannot guess the jumps from one ray's run to the next).
+/// Asks for the cache lines of `records` read first (a ray's short run on a slab's planes,
+/// read `backwards` or not: the hardware prefetcher cannot guess the jumps from one ray's run
+/// to the next).
 #[inline(always)]
-fn prefetch<T>(records: &[T]) {
+fn prefetch<T>(records: &[T], backwards: bool) {
     #[cfg(target_arch = "x86_64")]
     {
-        let bytes = std::mem::size_of_val(records).min(256);
+        let size = std::mem::size_of_val(records);
+        let bytes = size.min(256);
         let start = records.as_ptr() as *const i8;
+        // SAFETY: inside `records`, or one past it when it is empty (not dereferenced).
+        let start = if backwards { unsafe { start.add(size - bytes) } } else { start };
         for offset in (0..bytes).step_by(64) {
             // SAFETY: prefetching has no architectural effect; the address lies inside `records`.
             unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(start.add(offset)) };
         }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (records, backwards);
 }
