@@ -303,6 +303,18 @@ mod tests {
         }
     }
 
+    /// Whether the FMA path's `x` is the GEMM path's `y` bit for bit. `matrixmultiply` picks
+    /// its AVX-512 kernel where the CPU has one, and that kernel keeps the sign of a sum that
+    /// underflows to zero where its AVX2 + FMA kernel, which the FMA path mirrors, stores +0:
+    /// there ±0 count as one.
+    fn same_as_gemm(x: f32, y: f32) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx512f") && x == 0.0 && y == 0.0 {
+            return true;
+        }
+        x.to_bits() == y.to_bits()
+    }
+
     #[test]
     fn the_fma_contraction_matches_the_gemm_path_bit_for_bit() {
         if !contract::available() {
@@ -326,7 +338,7 @@ mod tests {
             f.contract_into(&grad, &mut fast);
             f.contract_gemm(&grad, &mut gemm);
             for (a, b) in fast.params().zip(gemm.params()) {
-                assert!(a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()), "N = {n}, rank = {rank}");
+                assert!(a.iter().zip(b).all(|(x, y)| same_as_gemm(*x, *y)), "N = {n}, rank = {rank}");
             }
         }
     }
@@ -352,7 +364,7 @@ mod tests {
             let (mut fast, mut gemm) = (vec![0f32; n * n * n], vec![0f32; n * n * n]);
             f.compose_into(&mut fast);
             f.compose_gemm(&mut gemm);
-            assert!(fast.iter().zip(&gemm).all(|(x, y)| x.to_bits() == y.to_bits()), "N = {n}, rank = {rank}");
+            assert!(fast.iter().zip(&gemm).all(|(x, y)| same_as_gemm(*x, *y)), "N = {n}, rank = {rank}");
         }
     }
 
