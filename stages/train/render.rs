@@ -218,12 +218,7 @@ impl<T: Scalar> Footprints<T> {
     fn keep_ray(&mut self, len: usize, d_sigma: T) {
         let first = self.used;
         let records = &mut self.list[first..first + len];
-        let mut kept = 0;
-        for i in 0..records.len() {
-            let f = records[i];
-            records[kept] = Footprint { weights: f.weights.map(|w| w * d_sigma), ..f };
-            kept += usize::from(f.holds_weight());
-        }
+        let kept = compact(records, d_sigma);
         let records = &records[..kept];
         let (Some(&head), Some(&tail)) = (records.first(), records.last()) else { return };
         let descending = head.plane > tail.plane;
@@ -470,6 +465,59 @@ impl Renderer {
     }
 }
 
+/// Scales `records` by `d_sigma` in place, dropping those without weight (moving the rest
+/// down); returns how many are kept.
+fn compact<T: Scalar>(records: &mut [Footprint<T>], d_sigma: T) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    if std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>() && std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: `T` is f32 (checked), so the two slice types are one; the CPU has AVX2.
+        unsafe {
+            let records = &mut *(records as *mut [Footprint<T>] as *mut [Footprint<f32>]);
+            return compact_avx2(records, d_sigma.to_f32().expect("f32"));
+        }
+    }
+    compact_portable(records, d_sigma)
+}
+
+/// [`compact`] in plain code (the AVX2 kernel's bits: the same products).
+fn compact_portable<T: Scalar>(records: &mut [Footprint<T>], d_sigma: T) -> usize {
+    let mut kept = 0;
+    for i in 0..records.len() {
+        let f = records[i];
+        records[kept] = Footprint { weights: f.weights.map(|w| w * d_sigma), ..f };
+        kept += usize::from(f.holds_weight());
+    }
+    kept
+}
+
+/// [`compact`] with the 8 weights as one vector.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn compact_avx2(records: &mut [Footprint<f32>], d_sigma: f32) -> usize {
+    use std::arch::x86_64::*;
+    let (scale, zero) = (_mm256_set1_ps(d_sigma), _mm256_setzero_ps());
+    let base = records.as_mut_ptr();
+    let mut kept = 0;
+    for i in 0..records.len() {
+        // SAFETY: kept ≤ i < len, so both records lie in `records`; a record's first 8 bytes
+        // are its cell and plane (`repr(C)`).
+        unsafe {
+            let (from, to) = (base.add(i), base.add(kept));
+            let place = (from as *const u64).read_unaligned();
+            let weights = _mm256_loadu_ps((*from).weights.as_ptr());
+            // As `Footprint::holds_weight` (`!=`: unordered).
+            let holds_weight = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_NEQ_UQ>(weights, zero)) != 0;
+            (to as *mut u64).write_unaligned(place);
+            _mm256_storeu_ps((*to).weights.as_mut_ptr(), _mm256_mul_ps(weights, scale));
+            kept += usize::from(holds_weight);
+        }
+    }
+    kept
+}
+
 /// Adds the weights `w` of a cell face's 4 corners (x fastest, then y) to `out`, the face's
 /// first corner at `origin`: two pairs of x-neighbours, `sy` apart.
 ///
@@ -510,4 +558,41 @@ fn prefetch<T>(records: &[T], backwards: bool) {
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = (records, backwards);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn compacting_keeps_the_records_with_weight_scaled_in_order() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let records: Vec<Footprint<f32>> = (0..300)
+            .map(|i| Footprint {
+                cell: i,
+                plane: i / 10,
+                weights: std::array::from_fn(|_| if rng.gen_bool(0.3) { 0.0 } else { rng.gen_range(0.0..1.0) }),
+            })
+            .map(|f| if f.cell % 5 == 0 { Footprint { weights: [0.0; 8], ..f } } else { f })
+            .collect();
+        let d_sigma = -0.37f32;
+        let expected: Vec<Footprint<f32>> = records
+            .iter()
+            .filter(|f| f.weights.iter().any(|&w| w != 0.0))
+            .map(|f| Footprint { weights: f.weights.map(|w| w * d_sigma), ..*f })
+            .collect();
+        let mut portable = records.clone();
+        let kept = compact_portable(&mut portable, d_sigma);
+        let mut fast = records.clone();
+        assert_eq!(compact(&mut fast, d_sigma), kept);
+        assert_eq!(kept, expected.len());
+        for ((a, b), e) in portable.iter().zip(&fast).zip(&expected) {
+            assert_eq!((a.cell, a.plane), (e.cell, e.plane));
+            assert_eq!((b.cell, b.plane), (e.cell, e.plane));
+            assert_eq!(a.weights.map(f32::to_bits), e.weights.map(f32::to_bits));
+            assert_eq!(b.weights.map(f32::to_bits), e.weights.map(f32::to_bits));
+        }
+    }
 }
