@@ -75,7 +75,7 @@ fn rendering_loss_gradient_matches_finite_differences() {
 
 #[test]
 fn the_gradient_holds_for_rays_through_many_scatter_slabs_both_ways() {
-    // On a 20³ lattice the scatter works in several z-slabs; steep rays cross them upwards and
+    // On a 20³ lattice the scatter works in two z-slabs; steep rays cross them upwards and
     // downwards (their footprints stored in walk order, read backwards when descending), and
     // flat ones stay in one.
     let n = 20;

@@ -160,9 +160,10 @@ impl<T: Scalar> Footprint<T> {
 /// Rays per tracing task; fixed, so the work split never depends on the thread count.
 const RAYS_PER_TASK: usize = 32;
 /// Lattice z-planes per scatter task. A slab also reads the records on the plane below it
-/// (their upper faces), so thinner slabs read more records twice: 2 planes a slab took 4.5 %
-/// more per iteration than 4, and 8 took ≈ 1 % less (at 64³, 8 tasks for 2 threads).
-const PLANES_PER_SLAB: usize = 8;
+/// (their upper faces), so thinner slabs read more records twice: at 64³, 2 planes a slab took
+/// 4.5 % more per iteration than 4, 8 took ≈ 1 % less than 4, 16 ≈ 1.3 % less than 8, and 32
+/// (two tasks for two threads) ≈ 1 % more than 16.
+const PLANES_PER_SLAB: usize = 16;
 
 /// One task's traced rays: predictions and footprints.
 #[derive(Default)]
