@@ -150,6 +150,16 @@ impl<T: Scalar> Footprint<T> {
         Footprint { cell: u32::MAX, plane: u32::MAX, weights: [T::zero(); 8] }
     }
 
+    /// `records` as f32 records, when that is their type: the way into f32-only vector
+    /// kernels.
+    #[cfg(target_arch = "x86_64")]
+    fn as_f32_mut(records: &mut [Self]) -> Option<&mut [Footprint<f32>]> {
+        (std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>()).then(|| {
+            // SAFETY: `T` is f32 (checked), so the two slice types are one.
+            unsafe { &mut *(records as *mut [Self] as *mut [Footprint<f32>]) }
+        })
+    }
+
     /// Whether an active sample left weight here (records of inactive runs hold +0 only).
     /// Branch-free: which records are empty is unpredictable.
     fn holds_weight(&self) -> bool {
@@ -307,7 +317,7 @@ impl Renderer {
 
     /// `Î` of one ray.
     pub fn render_ray<T: Scalar>(&self, dense: &[T], mask: Option<&AlphaMask>, ray: &Ray, offset: f64) -> f64 {
-        self.transmittance(walk::march::<T, false>(&self.walk(dense, mask, ray, offset), &mut Vec::new(), 0).0)
+        self.transmittance(walk::march::<T, false>(&self.walk(dense, mask, ray, offset), &mut [], 0).0)
     }
 
     /// Renders `rays` (with their per-ray `offsets`), returns predictions and MSE, and when
@@ -470,11 +480,10 @@ impl Renderer {
 /// down); returns how many are kept.
 fn compact<T: Scalar>(records: &mut [Footprint<T>], d_sigma: T) -> usize {
     #[cfg(target_arch = "x86_64")]
-    if std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>() && std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: `T` is f32 (checked), so the two slice types are one; the CPU has AVX2.
-        unsafe {
-            let records = &mut *(records as *mut [Footprint<T>] as *mut [Footprint<f32>]);
-            return compact_avx2(records, d_sigma.to_f32().expect("f32"));
+    if std::arch::is_x86_feature_detected!("avx2") {
+        if let Some(records) = Footprint::as_f32_mut(&mut *records) {
+            // SAFETY: the CPU has AVX2 (checked above).
+            return unsafe { compact_avx2(records, d_sigma.to_f32().expect("f32")) };
         }
     }
     compact_portable(records, d_sigma)

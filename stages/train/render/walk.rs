@@ -35,12 +35,9 @@ pub(super) struct RayWalk<'a, T> {
 ///
 /// # Panics
 /// If `dense` (or the mask) has fewer than `n³` values, or `n` is outside `[2, 1024]`.
-// `slots` is a Vec, not a slice, so that the f32 kernel can have it by downcast (a slice is
-// unsized, so not `Any`).
-#[allow(clippy::ptr_arg)]
 pub(super) fn march<T: Scalar, const RECORD: bool>(
     walk: &RayWalk<T>,
-    slots: &mut Vec<Footprint<T>>,
+    slots: &mut [Footprint<T>],
     first: usize,
 ) -> (T, usize) {
     let n = walk.n;
@@ -52,9 +49,7 @@ pub(super) fn march<T: Scalar, const RECORD: bool>(
     assert!(walk.kept.is_none_or(|k| k.len() >= n * n * n), "walk: the mask must cover the lattice");
     assert!(!RECORD || slots.len() > first + walk.count, "walk: room for {} records needed", walk.count + 1);
     #[cfg(target_arch = "x86_64")]
-    if let (Some(dense), Some(slots)) =
-        (T::as_f32(walk.dense), (slots as &mut dyn std::any::Any).downcast_mut::<Vec<Footprint<f32>>>())
-    {
+    if let (Some(dense), Some(slots)) = (T::as_f32(walk.dense), Footprint::as_f32_mut(&mut *slots)) {
         if std::arch::is_x86_feature_detected!("avx2") {
             let walk = as_f32_walk(walk, dense);
             // SAFETY: the CPU has AVX2 (checked above) and the asserts above give `avx2::march`
@@ -490,7 +485,7 @@ mod tests {
                         assert_eq!(x.weights.map(f32::to_bits), y.weights.map(f32::to_bits));
                     }
                     // SAFETY: as above.
-                    let (depth_c, _) = unsafe { avx2::march::<false>(&walk, &mut Vec::new()) };
+                    let (depth_c, _) = unsafe { avx2::march::<false>(&walk, &mut []) };
                     assert_eq!(depth_a.to_bits(), depth_c.to_bits());
                 }
             }
