@@ -22,6 +22,67 @@ pub fn with_avx2<R>(f: impl FnOnce() -> R) -> R {
     f()
 }
 
+/// `f()` compiled a third time with AVX-512 (F + VL) as well, for the caller to pick when
+/// [`has_avx512`] says so; the caller keeps a [`with_avx2`] path for other CPUs.
+///
+/// # Panics
+/// If the CPU lacks AVX-512F, AVX-512VL, AVX2 or FMA.
+#[inline(always)]
+pub fn with_avx512<R>(f: impl FnOnce() -> R) -> R {
+    assert!(has_avx512(), "with_avx512 on a CPU without AVX-512F/VL, AVX2 and FMA");
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+        fn wide<R>(f: impl FnOnce() -> R) -> R {
+            f()
+        }
+        // SAFETY: the CPU has every feature enabled (asserted above).
+        unsafe { wide(f) }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    f()
+}
+
+/// Whether the CPU has AVX-512F and AVX-512VL besides AVX2 and FMA (what [`with_avx512`] needs).
+#[inline]
+pub fn has_avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return has_avx2_fma()
+        && std::arch::is_x86_feature_detected!("avx512f")
+        && std::arch::is_x86_feature_detected!("avx512vl");
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// The vectors a kernel with an AVX-512 copy runs with: the widest the CPU has
+/// ([`Width::widest`]), or any [`Width::available`] one (tests compare them bit for bit).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Width {
+    /// AVX2 + FMA: 8 f32 lanes.
+    Avx2,
+    /// AVX-512F + VL as well: 16 f32 lanes.
+    Avx512,
+}
+
+impl Width {
+    /// The widest vectors the CPU has; `None` without AVX2 + FMA.
+    pub fn widest() -> Option<Width> {
+        Self::available().last().copied()
+    }
+
+    /// Every width the CPU runs, narrowest first.
+    pub fn available() -> Vec<Width> {
+        let mut widths = Vec::new();
+        if has_avx2_fma() {
+            widths.push(Width::Avx2);
+        }
+        if has_avx512() {
+            widths.push(Width::Avx512);
+        }
+        widths
+    }
+}
+
 /// Whether the CPU has AVX2 and FMA (what [`with_avx2`]'s wide copy needs).
 #[inline]
 pub fn has_avx2_fma() -> bool {
@@ -30,6 +91,94 @@ pub fn has_avx2_fma() -> bool {
     #[cfg(not(target_arch = "x86_64"))]
     false
 }
+
+/// A vector of f32 lanes, for kernels written once for AVX2 (`__m256`) and AVX-512
+/// (`__m512`). Every method must inline into code compiled with the vector's features
+/// ([`with_avx2`], [`with_avx512`] or a `#[target_feature]` function); that is the safety
+/// contract of each.
+#[cfg(target_arch = "x86_64")]
+pub trait F32Lanes: Copy {
+    /// f32 values per vector.
+    const LANES: usize;
+    /// # Safety
+    /// See the trait.
+    unsafe fn zero() -> Self;
+    /// # Safety
+    /// See the trait; `p` points at `LANES` readable floats.
+    unsafe fn load(p: *const f32) -> Self;
+    /// # Safety
+    /// See the trait; `p` points at `LANES` writable floats.
+    unsafe fn store(self, p: *mut f32);
+    /// Every lane `*p`.
+    ///
+    /// # Safety
+    /// See the trait; `p` points at a readable float.
+    unsafe fn splat(p: *const f32) -> Self;
+    /// # Safety
+    /// See the trait.
+    unsafe fn add(self, other: Self) -> Self;
+    /// `self · b + c`, fused (one rounding).
+    ///
+    /// # Safety
+    /// See the trait.
+    unsafe fn mul_add(self, b: Self, c: Self) -> Self;
+}
+
+#[cfg(target_arch = "x86_64")]
+macro_rules! f32_lanes {
+    ($vector:ident, $lanes:expr, $zero:ident, $load:ident, $store:ident, $splat:ident, $add:ident, $fma:ident) => {
+        impl F32Lanes for std::arch::x86_64::$vector {
+            const LANES: usize = $lanes;
+            #[inline(always)]
+            unsafe fn zero() -> Self {
+                std::arch::x86_64::$zero()
+            }
+            #[inline(always)]
+            unsafe fn load(p: *const f32) -> Self {
+                std::arch::x86_64::$load(p)
+            }
+            #[inline(always)]
+            unsafe fn store(self, p: *mut f32) {
+                std::arch::x86_64::$store(p, self)
+            }
+            #[inline(always)]
+            unsafe fn splat(p: *const f32) -> Self {
+                std::arch::x86_64::$splat(*p)
+            }
+            #[inline(always)]
+            unsafe fn add(self, other: Self) -> Self {
+                std::arch::x86_64::$add(self, other)
+            }
+            #[inline(always)]
+            unsafe fn mul_add(self, b: Self, c: Self) -> Self {
+                std::arch::x86_64::$fma(self, b, c)
+            }
+        }
+    };
+}
+
+#[cfg(target_arch = "x86_64")]
+f32_lanes!(
+    __m256,
+    8,
+    _mm256_setzero_ps,
+    _mm256_loadu_ps,
+    _mm256_storeu_ps,
+    _mm256_set1_ps,
+    _mm256_add_ps,
+    _mm256_fmadd_ps
+);
+#[cfg(target_arch = "x86_64")]
+f32_lanes!(
+    __m512,
+    16,
+    _mm512_setzero_ps,
+    _mm512_loadu_ps,
+    _mm512_storeu_ps,
+    _mm512_set1_ps,
+    _mm512_add_ps,
+    _mm512_fmadd_ps
+);
 
 /// The 8 × 8 transpose of f32 rows: `out[i]` lane `j` is `rows[j]` lane `i`.
 ///

@@ -10,17 +10,19 @@
 //! outputs share a vector or a tile does not matter.
 //!
 //! A tile is 16 x (two vectors) × 2 y × 2 z: eight output vectors, eight independent chains,
-//! which keep both FMA units busy. Per rank each product loads four (XY⊗Z, XZ⊗Y) or two
+//! which keep both FMA units busy. Where the CPU has AVX-512 the same code runs with 16-lane
+//! vectors, tiles of 32 x (≈ 1.5 % of a training step faster on Zen 4, where eight chains of
+//! 8 lanes were just enough to cover the FMA latency and any stall left a unit idle). Per rank each product loads four (XY⊗Z, XZ⊗Y) or two
 //! (YZ⊗X) vectors of factors and broadcasts two or four scalars for its eight FMAs. The planes
 //! are first packed rank-innermost ([`Packed`]): in their own layout a tile's 16 ranks lie
 //! 16 KB apart, in one set of L1 (8 ways), and evicted one another.
 
 use super::contract::{Factors, KC};
 use super::gemm::{give_spare, take_spare};
-use crate::kernels::wide;
+use crate::kernels::wide::{self, F32Lanes, Width};
 use rayon::prelude::*;
 
-/// x per tile: two AVX2 vectors.
+/// x per tile: two AVX2 vectors (with AVX-512, twice that).
 const TILE_X: usize = 16;
 /// z-planes per task.
 const TASK_PLANES: usize = 4;
@@ -32,8 +34,9 @@ pub fn available(n: usize, rank: usize) -> bool {
     wide::has_avx2_fma() && n > 0 && n.is_multiple_of(TILE_X) && rank <= KC
 }
 
-/// The planes packed with the rank innermost: P0 and P1 by row (y, resp. z), then by 8 x, then
-/// by rank, 8 x per rank (`((row·N/8 + x/8)·R + r)·8 + x % 8`); P2 by node (`(z·N + y)·R + r`).
+/// The planes packed with the rank innermost: P0 and P1 by row (y, resp. z), then by a vector's
+/// `L` x, then by rank, `L` x per rank (`((row·N/L + x/L)·R + r)·L + x % L`); P2 by node
+/// (`(z·N + y)·R + r`).
 #[derive(Default)]
 struct Packed {
     p0: Vec<f32>,
@@ -47,10 +50,20 @@ struct Packed {
 /// # Panics
 /// If [`available`] is false for `f`, or a factor or `dense` has the wrong length.
 pub fn compose(f: Factors, dense: &mut [f32]) {
+    compose_with(f, dense, Width::widest().expect("compose: the FMA kernel needs AVX2 + FMA"))
+}
+
+/// [`compose`] with the vectors `width` (one the CPU has; AVX-512 runs where `N` is a multiple
+/// of its 32-x tile, else AVX2): every width gives the same bits.
+pub fn compose_with(f: Factors, dense: &mut [f32], width: Width) {
     let (n, nn, rank) = (f.n, f.n * f.n, f.rank);
+    assert!(Width::available().contains(&width), "compose: this CPU lacks {width:?}");
     assert!(available(n, rank), "compose: the FMA kernel needs AVX2 + FMA and N a multiple of {TILE_X}");
     assert_eq!(dense.len(), nn * n, "compose: the dense field has N³ values");
     assert!(f.planes.iter().all(|p| p.len() == rank * nn) && f.lines.iter().all(|l| l.len() == rank * n));
+    let wide = width == Width::Avx512 && n.is_multiple_of(2 * TILE_X);
+    // The planes are packed by a vector's x: half a tile.
+    let lanes = if wide { TILE_X } else { TILE_X / 2 };
     let mut packed: Packed = take_spare();
     for v in [&mut packed.p0, &mut packed.p1, &mut packed.p2] {
         v.resize(rank * nn, 0.0);
@@ -60,26 +73,34 @@ pub fn compose(f: Factors, dense: &mut [f32]) {
     let jobs = jobs.chain(packed.p1.chunks_mut(rows).map(|out| (f.planes[1], out, true)));
     let jobs = jobs.chain(packed.p2.chunks_mut(rows).map(|out| (f.planes[2], out, false)));
     let jobs: Vec<_> = jobs.enumerate().map(|(i, (plane, out, by_x))| (i % n, plane, out, by_x)).collect();
-    jobs.into_par_iter().for_each(|(row, plane, out, by_x)| pack_row(plane, n, rank, row, out, by_x));
+    jobs.into_par_iter().for_each(|(row, plane, out, by_x)| pack_row(plane, n, rank, row, out, by_x.then_some(lanes)));
     let planes = [packed.p0.as_slice(), packed.p1.as_slice(), packed.p2.as_slice()];
     dense.par_chunks_mut(nn * TASK_PLANES).enumerate().for_each(|(task, slab)| {
         // SAFETY: `available` checked AVX2 + FMA and the tiling; the factor lengths are
         // checked above and the packed planes have the same; `slab` is whole z-planes
-        // (TASK_PLANES divides N, a multiple of 16).
-        unsafe { compose_planes(n, rank, planes, f.lines, task * TASK_PLANES, slab) }
+        // (TASK_PLANES divides N, a multiple of 16); `wide` checked AVX-512 and N a multiple
+        // of its tile, and the planes are packed for its vectors.
+        unsafe {
+            if wide {
+                compose_planes_avx512(n, rank, planes, f.lines, task * TASK_PLANES, slab)
+            } else {
+                compose_planes_avx2(n, rank, planes, f.lines, task * TASK_PLANES, slab)
+            }
+        }
     });
     give_spare(packed);
 }
 
-/// Packs row `row` of `plane` (all ranks) into `out` (`rank·N` values): by 8 x then rank when
-/// `by_x` (P0, P1), else by node then rank (P2, whose row is a z: nodes y + N·z).
-fn pack_row(plane: &[f32], n: usize, rank: usize, row: usize, out: &mut [f32], by_x: bool) {
+/// Packs row `row` of `plane` (all ranks) into `out` (`rank·N` values): by `lanes` x then rank
+/// when `by_x` is `Some(lanes)` (P0, P1), else by node then rank (P2, whose row is a z: nodes
+/// y + N·z).
+fn pack_row(plane: &[f32], n: usize, rank: usize, row: usize, out: &mut [f32], by_x: Option<usize>) {
     let nn = n * n;
     for r in 0..rank {
         let source = &plane[r * nn + row * n..][..n];
-        if by_x {
-            for (b, eight) in source.chunks_exact(8).enumerate() {
-                out[(b * rank + r) * 8..][..8].copy_from_slice(eight);
+        if let Some(lanes) = by_x {
+            for (b, run) in source.chunks_exact(lanes).enumerate() {
+                out[(b * rank + r) * lanes..][..lanes].copy_from_slice(run);
             }
         } else {
             for (y, &v) in source.iter().enumerate() {
@@ -89,43 +110,83 @@ fn pack_row(plane: &[f32], n: usize, rank: usize, row: usize, out: &mut [f32], b
     }
 }
 
-/// [`compose`] for the z-planes from `z0` that `slab` holds, from the packed `planes`.
+/// [`compose`] for the z-planes from `z0` that `slab` holds, from the packed `planes`, with
+/// AVX2 vectors.
 ///
 /// # Safety
 /// The CPU must have AVX2 and FMA; `N` a multiple of [`TILE_X`]; every packed plane `rank·N²`
-/// values, every line `rank·N`; `slab` an even number of whole z-planes from `z0`.
+/// values, packed by 8 x, every line `rank·N`; `slab` an even number of whole z-planes from `z0`.
 #[target_feature(enable = "avx2,fma")]
-unsafe fn compose_planes(n: usize, rank: usize, planes: [&[f32]; 3], lines: [&[f32]; 3], z0: usize, slab: &mut [f32]) {
-    use std::arch::x86_64::*;
+unsafe fn compose_planes_avx2(
+    n: usize,
+    rank: usize,
+    planes: [&[f32]; 3],
+    lines: [&[f32]; 3],
+    z0: usize,
+    slab: &mut [f32],
+) {
+    compose_tiles::<std::arch::x86_64::__m256>(n, rank, planes, lines, z0, slab)
+}
+
+/// [`compose_planes_avx2`] with AVX-512 vectors: tiles of 32 x, planes packed by 16 x.
+///
+/// # Safety
+/// As [`compose_planes_avx2`], with AVX-512F and VL, and `N` a multiple of 32.
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+unsafe fn compose_planes_avx512(
+    n: usize,
+    rank: usize,
+    planes: [&[f32]; 3],
+    lines: [&[f32]; 3],
+    z0: usize,
+    slab: &mut [f32],
+) {
+    compose_tiles::<std::arch::x86_64::__m512>(n, rank, planes, lines, z0, slab)
+}
+
+/// The tiles of [`compose_planes_avx2`] in vectors `V`: 2 vectors of x × 2 y × 2 z each.
+///
+/// # Safety
+/// As [`compose_planes_avx2`], for `V`'s features, tile and packing.
+#[inline(always)]
+unsafe fn compose_tiles<V: F32Lanes>(
+    n: usize,
+    rank: usize,
+    planes: [&[f32]; 3],
+    lines: [&[f32]; 3],
+    z0: usize,
+    slab: &mut [f32],
+) {
     let nn = n * n;
     let [p0, p1, p2] = planes.map(|p| p.as_ptr());
     let [l0, l1, l2] = lines.map(|l| l.as_ptr());
     let out = slab.as_mut_ptr();
-    let zero = _mm256_setzero_ps();
+    let zero = V::zero();
     let depth = slab.len() / nn;
-    // Output vector v of a tile: x + 8·(v % 2), y + (v / 2) % 2, z + v / 4.
-    let at = |y: usize, dz: usize, x: usize, v: usize| (dz + v / 4) * nn + (y + (v / 2) % 2) * n + x + 8 * (v % 2);
+    let lanes = V::LANES;
+    // Output vector v of a tile: x + lanes·(v % 2), y + (v / 2) % 2, z + v / 4.
+    let at = |y: usize, dz: usize, x: usize, v: usize| (dz + v / 4) * nn + (y + (v / 2) % 2) * n + x + lanes * (v % 2);
     for dz in (0..depth).step_by(2) {
         let z = z0 + dz;
         for y in (0..n).step_by(2) {
-            for x in (0..n).step_by(TILE_X) {
+            for x in (0..n).step_by(2 * lanes) {
                 let tile = Tile { n, rank, x };
                 // XY⊗Z: P0[r, x, y] · L0[r, z], stored as chain + 0.
-                let acc = tile.plane_rows::<true>(p0, y, l0, z);
+                let acc = tile.plane_rows::<V, true>(p0, y, l0, z);
                 for (v, a) in acc.iter().enumerate() {
-                    _mm256_storeu_ps(out.add(at(y, dz, x, v)), _mm256_add_ps(*a, zero));
+                    a.add(zero).store(out.add(at(y, dz, x, v)));
                 }
                 // XZ⊗Y: P1[r, x, z] · L1[r, y], added.
-                add_tile(out, &tile.plane_rows::<false>(p1, z, l1, y), |v| at(y, dz, x, v));
+                add_tile(out, &tile.plane_rows::<V, false>(p1, z, l1, y), |v| at(y, dz, x, v));
                 // YZ⊗X: P2[r, y, z] · L2[r, x], added.
                 let mut acc = [zero; 8];
                 for r in 0..rank {
-                    let line = [_mm256_loadu_ps(l2.add(r * n + x)), _mm256_loadu_ps(l2.add(r * n + x + 8))];
+                    let line = [V::load(l2.add(r * n + x)), V::load(l2.add(r * n + x + lanes))];
                     for yz in 0..4 {
-                        let p = _mm256_broadcast_ss(&*p2.add(((z + yz / 2) * n + y + yz % 2) * rank + r));
+                        let p = V::splat(p2.add(((z + yz / 2) * n + y + yz % 2) * rank + r));
                         for (xv, l) in line.iter().enumerate() {
                             let v = 4 * (yz / 2) + 2 * (yz % 2) + xv;
-                            acc[v] = _mm256_fmadd_ps(*l, p, acc[v]);
+                            acc[v] = l.mul_add(p, acc[v]);
                         }
                     }
                 }
@@ -149,28 +210,28 @@ impl Tile {
     /// else the other way round (XZ⊗Y). Returned in the tile's vector order.
     ///
     /// # Safety
-    /// The CPU must have AVX2 and FMA; `plane` a packed plane and `line` a line of the field,
-    /// with `row + 1` and `at + 1` inside the lattice.
+    /// The CPU must have `V`'s features; `plane` a plane packed by `V::LANES` x and `line` a
+    /// line of the field, with `row + 1` and `at + 1` inside the lattice.
     #[inline(always)]
-    unsafe fn plane_rows<const ROWS_ALONG_Y: bool>(
+    unsafe fn plane_rows<V: F32Lanes, const ROWS_ALONG_Y: bool>(
         &self,
         plane: *const f32,
         row: usize,
         line: *const f32,
         at: usize,
-    ) -> [std::arch::x86_64::__m256; 8] {
-        use std::arch::x86_64::*;
-        let (n, rank, b) = (self.n, self.rank, self.x / 8);
-        let mut acc = [_mm256_setzero_ps(); 8];
+    ) -> [V; 8] {
+        let lanes = V::LANES;
+        let (n, rank, b) = (self.n, self.rank, self.x / lanes);
+        let mut acc = [V::zero(); 8];
         for r in 0..rank {
-            let l = [_mm256_broadcast_ss(&*line.add(r * n + at)), _mm256_broadcast_ss(&*line.add(r * n + at + 1))];
+            let l = [V::splat(line.add(r * n + at)), V::splat(line.add(r * n + at + 1))];
             for ix in 0..4 {
                 let (i, xv) = (ix / 2, ix % 2);
-                // The packed row's vector of 8 x from block b + xv, rank r.
-                let p = _mm256_loadu_ps(plane.add((((row + i) * (n / 8) + b + xv) * rank + r) * 8));
+                // The packed row's vector of `lanes` x from block b + xv, rank r.
+                let p = V::load(plane.add((((row + i) * (n / lanes) + b + xv) * rank + r) * lanes));
                 for (d, l) in l.iter().enumerate() {
                     let v = if ROWS_ALONG_Y { 4 * d + 2 * i + xv } else { 4 * i + 2 * d + xv };
-                    acc[v] = _mm256_fmadd_ps(p, *l, acc[v]);
+                    acc[v] = p.mul_add(*l, acc[v]);
                 }
             }
         }
@@ -181,12 +242,11 @@ impl Tile {
 /// `out[at(v)..][..8] += acc[v]` for the tile's eight vectors.
 ///
 /// # Safety
-/// The CPU must have AVX; every `at(v) + 8` must lie inside `out`'s allocation.
+/// The CPU must have `V`'s features; every `at(v) + V::LANES` must lie inside `out`'s allocation.
 #[inline(always)]
-unsafe fn add_tile(out: *mut f32, acc: &[std::arch::x86_64::__m256; 8], at: impl Fn(usize) -> usize) {
-    use std::arch::x86_64::*;
+unsafe fn add_tile<V: F32Lanes>(out: *mut f32, acc: &[V; 8], at: impl Fn(usize) -> usize) {
     for (v, a) in acc.iter().enumerate() {
         let p = out.add(at(v));
-        _mm256_storeu_ps(p, _mm256_add_ps(_mm256_loadu_ps(p), *a));
+        V::load(p).add(*a).store(p);
     }
 }

