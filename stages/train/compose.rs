@@ -98,15 +98,27 @@ fn pack_row(plane: &[f32], n: usize, rank: usize, row: usize, out: &mut [f32], b
     let nn = n * n;
     for r in 0..rank {
         let source = &plane[r * nn + row * n..][..n];
-        if let Some(lanes) = by_x {
-            for (b, run) in source.chunks_exact(lanes).enumerate() {
-                out[(b * rank + r) * lanes..][..lanes].copy_from_slice(run);
-            }
-        } else {
-            for (y, &v) in source.iter().enumerate() {
-                out[y * rank + r] = v;
+        // Runs of a constant length are moved in registers; of a run-time length, each by a
+        // call to `memmove` (≈ 1.3 % of a training step).
+        match by_x {
+            Some(8) => pack_runs::<8>(source, rank, r, out),
+            Some(16) => pack_runs::<16>(source, rank, r, out),
+            Some(lanes) => panic!("pack_row: vectors of 8 or 16 lanes, not {lanes}"),
+            None => {
+                for (y, &v) in source.iter().enumerate() {
+                    out[y * rank + r] = v;
+                }
             }
         }
+    }
+}
+
+/// Rank `r`'s row `source` into `out` by runs of `L` x (see [`pack_row`]).
+#[inline(always)]
+fn pack_runs<const L: usize>(source: &[f32], rank: usize, r: usize, out: &mut [f32]) {
+    for (b, run) in source.chunks_exact(L).enumerate() {
+        let run: &[f32; L] = run.try_into().expect("L values");
+        out[(b * rank + r) * L..][..L].copy_from_slice(run);
     }
 }
 
