@@ -80,12 +80,19 @@ pub fn compose_with(f: Factors, dense: &mut [f32], width: Width) {
         // checked above and the packed planes have the same; `slab` is whole z-planes
         // (TASK_PLANES divides N, a multiple of 16); `wide` checked AVX-512 and N a multiple
         // of its tile, and the planes are packed for its vectors.
-        unsafe {
-            if wide {
-                compose_planes_avx512(n, rank, planes, f.lines, task * TASK_PLANES, slab)
-            } else {
-                compose_planes_avx2(n, rank, planes, f.lines, task * TASK_PLANES, slab)
-            }
+        let z0 = task * TASK_PLANES;
+        if wide {
+            use std::arch::x86_64::__m512;
+            wide::with_avx512(
+                #[inline(always)]
+                || unsafe { compose_tiles::<__m512>(n, rank, planes, f.lines, z0, slab) },
+            )
+        } else {
+            use std::arch::x86_64::__m256;
+            wide::with_avx2(
+                #[inline(always)]
+                || unsafe { compose_tiles::<__m256>(n, rank, planes, f.lines, z0, slab) },
+            )
         }
     });
     give_spare(packed);
@@ -122,44 +129,14 @@ fn pack_runs<const L: usize>(source: &[f32], rank: usize, r: usize, out: &mut [f
     }
 }
 
-/// [`compose`] for the z-planes from `z0` that `slab` holds, from the packed `planes`, with
-/// AVX2 vectors.
+/// [`compose`] for the z-planes from `z0` that `slab` holds, from the packed `planes`, in
+/// vectors `V`: tiles of 2 vectors of x × 2 y × 2 z.
 ///
 /// # Safety
-/// The CPU must have AVX2 and FMA; `N` a multiple of [`TILE_X`]; every packed plane `rank·N²`
-/// values, packed by 8 x, every line `rank·N`; `slab` an even number of whole z-planes from `z0`.
-#[target_feature(enable = "avx2,fma")]
-unsafe fn compose_planes_avx2(
-    n: usize,
-    rank: usize,
-    planes: [&[f32]; 3],
-    lines: [&[f32]; 3],
-    z0: usize,
-    slab: &mut [f32],
-) {
-    compose_tiles::<std::arch::x86_64::__m256>(n, rank, planes, lines, z0, slab)
-}
-
-/// [`compose_planes_avx2`] with AVX-512 vectors: tiles of 32 x, planes packed by 16 x.
-///
-/// # Safety
-/// As [`compose_planes_avx2`], with AVX-512F and VL, and `N` a multiple of 32.
-#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-unsafe fn compose_planes_avx512(
-    n: usize,
-    rank: usize,
-    planes: [&[f32]; 3],
-    lines: [&[f32]; 3],
-    z0: usize,
-    slab: &mut [f32],
-) {
-    compose_tiles::<std::arch::x86_64::__m512>(n, rank, planes, lines, z0, slab)
-}
-
-/// The tiles of [`compose_planes_avx2`] in vectors `V`: 2 vectors of x × 2 y × 2 z each.
-///
-/// # Safety
-/// As [`compose_planes_avx2`], for `V`'s features, tile and packing.
+/// The CPU must have `V`'s features (AVX2 and FMA for `__m256`, AVX-512F and VL as well for
+/// `__m512`: call it inside `wide::with_avx2` or `wide::with_avx512`); `N` a multiple of
+/// 2·`V::LANES`; every packed plane `rank·N²` values, packed by `V::LANES` x, every line
+/// `rank·N`; `slab` an even number of whole z-planes from `z0`.
 #[inline(always)]
 unsafe fn compose_tiles<V: F32Lanes>(
     n: usize,
