@@ -10,12 +10,14 @@
 //! outputs share a vector or a tile does not matter.
 //!
 //! A tile is 16 x (two vectors) × 2 y × 2 z: eight output vectors, eight independent chains,
-//! which keep both FMA units busy. Where the CPU has AVX-512 the same code runs with 16-lane
-//! vectors, tiles of 32 x (≈ 1.5 % of a training step faster on Zen 4, where eight chains of
-//! 8 lanes were just enough to cover the FMA latency and any stall left a unit idle). Per rank each product loads four (XY⊗Z, XZ⊗Y) or two
+//! which keep both FMA units busy. Per rank each product loads four (XY⊗Z, XZ⊗Y) or two
 //! (YZ⊗X) vectors of factors and broadcasts two or four scalars for its eight FMAs. The planes
 //! are first packed rank-innermost ([`Packed`]): in their own layout a tile's 16 ranks lie
 //! 16 KB apart, in one set of L1 (8 ways), and evicted one another.
+//!
+//! Where the CPU has AVX-512 the same code runs with 16-lane vectors and tiles of 32 x
+//! (≈ 1.5 % of a training step faster on Zen 4: eight chains of 8 lanes just cover the FMA
+//! latency, so any stall left a unit idle).
 
 use super::contract::{Factors, KC};
 use super::gemm::{give_spare, take_spare};

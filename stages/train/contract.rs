@@ -23,8 +23,8 @@ pub const KC: usize = 256;
 
 /// Outputs along x per vectorised run (two AVX2 vectors).
 const RUN: usize = 16;
-/// Ranks per [`along_rank`] chain vector (two AVX2 vectors); factors are transposed with
-/// their rank padded to a multiple of it.
+/// Ranks per [`along_rank`] chain vector (two AVX2 vectors, or one AVX-512 vector); factors
+/// are transposed with their rank padded to a multiple of it.
 const RANKS: usize = 16;
 /// x per dL2 task: one AVX-512 run, or two AVX2 runs.
 const LINE_TASK_X: usize = 2 * RUN;
@@ -341,7 +341,7 @@ impl Kernels<'_> {
     }
 
     /// `rows[r][at + j] = chain_k factor[k·stride + r] · values[source(j) + k]` for `j` in
-    /// `0..count`, four at a time, every rank: into `tile` first, so that the rows (a plane
+    /// `0..count`, `J` at a time, every rank: into `tile` first, so that the rows (a plane
     /// apart) are written in runs rather than a value at a time.
     #[inline(always)]
     fn along_rank_tiles<const J: usize>(
