@@ -67,19 +67,20 @@ pub enum Width {
 impl Width {
     /// The widest vectors the CPU has; `None` without AVX2 + FMA.
     pub fn widest() -> Option<Width> {
-        Self::available().last().copied()
+        [Width::Avx512, Width::Avx2].into_iter().find(|w| w.is_available())
+    }
+
+    /// Whether the CPU runs these vectors.
+    pub fn is_available(self) -> bool {
+        match self {
+            Width::Avx2 => has_avx2_fma(),
+            Width::Avx512 => has_avx512(),
+        }
     }
 
     /// Every width the CPU runs, narrowest first.
     pub fn available() -> Vec<Width> {
-        let mut widths = Vec::new();
-        if has_avx2_fma() {
-            widths.push(Width::Avx2);
-        }
-        if has_avx512() {
-            widths.push(Width::Avx512);
-        }
-        widths
+        [Width::Avx2, Width::Avx512].into_iter().filter(|w| w.is_available()).collect()
     }
 }
 

@@ -59,7 +59,7 @@ pub fn compose(f: Factors, dense: &mut [f32]) {
 /// of its 32-x tile, else AVX2): every width gives the same bits.
 pub fn compose_with(f: Factors, dense: &mut [f32], width: Width) {
     let (n, nn, rank) = (f.n, f.n * f.n, f.rank);
-    assert!(Width::available().contains(&width), "compose: this CPU lacks {width:?}");
+    assert!(width.is_available(), "compose: this CPU lacks {width:?}");
     assert!(available(n, rank), "compose: the FMA kernel needs AVX2 + FMA and N a multiple of {TILE_X}");
     assert_eq!(dense.len(), nn * n, "compose: the dense field has N³ values");
     assert!(f.planes.iter().all(|p| p.len() == rank * nn) && f.lines.iter().all(|l| l.len() == rank * n));

@@ -97,7 +97,7 @@ pub fn contract(f: Factors, grad: &[f32], out: Gradients) {
 
 /// [`contract`] with the vectors `width` (one the CPU has): every width gives the same bits.
 pub fn contract_with(f: Factors, grad: &[f32], out: Gradients, width: Width) {
-    assert!(Width::available().contains(&width), "contract: this CPU lacks {width:?}");
+    assert!(width.is_available(), "contract: this CPU lacks {width:?}");
     let (n, nn, rank) = (f.n, f.n * f.n, f.rank);
     assert_eq!(grad.len(), nn * n, "contract: dL/dF has N³ values");
     let mut t: Transposed = take_spare();
