@@ -183,35 +183,32 @@ struct Traced<T> {
 }
 
 /// Rays' footprints, ray after ray, each ray's in the walk's order (a straight ray's planes
-/// are monotone), indexed by plane. The walk writes a ray's records straight into
-/// `list` past the `used` ones (no copy); `list` only grows, and is reused batch to batch.
+/// are monotone), and for each scatter slab where each ray's run on the slab's planes lies.
+/// The walk writes a ray's records straight into `list` past the `used` ones (no copy);
+/// `list` only grows, and is reused batch to batch.
 #[derive(Default)]
 struct Footprints<T> {
     list: Vec<Footprint<T>>,
     used: usize,
-    rays: Vec<RayFootprints>,
-    /// Per ray, where each of its planes starts in `list` (see [`RayFootprints`]).
+    /// Per scatter slab, each ray's run of footprints on the slab's planes, in ray order.
+    slab_runs: Vec<Vec<Run>>,
+    /// Scratch for one ray: where each of its planes' footprints start in `list`.
     plane_starts: Vec<u32>,
 }
 
-/// Where one ray's footprints lie: on planes `low..=high`, plane p's (possibly none) from
-/// `plane_starts[starts + p − low]` up to the next plane's start; `plane_starts[starts +
-/// high − low + 1]` is the end of the ray's footprints. A `descending` ray's footprints are
-/// stored in descending plane order, so there the starts count down: plane p's lie from
-/// `plane_starts[starts + p − low + 1]` up to `plane_starts[starts + p − low]`.
+/// A ray's footprints `list[from..to]` on one scatter slab's planes, read `backwards` when
+/// the ray's planes descend (so that they are added in ascending plane order).
 #[derive(Debug, Clone, Copy)]
-struct RayFootprints {
-    low: u32,
-    high: u32,
-    starts: u32,
-    descending: bool,
+struct Run {
+    from: u32,
+    to: u32,
+    backwards: bool,
 }
 
 impl<T: Scalar> Footprints<T> {
     fn clear(&mut self) {
         self.used = 0;
-        self.rays.clear();
-        self.plane_starts.clear();
+        self.slab_runs.iter_mut().for_each(Vec::clear);
     }
 
     /// Makes room for the walk to write `count + 1` records after the used ones.
@@ -222,26 +219,27 @@ impl<T: Scalar> Footprints<T> {
     }
 
     /// Keeps the `len` records the walk wrote after the used ones (monotone in plane, either
-    /// way), scaled by the ray's `dL/dσ`, and indexes them by plane. Records without an
-    /// active sample (all weights +0) are dropped. A ray whose planes descend keeps its
-    /// records in walk order and is marked `descending`: the scatter reads it backwards
-    /// (reversing it here cost ≈ 1.5 % of an iteration).
+    /// way), scaled by the ray's `dL/dσ`, and notes their run on each scatter slab. Records
+    /// without an active sample (all weights +0) are dropped. A ray whose planes descend
+    /// keeps its records in walk order, and the scatter reads its runs backwards (reversing
+    /// them here cost ≈ 1.5 % of an iteration).
     fn keep_ray(&mut self, len: usize, d_sigma: T) {
         let first = self.used;
         let records = &mut self.list[first..first + len];
         let kept = compact(records, d_sigma);
         let records = &records[..kept];
+        self.used = first + kept;
         let (Some(&head), Some(&tail)) = (records.first(), records.last()) else { return };
         let descending = head.plane > tail.plane;
         let (low, high) = (head.plane.min(tail.plane), head.plane.max(tail.plane));
-        let starts = self.plane_starts.len();
-        self.plane_starts.resize(starts + (high - low) as usize + 2, 0);
-        let index = &mut self.plane_starts[starts..];
+        let starts = &mut self.plane_starts;
+        starts.clear();
+        starts.resize((high - low) as usize + 2, 0);
         // In ascending plane order (the walk's order read backwards if descending),
-        // index[p − low + 1] becomes one past plane p's last record, or 0 where p has none;
+        // starts[p − low + 1] becomes one past plane p's last record, or 0 where p has none;
         // a running maximum then fills those planes (branch-free: a plane's records end at
         // unpredictable places).
-        let mut mark = |rank: usize, f: &Footprint<T>| index[(f.plane - low) as usize + 1] = rank as u32 + 1;
+        let mut mark = |rank: usize, f: &Footprint<T>| starts[(f.plane - low) as usize + 1] = rank as u32 + 1;
         if descending {
             records.iter().rev().enumerate().for_each(|(rank, f)| mark(rank, f));
         } else {
@@ -249,28 +247,36 @@ impl<T: Scalar> Footprints<T> {
         }
         let end = (first + kept) as u32;
         let mut running = 0;
-        for start in index.iter_mut() {
+        for start in starts.iter_mut() {
             running = running.max(*start);
             // As positions in `list`: counted from the ray's end when it is stored backwards.
             *start = if descending { end - running } else { first as u32 + running };
         }
-        self.used = first + kept;
-        self.rays.push(RayFootprints { low, high, starts: starts as u32, descending });
+        // Slab s reads planes sP − 1 ..= (s + 1)P − 1 (P planes a slab): plane p lies on slab
+        // p / P, and on the next one too when it is a slab's last.
+        let (first_slab, last_slab) = (low as usize / PLANES_PER_SLAB, (high as usize + 1) / PLANES_PER_SLAB);
+        if self.slab_runs.len() <= last_slab {
+            self.slab_runs.resize_with(last_slab + 1, Vec::new);
+        }
+        for (slab, runs) in self.slab_runs.iter_mut().enumerate().take(last_slab + 1).skip(first_slab) {
+            let from = low.max((slab * PLANES_PER_SLAB).saturating_sub(1) as u32);
+            let to = high.min(((slab + 1) * PLANES_PER_SLAB - 1) as u32);
+            let (a, b) = (starts[(from - low) as usize], starts[(to - low + 1) as usize]);
+            let (from, to) = if descending { (b, a) } else { (a, b) };
+            if from != to {
+                runs.push(Run { from, to, backwards: descending });
+            }
+        }
     }
 
-    /// The footprints on planes `low..=high`, ray by ray, each run in ascending plane order:
-    /// a slice, and whether to read it backwards.
-    fn on_planes(&self, low: u32, high: u32) -> impl Iterator<Item = (&[Footprint<T>], bool)> {
-        self.rays.iter().filter(move |r| r.low <= high && r.high >= low).map(move |r| {
-            let (from, to) = (low.max(r.low), high.min(r.high));
-            let starts = &self.plane_starts[r.starts as usize..];
-            let (a, b) = (starts[(from - r.low) as usize] as usize, starts[(to - r.low + 1) as usize] as usize);
-            if r.descending {
-                (&self.list[b..a], true)
-            } else {
-                (&self.list[a..b], false)
-            }
-        })
+    /// The runs of footprints on scatter slab `slab`, ray by ray: a slice, and whether to read
+    /// it backwards.
+    fn on_slab(&self, slab: usize) -> impl Iterator<Item = (&[Footprint<T>], bool)> {
+        self.slab_runs
+            .get(slab)
+            .into_iter()
+            .flatten()
+            .map(|r| (&self.list[r.from as usize..r.to as usize], r.backwards))
     }
 }
 
@@ -404,11 +410,9 @@ impl Renderer {
             // upper corners.
             let split = z0 * sz;
             out.fill(T::zero());
-            let (low, high) = (z0.saturating_sub(1) as u32, (z1 - 1) as u32);
             // Each ray's run of footprints on these planes, in ray order: short runs far apart
             // in memory, so the runs a few rays ahead are prefetched.
-            let slices: Vec<(&[Footprint<T>], bool)> =
-                traced.iter().flat_map(|t| t.footprints.on_planes(low, high)).filter(|(s, _)| !s.is_empty()).collect();
+            let slices: Vec<(&[Footprint<T>], bool)> = traced.iter().flat_map(|t| t.footprints.on_slab(slab)).collect();
             let add = |out: &mut [T], f: &Footprint<T>| {
                 let (cell, plane) = (f.cell as usize, f.plane as usize);
                 let [l0, l1, l2, l3, u0, u1, u2, u3] = f.weights;
