@@ -54,6 +54,9 @@ ROWS = [
      "the default with twice the learning rate (0.04, same decay)"),
     ("grid-128", "presets/grid128.toml", "B", "C*",
      "the default on a 128³ lattice instead of 64³ (same box and views)"),
+    ("fine-box-A", "presets/fine_box.toml", "A", "A",
+     "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
+     " rules through the origin"),
 ]
 MEASURED = "experiment.json"
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
