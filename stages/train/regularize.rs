@@ -127,35 +127,56 @@ impl<T: Float + Send + Sync> Penalties<T> {
 /// their gradient, scaled, added to `g`. (Inlined into its caller's AVX2 copy.)
 ///
 /// Row by row, so that the plane, its gradient and the differences stay in L1: each row takes
-/// its horizontal differences' derivatives (−, then + from its left neighbour's), then its
-/// vertical ones (− towards the next row, then + from the row above's). That is the order in
-/// which the whole-plane passes applied them, and the vertical sum keeps the lanes of one
-/// pass over the plane ([`LaneSum`]), so every value is bit-identical to those passes'.
+/// its horizontal differences and the vertical ones towards the next row, then applies to its
+/// gradient, value by value, what it owes them and the row above's. Every value is
+/// bit-identical to whole-plane passes' (differences, penalties, derivatives, then one update
+/// of the gradient per direction and side): the same operations in the same order, and the
+/// vertical sum keeps one pass's eight lanes ([`LaneSum`]).
 #[inline(always)]
 fn tv_component<T: Float>(comp: &[T], g: &mut [T], n: usize, norm: TvNorm, scale: T) -> T {
     // Each difference d_k = b_k − a_k adds |d| (or d²); ∂/∂d_k, scaled, goes to b_k with + and
     // to a_k with −. Slice loops only: they vectorise.
-    let (mut step, mut above) = (vec![T::zero(); n], vec![T::zero(); n]);
+    let (mut right, mut down, mut up) = (vec![T::zero(); n], vec![T::zero(); n], vec![T::zero(); n]);
     let mut horizontal = T::zero();
     let mut vertical = LaneSum::new(n * (n - 1));
     for (j, grow) in g.chunks_exact_mut(n).enumerate() {
         let row = &comp[j * n..(j + 1) * n];
-        horizontal = horizontal + penalise(&row[..n - 1], &row[1..], &mut step[..n - 1], norm, scale);
-        apply_step(grow, 1, &step[..n - 1]);
-        if let Some(next) = comp.get((j + 1) * n..(j + 2) * n) {
-            differences_into(row, next, &mut step, norm, scale, |d| vertical.add(d, |x| penalty(x, norm)));
-            for (gi, &s) in grow.iter_mut().zip(&step) {
-                *gi = *gi - s;
-            }
+        horizontal = horizontal + penalise(&row[..n - 1], &row[1..], &mut right[..n - 1], norm, scale);
+        let next = comp.get((j + 1) * n..(j + 2) * n);
+        if let Some(next) = next {
+            differences_into(row, next, &mut down, norm, scale, |d| vertical.add(d, |x| penalty(x, norm)));
         }
-        if j > 0 {
-            for (gi, &s) in grow.iter_mut().zip(&above) {
-                *gi = *gi + s;
-            }
+        match (next.is_some(), j > 0) {
+            (true, true) => update_row::<T, true, true>(grow, &right, &down, &up),
+            (true, false) => update_row::<T, true, false>(grow, &right, &down, &up),
+            (false, true) => update_row::<T, false, true>(grow, &right, &down, &up),
+            (false, false) => update_row::<T, false, false>(grow, &right, &down, &up),
         }
-        std::mem::swap(&mut step, &mut above);
+        std::mem::swap(&mut down, &mut up);
     }
     horizontal + vertical.total()
+}
+
+/// One row's TV derivatives applied to its gradient `g`, each value's in the order of the
+/// whole-plane passes: − its right difference's (`right[i]`), + its left one's
+/// (`right[i − 1]`), − the one towards the next row (`down[i]`, if `DOWN`), + the one from the
+/// row above (`up[i]`, if `UP`).
+#[inline(always)]
+fn update_row<T: Float, const DOWN: bool, const UP: bool>(g: &mut [T], right: &[T], down: &[T], up: &[T]) {
+    let n = g.len();
+    let vertical = |x: T, i: usize| {
+        let x = if DOWN { x - down[i] } else { x };
+        if UP {
+            x + up[i]
+        } else {
+            x
+        }
+    };
+    g[0] = vertical(g[0] - right[0], 0);
+    for i in 1..n - 1 {
+        g[i] = vertical((g[i] - right[i]) + right[i - 1], i);
+    }
+    g[n - 1] = vertical(g[n - 1] + right[n - 2], n - 1);
 }
 
 /// A difference's penalty: |d| or d².
