@@ -330,10 +330,10 @@ impl Renderer {
     /// `grad` is given writes `dL/dF` into it (overwriting it).
     ///
     /// Rays trace in parallel, in fixed groups that record their footprints (already scaled by
-    /// the ray's `dL/dσ`) indexed by z-plane; the scatter then runs in parallel over z-slabs of
-    /// the lattice, each adding the footprints on its planes in group, then ray, then plane
-    /// order. Every gradient element is summed in one fixed order: the result is bit-identical
-    /// whatever the thread count.
+    /// the ray's `dL/dσ`) and note each ray's run of them on each z-slab of the lattice; the
+    /// scatter then runs in parallel over those slabs, each adding the footprints on its planes
+    /// in group, then ray, then plane order. Every gradient element is summed in one fixed
+    /// order: the result is bit-identical whatever the thread count.
     pub fn batch<T: Scalar>(
         &self,
         dense: &[T],
