@@ -316,6 +316,11 @@ mod tests {
         x.to_bits() == y.to_bits()
     }
 
+    /// [`same_as_gemm`] for every value of two fields (or factor lists) in order.
+    fn all_same_as_gemm<'a>(a: impl IntoIterator<Item = &'a f32>, b: impl IntoIterator<Item = &'a f32>) -> bool {
+        a.into_iter().zip(b).all(|(x, y)| same_as_gemm(*x, *y))
+    }
+
     #[test]
     fn the_fma_contraction_matches_the_gemm_path_bit_for_bit() {
         if !contract::available() {
@@ -342,14 +347,13 @@ mod tests {
                 let mut fast = VmField::zeros(n, rank);
                 let factors = f.f32_factors().expect("f32");
                 contract::contract_with(factors, &grad, fast.f32_factors_mut().expect("f32"), width);
-                for (a, b) in fast.params().zip(gemm.params()) {
-                    let same = a.iter().zip(b).all(|(x, y)| same_as_gemm(*x, *y));
-                    assert!(same, "N = {n}, rank = {rank}, {width:?}");
-                }
+                let same = all_same_as_gemm(fast.params().flatten(), gemm.params().flatten());
+                assert!(same, "N = {n}, rank = {rank}, {width:?}");
             }
             let mut fast = VmField::zeros(n, rank);
             f.contract_into(&grad, &mut fast);
-            assert!(fast.params().zip(gemm.params()).all(|(a, b)| a.iter().zip(b).all(|(x, y)| same_as_gemm(*x, *y))));
+            let same = all_same_as_gemm(fast.params().flatten(), gemm.params().flatten());
+            assert!(same, "N = {n}, rank = {rank}: contract_into");
         }
     }
 
@@ -374,13 +378,12 @@ mod tests {
             let (mut fast, mut gemm) = (vec![0f32; n * n * n], vec![0f32; n * n * n]);
             f.compose_into(&mut fast);
             f.compose_gemm(&mut gemm);
-            assert!(fast.iter().zip(&gemm).all(|(x, y)| same_as_gemm(*x, *y)), "N = {n}, rank = {rank}");
+            assert!(all_same_as_gemm(&fast, &gemm), "N = {n}, rank = {rank}");
             // Every vector width the CPU has (AVX-512 tiles need N a multiple of 32).
             for width in Width::available() {
                 let mut fast = vec![0f32; n * n * n];
                 super::super::compose::compose_with(f.f32_factors().expect("f32"), &mut fast, width);
-                let same = fast.iter().zip(&gemm).all(|(x, y)| same_as_gemm(*x, *y));
-                assert!(same, "N = {n}, rank = {rank}, {width:?}");
+                assert!(all_same_as_gemm(&fast, &gemm), "N = {n}, rank = {rank}, {width:?}");
             }
         }
     }
