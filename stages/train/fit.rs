@@ -199,6 +199,10 @@ pub struct Schedule {
     order: Vec<usize>,
     cursor: usize,
     drawn: Vec<(usize, f64)>,
+    /// Scratch for putting a batch in pool order: a bit per pool ray, and each drawn ray's
+    /// offset by pool index.
+    in_batch: Vec<u64>,
+    offset_of: Vec<f64>,
 }
 
 impl Schedule {
@@ -206,9 +210,19 @@ impl Schedule {
     pub fn start(params: &TrainParams, pool_len: usize) -> (VmField<f32>, Schedule) {
         let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
         let field = VmField::random(params.grid, params.rank, params.init_scale, rng.gen());
-        let order: Vec<usize> = (0..pool_len).collect();
-        let cursor = order.len(); // reshuffle on first use
-        (field, Schedule { rng, order, cursor, drawn: Vec::with_capacity(params.batch_rays) })
+        (field, Schedule::over(rng, pool_len, params.batch_rays))
+    }
+
+    /// The batches of a pool of `pool_len` rays drawn from `rng`.
+    fn over(rng: ChaCha8Rng, pool_len: usize, batch_rays: usize) -> Schedule {
+        Schedule {
+            rng,
+            order: (0..pool_len).collect(),
+            cursor: pool_len, // reshuffle on first use
+            drawn: Vec::with_capacity(batch_rays),
+            in_batch: vec![0; pool_len.div_ceil(64)],
+            offset_of: vec![0.0; pool_len],
+        }
     }
 
     /// The next batch: (pool index, offset in [0, step)) per ray, in pool order — neighbouring
@@ -216,16 +230,44 @@ impl Schedule {
     /// and its offsets do not depend on the sort.
     pub fn next_batch(&mut self, batch_rays: usize, step: f64) -> &[(usize, f64)] {
         self.drawn.clear();
+        // A batch that runs into the next epoch's permutation may hold a ray twice.
+        let mut may_repeat = false;
         while self.drawn.len() < batch_rays.min(self.order.len()) {
             if self.cursor == self.order.len() {
                 self.order.shuffle(&mut self.rng);
                 self.cursor = 0;
+                may_repeat |= !self.drawn.is_empty();
             }
             self.drawn.push((self.order[self.cursor], self.rng.gen::<f64>() * step));
             self.cursor += 1;
         }
-        self.drawn.sort_unstable_by_key(|&(i, _)| i);
+        if may_repeat {
+            self.drawn.sort_unstable_by_key(|&(i, _)| i);
+        } else {
+            self.sort_distinct();
+        }
         &self.drawn
+    }
+
+    /// Puts `drawn`, whose pool indices are distinct, in pool order, as sorting it would: its
+    /// rays are marked in a bitmap of the pool, which is then read in order. (Sorting 2048
+    /// random indices took 40 µs a batch, this 20 µs: ≈ 0.5 % of a step, as the draw shares a
+    /// core with Adam.)
+    fn sort_distinct(&mut self) {
+        for &(i, offset) in &self.drawn {
+            self.in_batch[i / 64] |= 1 << (i % 64);
+            self.offset_of[i] = offset;
+        }
+        self.drawn.clear();
+        for (w, word) in self.in_batch.iter_mut().enumerate() {
+            // Reading a word clears it for the next batch.
+            let mut bits = std::mem::take(word);
+            while bits != 0 {
+                let i = 64 * w + bits.trailing_zeros() as usize;
+                self.drawn.push((i, self.offset_of[i]));
+                bits &= bits - 1;
+            }
+        }
     }
 
     /// The next batch as rays of `pool` into `batch` and their offsets into `offsets` (both
@@ -496,4 +538,37 @@ pub fn view_errors(
 /// PSNR (dB) of a mean squared error, peak 1.
 pub fn psnr_db(mse: f64) -> f64 {
     10.0 * (1.0 / mse.max(1e-20)).log10()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn batches_come_in_pool_order_as_sorting_puts_them() {
+        // Pools whose epochs hold whole batches, and pools where batches run into the next
+        // epoch (and may repeat a ray).
+        for (pool_len, batch_rays) in [(1200, 300), (1000, 300), (130, 64), (50, 64)] {
+            let mut schedule = Schedule::over(ChaCha8Rng::seed_from_u64(5), pool_len, batch_rays);
+            let mut rng = ChaCha8Rng::seed_from_u64(5);
+            let (mut order, mut cursor): (Vec<usize>, usize) = ((0..pool_len).collect(), pool_len);
+            for _ in 0..20 {
+                let mut expected = Vec::new();
+                while expected.len() < batch_rays.min(pool_len) {
+                    if cursor == pool_len {
+                        order.shuffle(&mut rng);
+                        cursor = 0;
+                    }
+                    expected.push((order[cursor], rng.gen::<f64>() * 0.5));
+                    cursor += 1;
+                }
+                expected.sort_unstable_by_key(|&(i, _)| i);
+                let drawn = schedule.next_batch(batch_rays, 0.5);
+                assert_eq!(drawn.len(), expected.len());
+                for (a, b) in drawn.iter().zip(&expected) {
+                    assert_eq!((a.0, a.1.to_bits()), (b.0, b.1.to_bits()), "pool {pool_len}, batch {batch_rays}");
+                }
+            }
+        }
+    }
 }
