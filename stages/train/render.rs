@@ -192,8 +192,6 @@ struct Footprints<T> {
     used: usize,
     /// Per scatter slab, each ray's run of footprints on the slab's planes, in ray order.
     slab_runs: Vec<Vec<Run>>,
-    /// Scratch for one ray: where each of its planes' footprints start in `list`.
-    plane_starts: Vec<u32>,
 }
 
 /// A ray's footprints `list[from..to]` on one scatter slab's planes, read `backwards` when
@@ -232,39 +230,30 @@ impl<T: Scalar> Footprints<T> {
         let (Some(&head), Some(&tail)) = (records.first(), records.last()) else { return };
         let descending = head.plane > tail.plane;
         let (low, high) = (head.plane.min(tail.plane), head.plane.max(tail.plane));
-        let starts = &mut self.plane_starts;
-        starts.clear();
-        starts.resize((high - low) as usize + 2, 0);
-        // In ascending plane order (the walk's order read backwards if descending),
-        // starts[p − low + 1] becomes one past plane p's last record, or 0 where p has none;
-        // a running maximum then fills those planes (branch-free: a plane's records end at
-        // unpredictable places).
-        let mut mark = |rank: usize, f: &Footprint<T>| starts[(f.plane - low) as usize + 1] = rank as u32 + 1;
-        if descending {
-            records.iter().rev().enumerate().for_each(|(rank, f)| mark(rank, f));
-        } else {
-            records.iter().enumerate().for_each(|(rank, f)| mark(rank, f));
-        }
-        let end = (first + kept) as u32;
-        let mut running = 0;
-        for start in starts.iter_mut() {
-            running = running.max(*start);
-            // As positions in `list`: counted from the ray's end when it is stored backwards.
-            *start = if descending { end - running } else { first as u32 + running };
-        }
         // Slab s reads planes sP − 1 ..= (s + 1)P − 1 (P planes a slab): plane p lies on slab
         // p / P, and on the next one too when it is a slab's last.
         let (first_slab, last_slab) = (low as usize / PLANES_PER_SLAB, (high as usize + 1) / PLANES_PER_SLAB);
         if self.slab_runs.len() <= last_slab {
             self.slab_runs.resize_with(last_slab + 1, Vec::new);
         }
-        for (slab, runs) in self.slab_runs.iter_mut().enumerate().take(last_slab + 1).skip(first_slab) {
-            let from = low.max((slab * PLANES_PER_SLAB).saturating_sub(1) as u32);
-            let to = high.min(((slab + 1) * PLANES_PER_SLAB - 1) as u32);
-            let (a, b) = (starts[(from - low) as usize], starts[(to - low + 1) as usize]);
-            let (from, to) = if descending { (b, a) } else { (a, b) };
-            if from != to {
-                runs.push(Run { from, to, backwards: descending });
+        // In ascending plane order, slab s's run is the records from the first on plane
+        // sP − 1 or above to the last below (s + 1)P: counted, [below(sP − 1), below((s + 1)P)).
+        let end = (first + kept) as u32;
+        for chunk in (first_slab..=last_slab).step_by(LIMIT_SLABS) {
+            let slabs = chunk..(chunk + LIMIT_SLABS).min(last_slab + 1);
+            let mut limits = [0u32; 2 * LIMIT_SLABS];
+            for (i, slab) in slabs.clone().enumerate() {
+                limits[2 * i] = (slab * PLANES_PER_SLAB).saturating_sub(1) as u32;
+                limits[2 * i + 1] = ((slab + 1) * PLANES_PER_SLAB) as u32;
+            }
+            let below = count_below(records, limits);
+            for (i, slab) in slabs.enumerate() {
+                let (a, b) = (below[2 * i], below[2 * i + 1]);
+                // As positions in `list`: counted from the ray's end when it is stored backwards.
+                let (from, to) = if descending { (end - b, end - a) } else { (first as u32 + a, first as u32 + b) };
+                if from != to {
+                    self.slab_runs[slab].push(Run { from, to, backwards: descending });
+                }
             }
         }
     }
@@ -532,6 +521,22 @@ unsafe fn compact_avx2(records: &mut [Footprint<f32>], d_sigma: f32) -> usize {
     kept
 }
 
+/// Slabs whose runs one pass of [`count_below`] finds (two limits each: eight lanes).
+const LIMIT_SLABS: usize = 4;
+
+/// How many of `records` lie on a plane below each of `limits` (branch-free, one vector
+/// compare a record).
+#[inline(always)]
+fn count_below<T>(records: &[Footprint<T>], limits: [u32; 2 * LIMIT_SLABS]) -> [u32; 2 * LIMIT_SLABS] {
+    let mut below = [0u32; 2 * LIMIT_SLABS];
+    for f in records {
+        for (count, &limit) in below.iter_mut().zip(&limits) {
+            *count += u32::from(f.plane < limit);
+        }
+    }
+    below
+}
+
 /// Adds the weights `w` of a cell face's 4 corners (x fastest, then y) to `out`, the face's
 /// first corner at `origin`: two pairs of x-neighbours, `sy` apart.
 ///
@@ -610,6 +615,55 @@ mod tests {
             assert_eq!((b.cell, b.plane), (e.cell, e.plane));
             assert_eq!(a.weights.map(f32::to_bits), e.weights.map(f32::to_bits));
             assert_eq!(b.weights.map(f32::to_bits), e.weights.map(f32::to_bits));
+        }
+    }
+
+    #[test]
+    fn each_slab_gets_the_run_of_records_on_its_planes() {
+        // Rays up and down through a lattice of 160 planes (ten slabs, more than one pass of
+        // limits), each with some empty records, three rays after one another in one list.
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut footprints = Footprints::<f32>::default();
+        let mut rays: Vec<Vec<(u32, bool)>> = Vec::new();
+        for ray in 0..3 {
+            let (low, high) = (rng.gen_range(0..80u32), rng.gen_range(80..159u32));
+            let mut planes: Vec<u32> = (0..120).map(|_| rng.gen_range(low..=high)).collect();
+            planes.sort_unstable();
+            if ray == 1 {
+                planes.reverse();
+            }
+            let records: Vec<(u32, bool)> = planes.iter().map(|&p| (p, rng.gen_bool(0.8))).collect();
+            footprints.reserve_walk(records.len());
+            for (i, &(plane, holds)) in records.iter().enumerate() {
+                let weights = std::array::from_fn(|c| if holds && c == 3 { 0.5 } else { 0.0 });
+                footprints.list[footprints.used + i] = Footprint { cell: i as u32, plane, weights };
+            }
+            footprints.keep_ray(records.len(), 2.0);
+            rays.push(records.into_iter().filter(|r| r.1).collect());
+        }
+        for slab in 0..10 {
+            let (from, to) = ((slab * PLANES_PER_SLAB).saturating_sub(1) as u32, ((slab + 1) * PLANES_PER_SLAB) as u32);
+            let expected: Vec<Vec<u32>> = rays
+                .iter()
+                .map(|kept| {
+                    let mut on_slab: Vec<u32> = kept.iter().map(|r| r.0).filter(|p| (from..to).contains(p)).collect();
+                    on_slab.sort_unstable();
+                    on_slab
+                })
+                .filter(|on_slab| !on_slab.is_empty())
+                .collect();
+            let found: Vec<Vec<u32>> = footprints
+                .on_slab(slab)
+                .map(|(run, backwards)| {
+                    let planes = run.iter().map(|f| f.plane);
+                    if backwards {
+                        planes.rev().collect()
+                    } else {
+                        planes.collect()
+                    }
+                })
+                .collect();
+            assert_eq!(found, expected, "slab {slab}");
         }
     }
 }
