@@ -12,7 +12,8 @@
 //! Two kernels cover the six products, vectorised across outputs so that `dL/dF` is read
 //! where it lies: [`along_x`] when the outputs run along F's x axis (the k axis strided),
 //! [`along_rank`] when k runs along x (the outputs are then ranks, of a factor transposed
-//! beforehand: a factor is a quarter of `dL/dF`'s size).
+//! beforehand: a factor is a quarter of `dL/dF`'s size). With AVX-512, dP0 has a kernel of its
+//! own (`avx512::plane_xy`): its 16 ranks' chains fit the registers, so `dL/dF` is read once.
 
 use super::gemm::{give_spare, take_spare};
 use crate::kernels::wide::{self, Width};
