@@ -260,9 +260,10 @@ impl Kernels<'_> {
         let padded = rank.next_multiple_of(RANKS);
         let t = self.t;
         match task {
-            Task::PlaneXY { start, mut dp0 } if J == WIDE_OUTPUTS => {
+            Task::PlaneXY { start, mut dp0 } if J == WIDE_OUTPUTS && dp0[0].len().is_multiple_of(16) => {
                 // With AVX-512, all 16 ranks' chains fit the registers: each vector of dF is
                 // read once, where it lies (≈ 0.7 % of a training step faster than the copy).
+                // A run of another length (N² not a multiple of 16) takes the copy below.
                 // SAFETY: J = WIDE_OUTPUTS only inside `with_avx512` (`Kernels::run`).
                 unsafe { avx512::plane_xy(self.grad, n, &t.l0, rank, start, &mut dp0) };
             }
@@ -465,7 +466,8 @@ mod avx512 {
     /// dP0[r, xy] = Σ_z dF[xy, z]·L0[r, z] for the task's run of xy from `start` (`rows[r]`
     /// its piece of rank r's row), 16 xy a vector and 16 ranks at a time: each vector of
     /// `dL/dF`, read where it lies, serves 16 chains. `l0` is L0 by z, ranks padded to
-    /// [`RANKS`]. Each chain is [`super::along_x`]'s, stored as `chain + 0`.
+    /// [`RANKS`]. Each chain is [`super::along_x`]'s, stored as `chain + 0`. The run's length
+    /// must be a multiple of 16.
     ///
     /// # Safety
     /// The CPU must have AVX-512F (call it inside `wide::with_avx512`).
@@ -473,12 +475,12 @@ mod avx512 {
     pub unsafe fn plane_xy(grad: &[f32], n: usize, l0: &[f32], rank: usize, start: usize, rows: &mut [&mut [f32]]) {
         const LANES: usize = 16;
         let (nn, len) = (n * n, rows[0].len());
+        assert!(len.is_multiple_of(LANES), "plane_xy: runs of whole vectors");
         assert!(rows.len() == rank && rows.iter().all(|r| r.len() == len) && start + len <= nn);
         let stride = rank.next_multiple_of(RANKS);
         assert!(grad.len() >= n * nn && l0.len() >= n * stride);
         let zero = _mm512_setzero_ps();
-        let mut at = 0;
-        while at + LANES <= len {
+        for at in (0..len).step_by(LANES) {
             for r0 in (0..rank).step_by(RANKS) {
                 let mut acc = [zero; RANKS];
                 for z in 0..n {
@@ -492,14 +494,6 @@ mod avx512 {
                 for (row, a) in rows.iter_mut().skip(r0).zip(acc) {
                     _mm512_storeu_ps(row[at..at + LANES].as_mut_ptr(), _mm512_add_ps(a, zero));
                 }
-            }
-            at += LANES;
-        }
-        // A run shorter than a vector: value by value, the same chains.
-        for (r, row) in rows.iter_mut().enumerate() {
-            for (i, out) in row.iter_mut().enumerate().skip(at) {
-                let chain = (0..n).fold(0f32, |a, z| grad[z * nn + start + i].mul_add(l0[z * stride + r], a));
-                *out = chain + 0.0;
             }
         }
     }
