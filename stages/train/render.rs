@@ -129,41 +129,44 @@ impl AlphaMask {
 /// The largest lattice `batch` takes (cell indices are packed in 32 bits).
 pub const MAX_GRID: usize = 512;
 
-/// One ray's gradient footprint on one cell: the trilinear weights of the ray's active
-/// samples in that cell, summed (consecutive samples of a ray often share a cell), then
-/// scaled by the ray's `dL/dσ` once the ray is traced. Corners in the order x fastest, then
-/// y, then z (the first four on the cell's lower plane). `repr(C)`: the vector walk writes
-/// the cell and plane as one 8-byte value.
-#[derive(Debug, Clone, Copy)]
-#[repr(C)]
-struct Footprint<T> {
-    /// The cell's lower corner node, `x + N·(y + N·z)`.
-    cell: u32,
-    /// The cell's z-plane.
-    plane: u32,
-    weights: [T; 8],
+/// Rays' gradient footprints, one record per cell a ray's active samples passed through: the
+/// cell's lower corner node `x + N·(y + N·z)` and the 8 corner weights of those samples,
+/// summed (consecutive samples of a ray often share a cell). The weights are unscaled; the
+/// scatter multiplies them by the ray's `dL/dσ`. Two columns: finding a ray's run on a slab
+/// reads the cells alone, and each record's weights fill one aligned half cache line.
+#[derive(Default)]
+struct Records<T> {
+    cells: Vec<u32>,
+    weights: Vec<CornerWeights<T>>,
 }
 
-impl<T: Scalar> Footprint<T> {
-    /// An empty record that matches no cell.
-    fn none() -> Self {
-        Footprint { cell: u32::MAX, plane: u32::MAX, weights: [T::zero(); 8] }
+impl<T: Scalar> Records<T> {
+    fn len(&self) -> usize {
+        self.cells.len()
     }
 
-    /// `records` as f32 records, when that is their type: the way into f32-only vector
+    /// Grows (or shrinks) both columns to `len` records.
+    fn resize(&mut self, len: usize) {
+        self.cells.resize(len, u32::MAX);
+        self.weights.resize(len, CornerWeights([T::zero(); 8]));
+    }
+}
+
+/// A record's trilinear weights, corners in the order x fastest, then y, then z (the first
+/// four on the cell's lower plane, the last four on its upper one).
+#[derive(Debug, Clone, Copy)]
+#[repr(C, align(32))]
+struct CornerWeights<T>([T; 8]);
+
+impl<T: Scalar> CornerWeights<T> {
+    /// `weights` as f32 weights, when that is their type: the way into f32-only vector
     /// kernels.
     #[cfg(target_arch = "x86_64")]
-    fn as_f32_mut(records: &mut [Self]) -> Option<&mut [Footprint<f32>]> {
+    fn as_f32_mut(weights: &mut [Self]) -> Option<&mut [CornerWeights<f32>]> {
         (std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>()).then(|| {
             // SAFETY: `T` is f32 (checked), so the two slice types are one.
-            unsafe { &mut *(records as *mut [Self] as *mut [Footprint<f32>]) }
+            unsafe { &mut *(weights as *mut [Self] as *mut [CornerWeights<f32>]) }
         })
-    }
-
-    /// Whether an active sample left weight here (records of inactive runs hold +0 only).
-    /// Branch-free: which records are empty is unpredictable.
-    fn holds_weight(&self) -> bool {
-        self.weights.iter().fold(false, |any, &w| any | (w != T::zero()))
     }
 }
 
@@ -184,23 +187,25 @@ struct Traced<T> {
 
 /// Rays' footprints, ray after ray, each ray's in the walk's order (a straight ray's planes
 /// are monotone), and for each scatter slab where each ray's run on the slab's planes lies.
-/// The walk writes a ray's records straight into `list` past the `used` ones (no copy);
-/// `list` only grows, and is reused batch to batch.
+/// The walk writes a ray's records straight into `records` past the `used` ones (no copy);
+/// `records` only grows, and is reused batch to batch.
 #[derive(Default)]
 struct Footprints<T> {
-    list: Vec<Footprint<T>>,
+    records: Records<T>,
     used: usize,
     /// Per scatter slab, each ray's run of footprints on the slab's planes, in ray order.
-    slab_runs: Vec<Vec<Run>>,
+    slab_runs: Vec<Vec<Run<T>>>,
 }
 
-/// A ray's footprints `list[from..to]` on one scatter slab's planes, read `backwards` when
-/// the ray's planes descend (so that they are added in ascending plane order).
+/// A ray's footprints `from..to` on one scatter slab's planes, read `backwards` when the
+/// ray's planes descend (so that they are added in ascending plane order), and the ray's
+/// `dL/dσ` that scales their weights.
 #[derive(Debug, Clone, Copy)]
-struct Run {
+struct Run<T> {
     from: u32,
     to: u32,
     backwards: bool,
+    d_sigma: T,
 }
 
 impl<T: Scalar> Footprints<T> {
@@ -209,64 +214,78 @@ impl<T: Scalar> Footprints<T> {
         self.slab_runs.iter_mut().for_each(Vec::clear);
     }
 
-    /// Makes room for the walk to write `count + 1` records after the used ones.
+    /// Makes room for the walk to write `count` records after the used ones.
     fn reserve_walk(&mut self, count: usize) {
-        if self.list.len() <= self.used + count {
-            self.list.resize(self.used + count + 1, Footprint::none());
+        if self.records.len() < self.used + count {
+            self.records.resize(self.used + count);
         }
     }
 
     /// Keeps the `len` records the walk wrote after the used ones (monotone in plane, either
-    /// way), scaled by the ray's `dL/dσ`, and notes their run on each scatter slab. Records
-    /// without an active sample (all weights +0) are dropped. A ray whose planes descend
-    /// keeps its records in walk order, and the scatter reads its runs backwards (reversing
-    /// them here cost ≈ 1.5 % of an iteration).
-    fn keep_ray(&mut self, len: usize, d_sigma: T) {
+    /// way) for a ray whose `dL/dσ` is `d_sigma`, and notes their run on each scatter slab of
+    /// a lattice with `plane_nodes` nodes a plane. A ray whose planes descend keeps its
+    /// records in walk order, and the scatter reads its runs backwards (reversing them here
+    /// cost ≈ 1.5 % of an iteration).
+    fn keep_ray(&mut self, len: usize, d_sigma: T, plane_nodes: usize) {
         let first = self.used;
-        let records = &mut self.list[first..first + len];
-        let kept = compact(records, d_sigma);
-        let records = &records[..kept];
-        self.used = first + kept;
-        let (Some(&head), Some(&tail)) = (records.first(), records.last()) else { return };
-        let descending = head.plane > tail.plane;
-        let (low, high) = (head.plane.min(tail.plane), head.plane.max(tail.plane));
+        self.used = first + len;
+        let cells = &self.records.cells[first..first + len];
+        let (Some(&head), Some(&tail)) = (cells.first(), cells.last()) else { return };
+        let plane = |cell: u32| cell as usize / plane_nodes;
+        let descending = plane(head) > plane(tail);
+        let (low, high) = (plane(head).min(plane(tail)), plane(head).max(plane(tail)));
         // Slab s reads planes sP − 1 ..= (s + 1)P − 1 (P planes a slab): plane p lies on slab
         // p / P, and on the next one too when it is a slab's last.
-        let (first_slab, last_slab) = (low as usize / PLANES_PER_SLAB, (high as usize + 1) / PLANES_PER_SLAB);
+        let (first_slab, last_slab) = (low / PLANES_PER_SLAB, (high + 1) / PLANES_PER_SLAB);
         if self.slab_runs.len() <= last_slab {
             self.slab_runs.resize_with(last_slab + 1, Vec::new);
         }
         // In ascending plane order, slab s's run is the records from the first on plane
-        // sP − 1 or above to the last below (s + 1)P: counted, [below(sP − 1), below((s + 1)P)).
-        let end = (first + kept) as u32;
+        // sP − 1 or above to the last below (s + 1)P: counted, [below(sP − 1), below((s + 1)P)),
+        // a record lying below plane p when its cell is below p's first node.
+        let end = (first + len) as u32;
         for chunk in (first_slab..=last_slab).step_by(LIMIT_SLABS) {
             let slabs = chunk..(chunk + LIMIT_SLABS).min(last_slab + 1);
             let mut limits = [0u32; 2 * LIMIT_SLABS];
             for (i, slab) in slabs.clone().enumerate() {
-                limits[2 * i] = (slab * PLANES_PER_SLAB).saturating_sub(1) as u32;
-                limits[2 * i + 1] = ((slab + 1) * PLANES_PER_SLAB) as u32;
+                limits[2 * i] = ((slab * PLANES_PER_SLAB).saturating_sub(1) * plane_nodes) as u32;
+                limits[2 * i + 1] = ((slab + 1) * PLANES_PER_SLAB * plane_nodes) as u32;
             }
-            let below = count_below(records, limits);
+            let below = count_below(cells, limits);
             for (i, slab) in slabs.enumerate() {
                 let (a, b) = (below[2 * i], below[2 * i + 1]);
-                // As positions in `list`: counted from the ray's end when it is stored backwards.
+                // As positions in `records`: counted from the ray's end when it is stored
+                // backwards.
                 let (from, to) = if descending { (end - b, end - a) } else { (first as u32 + a, first as u32 + b) };
                 if from != to {
-                    self.slab_runs[slab].push(Run { from, to, backwards: descending });
+                    self.slab_runs[slab].push(Run { from, to, backwards: descending, d_sigma });
                 }
             }
         }
     }
 
-    /// The runs of footprints on scatter slab `slab`, ray by ray: a slice, and whether to read
-    /// it backwards.
-    fn on_slab(&self, slab: usize) -> impl Iterator<Item = (&[Footprint<T>], bool)> {
-        self.slab_runs
-            .get(slab)
-            .into_iter()
-            .flatten()
-            .map(|r| (&self.list[r.from as usize..r.to as usize], r.backwards))
+    /// The runs of footprints on scatter slab `slab`, ray by ray: cells and weights, whether
+    /// to read them backwards, and the ray's `dL/dσ`.
+    fn on_slab(&self, slab: usize) -> impl Iterator<Item = RunView<'_, T>> {
+        self.slab_runs.get(slab).into_iter().flatten().map(|r| {
+            let range = r.from as usize..r.to as usize;
+            RunView {
+                cells: &self.records.cells[range.clone()],
+                weights: &self.records.weights[range],
+                backwards: r.backwards,
+                d_sigma: r.d_sigma,
+            }
+        })
     }
+}
+
+/// A [`Run`]'s records.
+#[derive(Clone, Copy)]
+struct RunView<'a, T> {
+    cells: &'a [u32],
+    weights: &'a [CornerWeights<T>],
+    backwards: bool,
+    d_sigma: T,
 }
 
 impl Renderer {
@@ -312,7 +331,7 @@ impl Renderer {
 
     /// `Î` of one ray.
     pub fn render_ray<T: Scalar>(&self, dense: &[T], mask: Option<&AlphaMask>, ray: &Ray, offset: f64) -> f64 {
-        self.transmittance(walk::march::<T, false>(&self.walk(dense, mask, ray, offset), &mut [], 0).0)
+        self.transmittance(walk::march::<T, false>(&self.walk(dense, mask, ray, offset), &mut Records::default(), 0).0)
     }
 
     /// Renders `rays` (with their per-ray `offsets`), returns predictions and MSE, and when
@@ -375,53 +394,56 @@ impl Renderer {
         t.predicted.clear();
         for (ray, walk) in group.iter().zip(&walks) {
             t.footprints.reserve_walk(walk.count);
-            let (depth, len) = walk::march::<T, true>(walk, &mut t.footprints.list, t.footprints.used);
+            let (depth, len) = walk::march::<T, true>(walk, &mut t.footprints.records, t.footprints.used);
             let p = self.transmittance(depth);
             // dσ/dF = 1[F + Δ > 0]: the ray's active samples share its dL/dσ.
             let d_sigma = self.loss.d_sigma(p, ray.target, batch_len, self.scale * self.step);
             let d_sigma = T::from(d_sigma).expect("finite");
             if d_sigma != T::zero() {
-                t.footprints.keep_ray(len, d_sigma);
+                t.footprints.keep_ray(len, d_sigma, self.lattice.n * self.lattice.n);
             }
             t.predicted.push(p);
         }
         t
     }
 
-    /// Writes the gradient: every footprint added to the corners of its cell, each slab of
-    /// `grad` zeroed first (in the same pass, while it is in cache).
+    /// Writes the gradient: every footprint, scaled by its ray's `dL/dσ`, added to the
+    /// corners of its cell, each slab of `grad` zeroed first (in the same pass, while it is in
+    /// cache).
     fn scatter<T: Scalar>(&self, traced: &[Traced<T>], grad: &mut [T]) {
         let n = self.lattice.n;
         let (sy, sz) = (n, n * n);
         grad.par_chunks_mut(sz * PLANES_PER_SLAB).enumerate().for_each(move |(slab, out)| {
             let (z0, z1) = (slab * PLANES_PER_SLAB, ((slab + 1) * PLANES_PER_SLAB).min(n));
             // Node i is out[i − split]; cells on plane z0 − 1 reach into this slab with their
-            // upper corners.
-            let split = z0 * sz;
+            // upper corners, and cells on plane z1 − 1 into the next one.
+            let (split, upper_end) = (z0 * sz, (z1 - 1) * sz);
             out.fill(T::zero());
             // Each ray's run of footprints on these planes, in ray order: short runs far apart
             // in memory, so the runs a few rays ahead are prefetched.
-            let slices: Vec<(&[Footprint<T>], bool)> = traced.iter().flat_map(|t| t.footprints.on_slab(slab)).collect();
-            let add = |out: &mut [T], f: &Footprint<T>| {
-                let (cell, plane) = (f.cell as usize, f.plane as usize);
-                let [l0, l1, l2, l3, u0, u1, u2, u3] = f.weights;
+            let runs: Vec<RunView<T>> = traced.iter().flat_map(|t| t.footprints.on_slab(slab)).collect();
+            let add = |out: &mut [T], cell: u32, weights: &CornerWeights<T>, d_sigma: T| {
+                let cell = cell as usize;
+                let [l0, l1, l2, l3, u0, u1, u2, u3] = weights.0.map(|w| w * d_sigma);
                 // The record's faces on this slab's planes; their last node (the face's
                 // origin + sy + 1) must lie in `out`, checked once per face.
-                if plane >= z0 {
+                if cell >= split {
                     add_face(out, cell - split, sy, [l0, l1, l2, l3]);
                 }
-                if plane + 1 < z1 {
+                if cell < upper_end {
                     add_face(out, cell + sz - split, sy, [u0, u1, u2, u3]);
                 }
             };
-            for (i, &(slice, backwards)) in slices.iter().enumerate() {
-                if let Some(&(ahead, backwards)) = slices.get(i + PREFETCH_AHEAD) {
-                    prefetch(ahead, backwards);
+            for (i, run) in runs.iter().enumerate() {
+                if let Some(ahead) = runs.get(i + PREFETCH_AHEAD) {
+                    prefetch(ahead.cells, ahead.backwards);
+                    prefetch(ahead.weights, ahead.backwards);
                 }
-                if backwards {
-                    slice.iter().rev().for_each(|f| add(out, f));
+                let records = run.cells.iter().zip(run.weights);
+                if run.backwards {
+                    records.rev().for_each(|(&cell, weights)| add(out, cell, weights, run.d_sigma));
                 } else {
-                    slice.iter().for_each(|f| add(out, f));
+                    records.for_each(|(&cell, weights)| add(out, cell, weights, run.d_sigma));
                 }
             }
         });
@@ -469,69 +491,16 @@ impl Renderer {
     }
 }
 
-/// Scales `records` by `d_sigma` in place, dropping those without weight (moving the rest
-/// down); returns how many are kept.
-fn compact<T: Scalar>(records: &mut [Footprint<T>], d_sigma: T) -> usize {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        if let Some(records) = Footprint::as_f32_mut(&mut *records) {
-            // SAFETY: the CPU has AVX2 (checked above).
-            return unsafe { compact_avx2(records, d_sigma.to_f32().expect("f32")) };
-        }
-    }
-    compact_portable(records, d_sigma)
-}
-
-/// [`compact`] in plain code (the AVX2 kernel's bits: the same products).
-fn compact_portable<T: Scalar>(records: &mut [Footprint<T>], d_sigma: T) -> usize {
-    let mut kept = 0;
-    for i in 0..records.len() {
-        let f = records[i];
-        records[kept] = Footprint { weights: f.weights.map(|w| w * d_sigma), ..f };
-        kept += usize::from(f.holds_weight());
-    }
-    kept
-}
-
-/// [`compact`] with the 8 weights as one vector.
-///
-/// # Safety
-/// The CPU must have AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn compact_avx2(records: &mut [Footprint<f32>], d_sigma: f32) -> usize {
-    use std::arch::x86_64::*;
-    let (scale, zero) = (_mm256_set1_ps(d_sigma), _mm256_setzero_ps());
-    let base = records.as_mut_ptr();
-    let mut kept = 0;
-    for i in 0..records.len() {
-        // SAFETY: kept ≤ i < len, so both records lie in `records`; a record's first 8 bytes
-        // are its cell and plane (`repr(C)`).
-        unsafe {
-            let (from, to) = (base.add(i), base.add(kept));
-            let place = (from as *const u64).read_unaligned();
-            let weights = _mm256_loadu_ps((*from).weights.as_ptr());
-            // As `Footprint::holds_weight` (`!=`: unordered).
-            let holds_weight = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_NEQ_UQ>(weights, zero)) != 0;
-            (to as *mut u64).write_unaligned(place);
-            _mm256_storeu_ps((*to).weights.as_mut_ptr(), _mm256_mul_ps(weights, scale));
-            kept += usize::from(holds_weight);
-        }
-    }
-    kept
-}
-
 /// Slabs whose runs one pass of [`count_below`] finds (two limits each: eight lanes).
 const LIMIT_SLABS: usize = 4;
 
-/// How many of `records` lie on a plane below each of `limits` (branch-free, one vector
-/// compare a record).
+/// How many of `cells` are below each of `limits` (branch-free, one vector compare a cell).
 #[inline(always)]
-fn count_below<T>(records: &[Footprint<T>], limits: [u32; 2 * LIMIT_SLABS]) -> [u32; 2 * LIMIT_SLABS] {
+fn count_below(cells: &[u32], limits: [u32; 2 * LIMIT_SLABS]) -> [u32; 2 * LIMIT_SLABS] {
     let mut below = [0u32; 2 * LIMIT_SLABS];
-    for f in records {
+    for &cell in cells {
         for (count, &limit) in below.iter_mut().zip(&limits) {
-            *count += u32::from(f.plane < limit);
+            *count += u32::from(cell < limit);
         }
     }
     below
@@ -589,42 +558,13 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     #[test]
-    fn compacting_keeps_the_records_with_weight_scaled_in_order() {
-        let mut rng = ChaCha8Rng::seed_from_u64(7);
-        let records: Vec<Footprint<f32>> = (0..300)
-            .map(|i| Footprint {
-                cell: i,
-                plane: i / 10,
-                weights: std::array::from_fn(|_| if rng.gen_bool(0.3) { 0.0 } else { rng.gen_range(0.0..1.0) }),
-            })
-            .map(|f| if f.cell % 5 == 0 { Footprint { weights: [0.0; 8], ..f } } else { f })
-            .collect();
-        let d_sigma = -0.37f32;
-        let expected: Vec<Footprint<f32>> = records
-            .iter()
-            .filter(|f| f.weights.iter().any(|&w| w != 0.0))
-            .map(|f| Footprint { weights: f.weights.map(|w| w * d_sigma), ..*f })
-            .collect();
-        let mut portable = records.clone();
-        let kept = compact_portable(&mut portable, d_sigma);
-        let mut fast = records.clone();
-        assert_eq!(compact(&mut fast, d_sigma), kept);
-        assert_eq!(kept, expected.len());
-        for ((a, b), e) in portable.iter().zip(&fast).zip(&expected) {
-            assert_eq!((a.cell, a.plane), (e.cell, e.plane));
-            assert_eq!((b.cell, b.plane), (e.cell, e.plane));
-            assert_eq!(a.weights.map(f32::to_bits), e.weights.map(f32::to_bits));
-            assert_eq!(b.weights.map(f32::to_bits), e.weights.map(f32::to_bits));
-        }
-    }
-
-    #[test]
     fn each_slab_gets_the_run_of_records_on_its_planes() {
         // Rays up and down through a lattice of 160 planes (ten slabs, more than one pass of
-        // limits), each with some empty records, three rays after one another in one list.
-        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        // limits), three rays after one another in one list, each record's cell anywhere on
+        // its plane.
+        let (mut rng, plane_nodes) = (ChaCha8Rng::seed_from_u64(11), 160 * 160);
         let mut footprints = Footprints::<f32>::default();
-        let mut rays: Vec<Vec<(u32, bool)>> = Vec::new();
+        let mut rays: Vec<Vec<u32>> = Vec::new();
         for ray in 0..3 {
             let (low, high) = (rng.gen_range(0..80u32), rng.gen_range(80..159u32));
             let mut planes: Vec<u32> = (0..120).map(|_| rng.gen_range(low..=high)).collect();
@@ -632,35 +572,32 @@ mod tests {
             if ray == 1 {
                 planes.reverse();
             }
-            let records: Vec<(u32, bool)> = planes.iter().map(|&p| (p, rng.gen_bool(0.8))).collect();
-            footprints.reserve_walk(records.len());
-            for (i, &(plane, holds)) in records.iter().enumerate() {
-                let weights = std::array::from_fn(|c| if holds && c == 3 { 0.5 } else { 0.0 });
-                footprints.list[footprints.used + i] = Footprint { cell: i as u32, plane, weights };
+            footprints.reserve_walk(planes.len());
+            for (i, &plane) in planes.iter().enumerate() {
+                let cell = plane * plane_nodes as u32 + rng.gen_range(0..plane_nodes as u32);
+                footprints.records.cells[footprints.used + i] = cell;
             }
-            footprints.keep_ray(records.len(), 2.0);
-            rays.push(records.into_iter().filter(|r| r.1).collect());
+            footprints.keep_ray(planes.len(), 2.0 + ray as f32, plane_nodes);
+            rays.push(planes);
         }
         for slab in 0..10 {
             let (from, to) = ((slab * PLANES_PER_SLAB).saturating_sub(1) as u32, ((slab + 1) * PLANES_PER_SLAB) as u32);
-            let expected: Vec<Vec<u32>> = rays
+            let expected: Vec<(Vec<u32>, f32)> = rays
                 .iter()
-                .map(|kept| {
-                    let mut on_slab: Vec<u32> = kept.iter().map(|r| r.0).filter(|p| (from..to).contains(p)).collect();
+                .enumerate()
+                .map(|(ray, planes)| {
+                    let mut on_slab: Vec<u32> = planes.iter().copied().filter(|p| (from..to).contains(p)).collect();
                     on_slab.sort_unstable();
-                    on_slab
+                    (on_slab, 2.0 + ray as f32)
                 })
-                .filter(|on_slab| !on_slab.is_empty())
+                .filter(|(on_slab, _)| !on_slab.is_empty())
                 .collect();
-            let found: Vec<Vec<u32>> = footprints
+            let found: Vec<(Vec<u32>, f32)> = footprints
                 .on_slab(slab)
-                .map(|(run, backwards)| {
-                    let planes = run.iter().map(|f| f.plane);
-                    if backwards {
-                        planes.rev().collect()
-                    } else {
-                        planes.collect()
-                    }
+                .map(|run| {
+                    let planes = run.cells.iter().map(|&c| c / plane_nodes as u32);
+                    let planes = if run.backwards { planes.rev().collect() } else { planes.collect() };
+                    (planes, run.d_sigma)
                 })
                 .collect();
             assert_eq!(found, expected, "slab {slab}");

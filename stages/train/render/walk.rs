@@ -1,6 +1,6 @@
 //! The walk of one ray's samples through the composed field `F`, eight samples (lanes) at a
 //! time: each sample's cell and trilinear weights, `σ = ReLU(F + Δ)`, the ray's optical depth
-//! and, when recording, its footprints (see [`Footprint`]).
+//! and, when recording, its footprints (see [`Records`]).
 //!
 //! Two kernels do the walk with the same IEEE operations in the same order, so their results
 //! are bit-identical: a portable one (any precision), and for f32 on x86-64 CPUs with AVX2 one
@@ -8,7 +8,7 @@
 //! (≈ 150 instructions a sample: saturating conversions, bounds checks); the vector walk takes
 //! ≈ 24 a sample, ≈ 25 more when recording.
 
-use super::Footprint;
+use super::{CornerWeights, Records};
 use crate::train::gemm::Scalar;
 
 /// Samples per block: one AVX2 vector of f32.
@@ -29,15 +29,15 @@ pub(super) struct RayWalk<'a, T> {
 }
 
 /// The optical depth `Σ σ_k` of the ray (without `s·δ`) and, with `RECORD`, its footprints
-/// (weights unscaled) in `slots[first..first + len]`, returned with `len`; `slots` must then
-/// hold at least `first + count + 1` records (the open record is stored every sample,
-/// branch-free).
+/// (weights unscaled) as records `first..first + len` of `records`, returned with `len`;
+/// `records` must then hold at least `first + count` (the open record is stored every
+/// sample, branch-free).
 ///
 /// # Panics
 /// If `dense` (or the mask) has fewer than `n³` values, or `n` is outside `[2, 1024]`.
 pub(super) fn march<T: Scalar, const RECORD: bool>(
     walk: &RayWalk<T>,
-    slots: &mut [Footprint<T>],
+    records: &mut Records<T>,
     first: usize,
 ) -> (T, usize) {
     let n = walk.n;
@@ -47,23 +47,25 @@ pub(super) fn march<T: Scalar, const RECORD: bool>(
         n * n * n
     );
     assert!(walk.kept.is_none_or(|k| k.len() >= n * n * n), "walk: the mask must cover the lattice");
-    assert!(!RECORD || slots.len() > first + walk.count, "walk: room for {} records needed", walk.count + 1);
+    assert!(!RECORD || records.len() >= first + walk.count, "walk: room for {} records needed", walk.count);
+    let (cells, weights) = (&mut records.cells[first..], &mut records.weights[first..]);
     #[cfg(target_arch = "x86_64")]
-    if let (Some(dense), Some(slots)) = (T::as_f32(walk.dense), Footprint::as_f32_mut(&mut *slots)) {
+    if let (Some(dense), Some(weights)) = (T::as_f32(walk.dense), CornerWeights::as_f32_mut(&mut *weights)) {
         if std::arch::is_x86_feature_detected!("avx2") {
             let walk = as_f32_walk(walk, dense);
             // SAFETY: the CPU has AVX2 (checked above) and the asserts above give `avx2::march`
             // its lattice and mask sizes.
+            let recorder = Recorder::new(cells, weights);
             let (depth, len) = if crate::kernels::wide::has_avx512() {
                 // SAFETY: as below, and the CPU has AVX-512F and VL (checked here).
-                unsafe { avx2::march_avx512vl::<RECORD>(&walk, &mut slots[first..]) }
+                unsafe { avx2::march_avx512vl::<RECORD>(&walk, recorder) }
             } else {
-                unsafe { avx2::march::<RECORD>(&walk, &mut slots[first..]) }
+                unsafe { avx2::march::<RECORD>(&walk, recorder) }
             };
             return (T::from(depth).expect("f32"), len);
         }
     }
-    portable::<T, RECORD>(walk, &mut slots[first..])
+    portable::<T, RECORD>(walk, Recorder::new(cells, weights))
 }
 
 /// `walk` with its (already f32) values as f32.
@@ -83,62 +85,65 @@ fn as_f32_walk<'a, T: Scalar>(walk: &RayWalk<'a, T>, dense: &'a [f32]) -> RayWal
 
 /// The footprint being built while walking. Every run of consecutive samples in one cell is
 /// a record, closed when the cell changes (branch-free: cell changes and the sign of σ are
-/// unpredictable); a run without an active sample leaves a record of +0 weights, which
-/// [`super::Footprints`] drops when it keeps the ray. Whole blocks without an active sample
-/// leave at most one such record.
+/// unpredictable). A run without an active sample holds no weight: the next run takes its
+/// slot, so a ray's records all hold weight. Whole blocks without an active sample skip the
+/// per-sample work.
 struct Recorder<'s, T> {
-    slots: &'s mut [Footprint<T>],
-    /// The open record's slot; `usize::MAX` before the first sample.
-    len: usize,
-    open: Footprint<T>,
+    cells: &'s mut [u32],
+    weights: &'s mut [CornerWeights<T>],
+    /// The open record's slot.
+    slot: usize,
+    /// The open record's cell; `u32::MAX` (no cell) before the first sample.
+    open_cell: u32,
+    open: [T; 8],
+    /// Whether an active sample has added to the open record.
+    held: bool,
 }
 
 impl<'s, T: Scalar> Recorder<'s, T> {
-    fn new(slots: &'s mut [Footprint<T>]) -> Self {
-        Recorder { slots, len: usize::MAX, open: Footprint::none() }
+    fn new(cells: &'s mut [u32], weights: &'s mut [CornerWeights<T>]) -> Self {
+        Recorder { cells, weights, slot: 0, open_cell: u32::MAX, open: [T::zero(); 8], held: false }
     }
 
-    /// Adds one sample: its cell, the cell's plane, whether σ > 0, its corner weights.
+    /// Adds one sample: its cell, whether σ > 0, its corner weights.
     #[inline(always)]
-    fn add(&mut self, cell: u32, plane: u32, active: bool, weights: [T; 8]) {
-        let same = cell == self.open.cell;
-        self.len = self.len.wrapping_add(usize::from(!same));
+    fn add(&mut self, cell: u32, active: bool, weights: [T; 8]) {
+        let same = cell == self.open_cell;
+        self.slot += usize::from(!same & self.held);
+        self.held = (self.held & same) | active;
         let (keep, add) = (T::from_index(usize::from(same)), T::from_index(usize::from(active)));
-        self.open.weights = std::array::from_fn(|i| self.open.weights[i] * keep + weights[i] * add);
-        (self.open.cell, self.open.plane) = (cell, plane);
-        self.slots[self.len] = self.open;
+        self.open = std::array::from_fn(|i| self.open[i] * keep + weights[i] * add);
+        self.open_cell = cell;
+        (self.cells[self.slot], self.weights[self.slot]) = (cell, CornerWeights(self.open));
     }
 
-    /// Adds a block of samples none of which is active, of the cells `cells` with planes
-    /// `planes`: if one leaves the open record's cell, a new empty record opens on the last
-    /// one's cell (the runs in between would only have left empty records).
+    /// Adds a block of samples none of which is active, ending in cell `last`: if one leaves
+    /// the open record's cell, the record closes and an empty one opens on `last` (the runs in
+    /// between hold no weight).
     #[inline(always)]
-    fn add_inactive(&mut self, cells: &[u32], planes: &[u32]) {
-        if let (Some(&cell), Some(&plane)) = (cells.last(), planes.last()) {
-            if cells.iter().any(|&c| c != self.open.cell) {
-                self.len = self.len.wrapping_add(1);
-                self.open = Footprint { cell, plane, weights: [T::zero(); 8] };
-                self.slots[self.len] = self.open;
-            }
+    fn add_inactive(&mut self, leaves: bool, last: u32) {
+        if leaves {
+            self.slot += usize::from(self.held);
+            (self.open_cell, self.open, self.held) = (last, [T::zero(); 8], false);
         }
     }
 
     /// Adds a block of samples: all inactive ones at once (see [`Recorder::add_inactive`]),
     /// else one by one.
     #[inline(always)]
-    fn add_block(&mut self, cells: &[u32], planes: &[u32], active: &[bool], weights: &[[T; 8]]) {
+    fn add_block(&mut self, cells: &[u32], active: &[bool], weights: &[[T; 8]]) {
         if active.iter().any(|&a| a) {
-            for (((&cell, &plane), &active), &weights) in cells.iter().zip(planes).zip(active).zip(weights) {
-                self.add(cell, plane, active, weights);
+            for ((&cell, &active), &weights) in cells.iter().zip(active).zip(weights) {
+                self.add(cell, active, weights);
             }
-        } else {
-            self.add_inactive(cells, planes);
+        } else if let Some(&last) = cells.last() {
+            self.add_inactive(cells.iter().any(|&c| c != self.open_cell), last);
         }
     }
 
-    /// The number of records (empty ones included).
+    /// The number of records.
     fn finish(self) -> usize {
-        self.len.wrapping_add(1)
+        self.slot + usize::from(self.held)
     }
 }
 
@@ -163,15 +168,14 @@ fn at_most<T: Scalar>(x: T, hi: T) -> T {
 }
 
 /// The walk in plain code, lane by lane, in the vector kernel's operation order.
-fn portable<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, slots: &mut [Footprint<T>]) -> (T, usize) {
+fn portable<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, mut recorder: Recorder<T>) -> (T, usize) {
     let n = walk.n;
     let (sy, sz) = (n, n * n);
     let (last_node, last_cell) = (T::from_index(n - 1), T::from_index(n - 2));
     let mut depth = [T::zero(); LANES];
-    let mut recorder = Recorder::new(slots);
     for k0 in (0..walk.count).step_by(LANES) {
         let valid = (walk.count - k0).min(LANES);
-        let (mut cells, mut planes, mut actives) = ([0u32; LANES], [0u32; LANES], [false; LANES]);
+        let (mut cells, mut actives) = ([0u32; LANES], [false; LANES]);
         let mut corner_weights = [[T::zero(); 8]; LANES];
         for (lane, depth) in depth.iter_mut().enumerate() {
             let k = T::from_index(k0) + T::from_index(lane);
@@ -190,18 +194,17 @@ fn portable<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, slots: &mut [Footp
             let live = lane < valid && walk.kept.is_none_or(|kept| kept[cell] != 0);
             let active = live && sigma > T::zero();
             *depth = *depth + if active { sigma } else { T::zero() };
-            (cells[lane], planes[lane], actives[lane], corner_weights[lane]) =
-                (cell as u32, base[2] as u32, active, weights);
+            (cells[lane], actives[lane], corner_weights[lane]) = (cell as u32, active, weights);
         }
         if RECORD {
-            recorder.add_block(&cells[..valid], &planes[..valid], &actives[..valid], &corner_weights[..valid]);
+            recorder.add_block(&cells[..valid], &actives[..valid], &corner_weights[..valid]);
         }
     }
     let half: [T; 4] = std::array::from_fn(|i| depth[i] + depth[i + 4]);
     ((half[0] + half[2]) + (half[1] + half[3]), if RECORD { recorder.finish() } else { 0 })
 }
 
-/// The trilinear weights of the 8 corners at `frac`, in [`Footprint`] order.
+/// The trilinear weights of the 8 corners at `frac`, in [`CornerWeights`] order.
 #[inline(always)]
 fn trilinear_weights<T: Scalar>([fx, fy, fz]: [T; 3]) -> [T; 8] {
     let (gx, gy, gz) = (T::one() - fx, T::one() - fy, T::one() - fz);
@@ -211,7 +214,7 @@ fn trilinear_weights<T: Scalar>([fx, fy, fz]: [T; 3]) -> [T; 8] {
 
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    use super::{Footprint, RayWalk, Recorder, LANES};
+    use super::{RayWalk, Recorder, LANES};
     use crate::kernels::wide::transpose_8x8;
     use std::arch::x86_64::*;
 
@@ -219,10 +222,10 @@ mod avx2 {
     ///
     /// # Safety
     /// The CPU must have AVX2; `walk.dense` and `walk.kept` must hold at least `n³` values,
-    /// `2 ≤ n ≤ 1024`; with `RECORD`, `slots` must hold more than `count` records.
+    /// `2 ≤ n ≤ 1024`; with `RECORD`, the recorder must have room for `count` records.
     #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn march<const RECORD: bool>(walk: &RayWalk<f32>, slots: &mut [Footprint<f32>]) -> (f32, usize) {
-        march_body::<RECORD>(walk, slots)
+    pub(super) unsafe fn march<const RECORD: bool>(walk: &RayWalk<f32>, recorder: Recorder<f32>) -> (f32, usize) {
+        march_body::<RECORD>(walk, recorder)
     }
 
     /// [`march`] compiled with AVX-512VL too: the same 8-lane code, which LLVM then gives 32
@@ -233,14 +236,14 @@ mod avx2 {
     #[target_feature(enable = "avx2,avx512f,avx512vl")]
     pub(super) unsafe fn march_avx512vl<const RECORD: bool>(
         walk: &RayWalk<f32>,
-        slots: &mut [Footprint<f32>],
+        recorder: Recorder<f32>,
     ) -> (f32, usize) {
-        march_body::<RECORD>(walk, slots)
+        march_body::<RECORD>(walk, recorder)
     }
 
     /// The body of [`march`] and [`march_avx512vl`].
     #[inline(always)]
-    unsafe fn march_body<const RECORD: bool>(walk: &RayWalk<f32>, slots: &mut [Footprint<f32>]) -> (f32, usize) {
+    unsafe fn march_body<const RECORD: bool>(walk: &RayWalk<f32>, mut recorder: Recorder<f32>) -> (f32, usize) {
         let n = walk.n as i32;
         let (sy, sz) = (n, n * n);
         let zero = _mm256_setzero_ps();
@@ -250,7 +253,6 @@ mod avx2 {
         let (q0, dq) = (walk.q0.map(|v| _mm256_set1_ps(v)), walk.dq.map(|v| _mm256_set1_ps(v)));
         let (count, shift) = (_mm256_set1_ps(walk.count as i32 as f32), _mm256_set1_ps(walk.shift));
         let mut depth = zero;
-        let mut recorder = Recorder::new(slots);
         for k0 in (0..walk.count).step_by(LANES) {
             let k = _mm256_add_ps(_mm256_set1_ps(k0 as i32 as f32), lanes);
             let mut base = [_mm256_setzero_si256(); 3];
@@ -285,19 +287,16 @@ mod avx2 {
                 // Air (σ = 0) gives whole blocks without an active sample: skip the transpose.
                 let valid = (walk.count - k0).min(LANES);
                 if _mm256_movemask_ps(active) == 0 {
-                    let open = _mm256_set1_epi32(recorder.open.cell as i32);
+                    let open = _mm256_set1_epi32(recorder.open_cell as i32);
                     let same = _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(cell, open)));
                     if !same & ((1 << valid) - 1) != 0 {
-                        let (mut cells, mut planes) = ([0u32; LANES], [0u32; LANES]);
-                        // SAFETY: the stores write whole local arrays of the vectors' size.
-                        unsafe {
-                            _mm256_storeu_si256(cells.as_mut_ptr() as *mut __m256i, cell);
-                            _mm256_storeu_si256(planes.as_mut_ptr() as *mut __m256i, base[2]);
-                        }
-                        recorder.add_inactive(&cells[..valid], &planes[..valid]);
+                        let mut cells = [0u32; LANES];
+                        // SAFETY: the store writes a whole local array of the vector's size.
+                        unsafe { _mm256_storeu_si256(cells.as_mut_ptr() as *mut __m256i, cell) };
+                        recorder.add_inactive(true, cells[valid - 1]);
                     }
                 } else {
-                    record(&mut recorder, valid, cell, base[2], active, weights);
+                    record(&mut recorder, valid, cell, active, weights);
                 }
             }
         }
@@ -307,7 +306,7 @@ mod avx2 {
         (_mm_cvtss_f32(total), if RECORD { recorder.finish() } else { 0 })
     }
 
-    /// `F` at the 8 corners of the 8 samples' cells (one vector per corner, [`Footprint`]
+    /// `F` at the 8 corners of the 8 samples' cells (one vector per corner, [`CornerWeights`]
     /// order), read as the 4 pairs of x-neighbours at `rows` (the cell's 4 (y, z) rows): 32
     /// 8-byte loads and shuffles are faster than 8 gathers of 8 values on Zen 3.
     ///
@@ -331,7 +330,7 @@ mod avx2 {
         corners
     }
 
-    /// The 8 corner weights (one vector per corner, [`Footprint`] order) of the 8 samples.
+    /// The 8 corner weights (one vector per corner, [`CornerWeights`] order) of the 8 samples.
     #[inline(always)]
     fn trilinear_weights([fx, fy, fz]: [__m256; 3], one: __m256) -> [__m256; 8] {
         // SAFETY (of the intrinsics): only called from `march`, which has AVX2.
@@ -347,28 +346,18 @@ mod avx2 {
     /// weights are ≥ +0) and transposed to one row per sample, and where each starts a record
     /// (its cell is not the previous sample's, or the open record's).
     #[inline(always)]
-    fn record(
-        recorder: &mut Recorder<f32>,
-        valid: usize,
-        cell: __m256i,
-        plane: __m256i,
-        active: __m256,
-        weights: [__m256; 8],
-    ) {
-        let mut block = Block { keep: [0; LANES], places: [0; LANES], rows: [[0.0; 8]; LANES], starts: 0 };
+    fn record(recorder: &mut Recorder<f32>, valid: usize, cell: __m256i, active: __m256, weights: [__m256; 8]) {
+        let mut block = Block { keep: [0; LANES], cells: [0; LANES], rows: [[0.0; 8]; LANES], starts: 0, actives: 0 };
         // SAFETY (of the intrinsics): only called from `march`, which has AVX2; the stores
         // write whole local arrays of the vectors' sizes.
         unsafe {
             let previous = _mm256_permutevar8x32_epi32(cell, _mm256_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6));
-            let previous = _mm256_blend_epi32::<1>(previous, _mm256_set1_epi32(recorder.open.cell as i32));
+            let previous = _mm256_blend_epi32::<1>(previous, _mm256_set1_epi32(recorder.open_cell as i32));
             let same_cell = _mm256_cmpeq_epi32(cell, previous);
             _mm256_storeu_si256(block.keep.as_mut_ptr() as *mut __m256i, same_cell);
             block.starts = !(_mm256_movemask_ps(_mm256_castsi256_ps(same_cell)) as u32);
-            // (cell, plane) pairs as a record's first 8 bytes: samples 0, 1, 4, 5 and 2, 3, 6, 7.
-            let (low, high) = (_mm256_unpacklo_epi32(cell, plane), _mm256_unpackhi_epi32(cell, plane));
-            let places = block.places.as_mut_ptr() as *mut __m256i;
-            _mm256_storeu_si256(places, _mm256_permute2x128_si256::<0x20>(low, high));
-            _mm256_storeu_si256(places.add(1), _mm256_permute2x128_si256::<0x31>(low, high));
+            block.actives = _mm256_movemask_ps(active) as u32;
+            _mm256_storeu_si256(block.cells.as_mut_ptr() as *mut __m256i, cell);
             for (row, v) in block.rows.iter_mut().zip(transpose_8x8(weights.map(|w| _mm256_and_ps(w, active)))) {
                 _mm256_storeu_ps(row.as_mut_ptr(), v);
             }
@@ -380,12 +369,13 @@ mod avx2 {
     struct Block {
         /// All ones where the sample's cell is the previous sample's (or the open record's).
         keep: [u32; LANES],
-        /// Each sample's cell and plane, as [`Footprint`] lays them out.
-        places: [u64; LANES],
+        cells: [u32; LANES],
         /// Each sample's 8 weights, +0 where the sample is not active.
         rows: [[f32; 8]; LANES],
-        /// A bit per sample that starts a record.
+        /// A bit per sample that starts a run.
         starts: u32,
+        /// A bit per active sample.
+        actives: u32,
     }
 
     /// [`Recorder::add`] for the first `valid` samples of `block` in turn, its 0/1 factors as
@@ -396,26 +386,47 @@ mod avx2 {
     #[inline(never)]
     fn add_samples(recorder: &mut Recorder<f32>, block: &Block, valid: usize) {
         let valid = valid.min(LANES);
-        let mut slot = recorder.len;
-        // SAFETY: the loads address whole arrays of 8 f32 (or one u32); the record's first 8
-        // bytes are its cell and plane (`Footprint` is `repr(C)`), written unaligned.
+        if valid == 0 {
+            return;
+        }
+        let (advances, held) = advances(block.starts, block.actives, recorder.held, valid);
+        let mut slot = recorder.slot;
+        // SAFETY: the loads address whole arrays of 8 f32 (or one u32); each slot is at most
+        // the number of samples walked before this one, inside the recorder's room for the
+        // ray's samples (the caller's contract).
         unsafe {
-            let mut open = _mm256_loadu_ps(recorder.open.weights.as_ptr());
+            let mut open = _mm256_loadu_ps(recorder.open.as_ptr());
             for lane in 0..valid {
-                slot = slot.wrapping_add((block.starts >> lane & 1) as usize);
+                slot += (advances >> lane & 1) as usize;
                 let keep = _mm256_broadcast_ss(&*(block.keep.as_ptr().add(lane) as *const f32));
                 open = _mm256_add_ps(_mm256_and_ps(open, keep), _mm256_loadu_ps(block.rows[lane].as_ptr()));
-                let record = &mut recorder.slots[slot];
-                (record as *mut Footprint<f32> as *mut u64).write_unaligned(block.places[lane]);
-                _mm256_storeu_ps(record.weights.as_mut_ptr(), open);
+                *recorder.cells.get_unchecked_mut(slot) = block.cells[lane];
+                _mm256_store_ps(recorder.weights.get_unchecked_mut(slot).0.as_mut_ptr(), open);
             }
+            recorder.held = held;
             if valid > 0 {
-                let place = block.places[valid - 1];
-                (recorder.open.cell, recorder.open.plane) = (place as u32, (place >> 32) as u32);
+                recorder.open_cell = block.cells[valid - 1];
             }
-            recorder.len = slot;
-            _mm256_storeu_ps(recorder.open.weights.as_mut_ptr(), open);
+            recorder.slot = slot;
+            _mm256_storeu_ps(recorder.open.as_mut_ptr(), open);
         }
+    }
+
+    /// Which of a block's first `valid` samples move the recorder to a new slot, as bits: those
+    /// that start a run (bits `starts`) after a run that held an active sample (bits
+    /// `actives`; `held`: the open run before the block did) — and whether the last sample's
+    /// run holds one. A run holds one from its first active sample to its end: the bits
+    /// between an active sample and the next start or active one are filled by a carry.
+    #[inline(always)]
+    pub(super) fn advances(starts: u32, actives: u32, held: bool, valid: usize) -> (u32, bool) {
+        let lanes = (1u32 << valid) - 1;
+        let (starts, actives, held) = (starts & lanes, actives & lanes, u32::from(held));
+        let quiet = !(starts | actives) & lanes;
+        // Each active sample's carry runs through the quiet samples after it; `held` enters
+        // below sample 0.
+        let filled = ((quiet + ((actives << 1) | held)) ^ quiet) & quiet;
+        let holds = (actives | filled) & lanes;
+        ((starts & ((holds << 1) | held)), holds >> (valid - 1) & 1 != 0)
     }
 }
 
@@ -448,16 +459,26 @@ mod tests {
         RayWalk { dense, kept, q0: ray.0, dq: ray.1, count: ray.2, n, shift: 0.1 }
     }
 
+    /// The walk's depth and records, recorded by `kernel`.
+    fn recorded(
+        walk: &RayWalk<f32>,
+        kernel: impl FnOnce(&RayWalk<f32>, Recorder<f32>) -> (f32, usize),
+    ) -> (f32, Vec<(u32, [f32; 8])>) {
+        let mut records = Records::default();
+        records.resize(walk.count);
+        let (depth, len) = kernel(walk, Recorder::new(&mut records.cells, &mut records.weights));
+        (depth, records.cells[..len].iter().zip(&records.weights).map(|(&c, w)| (c, w.0)).collect())
+    }
+
     #[test]
     fn merged_footprints_hold_every_active_samples_weights() {
         // The footprints' weights summed per cell equal the active samples' trilinear weights
-        // summed per cell, and the depth is the sum of the active σ.
+        // summed per cell, every record holds weight, and the depth is the sum of the active σ.
         let n = 5;
         let (dense, _, rays) = cases(n, 3);
         for &ray in &rays {
             let walk = walk_with(&dense, None, n, ray);
-            let mut slots = vec![Footprint::none(); ray.2 + 1];
-            let (depth, len) = portable::<f32, true>(&walk, &mut slots);
+            let (depth, records) = recorded(&walk, portable::<f32, true>);
             let (mut expected_depth, mut expected) = (0.0f64, std::collections::BTreeMap::new());
             let mut from_records = std::collections::BTreeMap::new();
             for k in 0..ray.2 {
@@ -466,17 +487,17 @@ mod tests {
                     count: 1,
                     ..walk_with(&dense, None, n, ray)
                 };
-                let mut slot = vec![Footprint::none(); 2];
-                let (sigma, _) = portable::<f32, true>(&one, &mut slot);
+                let (sigma, sample) = recorded(&one, portable::<f32, true>);
                 expected_depth += f64::from(sigma);
-                if slot[0].holds_weight() {
-                    let w: &mut [f64; 8] = expected.entry(slot[0].cell).or_insert([0.0; 8]);
-                    w.iter_mut().zip(slot[0].weights).for_each(|(a, b)| *a += f64::from(b));
+                for (cell, weights) in sample {
+                    let w: &mut [f64; 8] = expected.entry(cell).or_insert([0.0; 8]);
+                    w.iter_mut().zip(weights).for_each(|(a, b)| *a += f64::from(b));
                 }
             }
-            for f in slots[..len].iter().filter(|f| f.holds_weight()) {
-                let w: &mut [f64; 8] = from_records.entry(f.cell).or_insert([0.0; 8]);
-                w.iter_mut().zip(f.weights).for_each(|(a, b)| *a += f64::from(b));
+            for (cell, weights) in records {
+                assert!(weights.iter().any(|&w| w != 0.0), "an empty record");
+                let w: &mut [f64; 8] = from_records.entry(cell).or_insert([0.0; 8]);
+                w.iter_mut().zip(weights).for_each(|(a, b)| *a += f64::from(b));
             }
             assert!((f64::from(depth) - expected_depth).abs() < 1e-4 * expected_depth.max(1.0));
             assert_eq!(expected.keys().collect::<Vec<_>>(), from_records.keys().collect::<Vec<_>>());
@@ -488,37 +509,52 @@ mod tests {
 
     #[cfg(target_arch = "x86_64")]
     #[test]
+    fn a_blocks_advances_are_the_recorders_one_by_one() {
+        // Every block of up to 8 samples: which start a run and which are active, after an
+        // open run that held an active sample or not.
+        for valid in 1..=LANES {
+            for (starts, actives) in (0..1u32 << valid).flat_map(|s| (0..1u32 << valid).map(move |a| (s, a))) {
+                for held_before in [false, true] {
+                    let (mut held, mut expected) = (held_before, 0);
+                    for lane in 0..valid {
+                        let start = starts >> lane & 1 != 0;
+                        expected |= u32::from(start & held) << lane;
+                        held = (held & !start) | (actives >> lane & 1 != 0);
+                    }
+                    let high = !0u32 << valid;
+                    let found = avx2::advances(starts | high, actives | high, held_before, valid);
+                    assert_eq!(found, (expected, held), "starts {starts:b}, actives {actives:b}, held {held_before}");
+                }
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
     fn the_vector_walks_are_bit_identical_to_the_portable_one() {
         if !std::arch::is_x86_feature_detected!("avx2") {
             eprintln!("no AVX2 on this CPU: nothing to compare");
             return;
         }
+        let bits = |(depth, records): (f32, Vec<(u32, [f32; 8])>)| {
+            (depth.to_bits(), records.into_iter().map(|(c, w)| (c, w.map(f32::to_bits))).collect::<Vec<_>>())
+        };
         for (n, seed) in [(2, 1), (7, 2), (64, 3)] {
             let (dense, kept, rays) = cases(n, seed);
             for mask in [None, Some(kept.as_slice())] {
                 for &ray in &rays {
                     let walk = walk_with(&dense, mask, n, ray);
-                    let (mut a, mut b) = (vec![Footprint::none(); ray.2 + 1], vec![Footprint::none(); ray.2 + 1]);
-                    let (depth_a, len_a) = portable::<f32, true>(&walk, &mut a);
-                    // SAFETY: AVX2 checked above; the field and mask hold n³ values.
-                    let (depth_b, len_b) = unsafe { avx2::march::<true>(&walk, &mut b) };
-                    assert_eq!(depth_a.to_bits(), depth_b.to_bits(), "n {n}, ray {ray:?}");
-                    assert_eq!(len_a, len_b);
-                    for (x, y) in a[..len_a].iter().zip(&b[..len_b]) {
-                        assert_eq!((x.cell, x.plane), (y.cell, y.plane));
-                        assert_eq!(x.weights.map(f32::to_bits), y.weights.map(f32::to_bits));
-                    }
-                    // SAFETY: as above.
-                    let (depth_c, _) = unsafe { avx2::march::<false>(&walk, &mut []) };
-                    assert_eq!(depth_a.to_bits(), depth_c.to_bits());
+                    let expected = bits(recorded(&walk, portable::<f32, true>));
+                    // SAFETY (of each kernel): AVX2 checked above; the field and mask hold n³
+                    // values, and `recorded` gives room for `count` records.
+                    let avx2 = recorded(&walk, |w, r| unsafe { avx2::march::<true>(w, r) });
+                    assert_eq!(bits(avx2), expected, "n {n}, ray {ray:?}");
+                    let depth_only = recorded(&walk, |w, r| unsafe { avx2::march::<false>(w, r) }).0;
+                    assert_eq!(depth_only.to_bits(), expected.0);
                     if crate::kernels::wide::has_avx512() {
-                        let mut c = vec![Footprint::none(); ray.2 + 1];
                         // SAFETY: as above, and the CPU has AVX-512F and VL (checked here).
-                        let (depth_d, len_d) = unsafe { avx2::march_avx512vl::<true>(&walk, &mut c) };
-                        assert_eq!((depth_a.to_bits(), len_a), (depth_d.to_bits(), len_d));
-                        assert!(a[..len_a].iter().zip(&c).all(|(x, y)| x.cell == y.cell
-                            && x.plane == y.plane
-                            && x.weights.map(f32::to_bits) == y.weights.map(f32::to_bits)));
+                        let avx512 = recorded(&walk, |w, r| unsafe { avx2::march_avx512vl::<true>(w, r) });
+                        assert_eq!(bits(avx512), expected, "n {n}, ray {ray:?}");
                     }
                 }
             }
