@@ -526,13 +526,13 @@ fn add_face<T: Scalar>(out: &mut [T], origin: usize, sy: usize, w: [T; 4]) {
 
 /// Rays ahead whose footprints the scatter asks the cache for (4 measured the same).
 const PREFETCH_AHEAD: usize = 8;
-/// How much of a ray's run is prefetched: 2 KB (51 records, about a whole run) took ≈ 1.5 %
-/// less per iteration than 256 bytes.
+/// How much of each column of a ray's run is prefetched: 2 KB (64 records' weights, about a
+/// whole run) took ≈ 1.5 % less per iteration than 256 bytes.
 const PREFETCH_BYTES: usize = 2048;
 
-/// Asks for the cache lines of `records` (a ray's run on a slab's planes, read `backwards` or
-/// not), up to [`PREFETCH_BYTES`] from the end read first: the hardware prefetcher cannot
-/// guess the jumps from one ray's run to the next.
+/// Asks for the cache lines of `records` (a column of a ray's run on a slab's planes, read
+/// `backwards` or not), up to [`PREFETCH_BYTES`] from the end read first: the hardware
+/// prefetcher cannot guess the jumps from one ray's run to the next.
 #[inline(always)]
 fn prefetch<T>(records: &[T], backwards: bool) {
     #[cfg(target_arch = "x86_64")]
