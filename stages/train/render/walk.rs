@@ -403,11 +403,7 @@ mod avx2 {
                 *recorder.cells.get_unchecked_mut(slot) = block.cells[lane];
                 _mm256_store_ps(recorder.weights.get_unchecked_mut(slot).0.as_mut_ptr(), open);
             }
-            recorder.held = held;
-            if valid > 0 {
-                recorder.open_cell = block.cells[valid - 1];
-            }
-            recorder.slot = slot;
+            (recorder.slot, recorder.held, recorder.open_cell) = (slot, held, block.cells[valid - 1]);
             _mm256_storeu_ps(recorder.open.as_mut_ptr(), open);
         }
     }
