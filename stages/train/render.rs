@@ -231,9 +231,9 @@ impl<T: Scalar> Footprints<T> {
         self.used = first + len;
         let cells = &self.records.cells[first..first + len];
         let (Some(&head), Some(&tail)) = (cells.first(), cells.last()) else { return };
-        let plane = |cell: u32| cell as usize / plane_nodes;
-        let descending = plane(head) > plane(tail);
-        let (low, high) = (plane(head).min(plane(tail)), plane(head).max(plane(tail)));
+        let (head, tail) = (head as usize / plane_nodes, tail as usize / plane_nodes);
+        let descending = head > tail;
+        let (low, high) = (head.min(tail), head.max(tail));
         // Slab s reads planes sP − 1 ..= (s + 1)P − 1 (P planes a slab): plane p lies on slab
         // p / P, and on the next one too when it is a slab's last.
         let (first_slab, last_slab) = (low / PLANES_PER_SLAB, (high + 1) / PLANES_PER_SLAB);

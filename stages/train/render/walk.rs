@@ -54,7 +54,7 @@ pub(super) fn march<T: Scalar, const RECORD: bool>(
         if std::arch::is_x86_feature_detected!("avx2") {
             let walk = as_f32_walk(walk, dense);
             // SAFETY: the CPU has AVX2 (checked above) and the asserts above give `avx2::march`
-            // its lattice and mask sizes.
+            // its lattice and mask sizes, and the recorder room for `count` records.
             let recorder = Recorder::new(cells, weights);
             let (depth, len) = if crate::kernels::wide::has_avx512() {
                 // SAFETY: as below, and the CPU has AVX-512F and VL (checked here).
