@@ -123,13 +123,21 @@ fn the_fused_regularise_and_update_pass_equals_its_two_passes_bit_for_bit() {
         let grad: VmField<f32> = VmField::random(16, 3, 0.1, seed + 10);
         let (mut a_field, mut a_grad, mut a_adam) = (field.clone(), grad.clone(), Adam::new(params.adam(), &field));
         let (mut b_field, mut b_grad, mut b_adam) = (field.clone(), grad.clone(), Adam::new(params.adam(), &field));
+        let (mut c_field, mut c_adam) = (field.clone(), Adam::new(params.adam(), &field));
         for _ in 0..3 {
             let (l1, tv) = regularize::l1_and_tv(&a_field, Some(0.3), Some((norm, 0.7)), &mut a_grad);
             let lr = a_adam.update(&mut a_field, &a_grad);
-            let fused = regularize_and_update(&params, &mut b_field, &mut b_grad, &mut b_adam);
+            let fused = regularize_and_update(&params, &mut b_field, &mut b_grad, &mut b_adam, true);
             assert_eq!(fused, (lr, (l1, tv)));
             assert_eq!(a_grad, b_grad, "{norm:?}: gradients");
             assert_eq!(a_field, b_field, "{norm:?}: updated factors");
+            // Unlogged, the values are left out and the update is the same.
+            let mut c = (c_field.clone(), grad.clone(), c_adam);
+            let unlogged = regularize_and_update(&params, &mut c.0, &mut c.1, &mut c.2, false);
+            assert_eq!(unlogged, (lr, (0.0, 0.0)));
+            assert_eq!(c.1, b_grad, "{norm:?}: gradients, unlogged");
+            assert_eq!(c.0, b_field, "{norm:?}: updated factors, unlogged");
+            (c_field, c_adam) = (c.0, c.2);
             (a_grad, b_grad) = (grad.clone(), grad.clone());
         }
         assert_ne!(a_field, field, "the update moved the factors");

@@ -377,14 +377,17 @@ fn tv_weight(params: &TrainParams) -> Option<(TvNorm, f32)> {
 /// of one task per factor component: the component, its gradient and moments stay in cache
 /// from the regularisers to the update. The result is that of `l1_and_tv` then
 /// `Adam::update`, bit for bit (both work entry by entry within a component). Returns the
-/// learning rate and the unweighted (L1, TV) of `field` before the update.
+/// learning rate and, when `logged`, the unweighted (L1, TV) of `field` before the update
+/// (else (0, 0): the sums are left out, the update is the same).
 pub fn regularize_and_update(
     params: &TrainParams,
     field: &mut VmField<f32>,
     grad: &mut VmField<f32>,
     adam: &mut Adam<f32>,
+    logged: bool,
 ) -> (f64, (f64, f64)) {
     let penalties = Penalties::new(field, Some(params.lambda_l1 as f32), tv_weight(params));
+    let penalties = if logged { penalties } else { penalties.gradient_only() };
     let (lr, update, m, v) = adam.begin_update();
     let tasks: Vec<_> = field
         .components_mut()
@@ -486,7 +489,7 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
         // The next batch does not depend on the field: it is drawn (on the single-threaded
         // random stream) while the regularisers and Adam update, so neither core waits for it.
         let ((lr, (l1, tv)), ()) = rayon::join(
-            || regularize_and_update(params, &mut field, &mut buffers.grad, &mut adam),
+            || regularize_and_update(params, &mut field, &mut buffers.grad, &mut adam, logged),
             || {
                 if it + 1 < params.iterations {
                     draw(&mut batch, &mut offsets);
