@@ -376,11 +376,41 @@ impl Kernels<'_> {
                     tile[j] = c;
                 }
             }
-            for (r, row) in rows.iter_mut().enumerate().skip(r0).take(RANKS) {
-                for (out, values) in row[at..at + count].iter_mut().zip(tile.iter()) {
-                    *out = values[r - r0];
+            let ranks = &mut rows[r0..(r0 + RANKS).min(rank)];
+            tile_to_rows(&tile[..count], at, ranks);
+        }
+    }
+}
+
+/// `rows[r][at + j] = tile[j][r]` for every row and every `j` of `tile` (its ranks past
+/// `rows.len()` are padding), by 8 × 8 transposes in registers: written per element, LLVM
+/// turned the copy into gathers, ≈ 10 % of the contraction's time on one thread.
+#[inline(always)]
+fn tile_to_rows(tile: &[[f32; RANKS]], at: usize, rows: &mut [&mut [f32]]) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if rows.len() == RANKS && wide::has_avx2_fma() {
+        use std::arch::x86_64::*;
+        while done + 8 <= tile.len() {
+            for r0 in (0..RANKS).step_by(8) {
+                // SAFETY: the CPU has AVX (checked above); each load reads ranks r0..r0 + 8
+                // of one tile entry, each store 8 floats of one row.
+                unsafe {
+                    let mut entries = [_mm256_setzero_ps(); 8];
+                    for (i, entry) in entries.iter_mut().enumerate() {
+                        *entry = _mm256_loadu_ps(tile[done + i][r0..r0 + 8].as_ptr());
+                    }
+                    for (i, column) in wide::transpose_8x8(entries).into_iter().enumerate() {
+                        _mm256_storeu_ps(rows[r0 + i][at + done..at + done + 8].as_mut_ptr(), column);
+                    }
                 }
             }
+            done += 8;
+        }
+    }
+    for (r, row) in rows.iter_mut().enumerate() {
+        for (out, values) in row[at + done..at + tile.len()].iter_mut().zip(&tile[done..]) {
+            *out = values[r];
         }
     }
 }
