@@ -2,6 +2,7 @@
 
 use super::adam::{Adam, AdamParams};
 use super::field::VmField;
+use super::huge_pages::HugePageBuffer;
 use super::regularize::{self, Penalties, TvNorm};
 use super::render::{AlphaMask, BatchResult, Lattice, PhotoLoss, Ray, Renderer, MAX_GRID};
 use crate::geometry::{Aabb, Camera};
@@ -313,17 +314,19 @@ pub struct Step {
 
 /// The buffers of one CPU step, kept across iterations: allocating the megabyte-sized dense
 /// field and its gradient every step made the allocator return them to the OS and fault them
-/// in again (about 670 page faults per iteration).
+/// in again (about 670 page faults per iteration). Both are read and written at random, so
+/// they live on huge pages.
 pub struct StepBuffers {
-    dense: Vec<f32>,
-    grad_dense: Vec<f32>,
+    dense: HugePageBuffer<f32>,
+    grad_dense: HugePageBuffer<f32>,
     /// The factor gradient of the last [`gradient`].
     pub grad: VmField<f32>,
 }
 
 impl StepBuffers {
     pub fn new(n: usize, rank: usize) -> StepBuffers {
-        StepBuffers { dense: vec![0f32; n * n * n], grad_dense: vec![0f32; n * n * n], grad: VmField::zeros(n, rank) }
+        let dense = || HugePageBuffer::filled(n * n * n, 0f32);
+        StepBuffers { dense: dense(), grad_dense: dense(), grad: VmField::zeros(n, rank) }
     }
 }
 
@@ -454,7 +457,8 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     let started = Instant::now();
     let renderer = renderer(params, views.aabb);
     let per_view = views.rays();
-    let pool = ray_pool(&per_view, &views.aabb);
+    // The batch draw reads 2048 rays at random from megabytes of them: on huge pages.
+    let pool = HugePageBuffer::from_slice(&ray_pool(&per_view, &views.aabb));
     let (mut field, mut schedule) = Schedule::start(params, pool.len());
     let mut adam = Adam::new(params.adam(), &field);
     let mut mask: Option<AlphaMask> = None;

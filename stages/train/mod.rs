@@ -2,7 +2,8 @@
 //! kernels the GPU backend can mirror one for one: compose the dense field ([`field`]), march
 //! and render a ray batch with its loss and the scatter of `dL/dF` ([`render`]), contract to
 //! the factors ([`field`]; in f32, [`compose`] and [`contract`]), regularisers
-//! ([`regularize`]), Adam ([`adam`]).
+//! ([`regularize`]), Adam ([`adam`]). The step's randomly read buffers live on huge pages
+//! ([`huge_pages`]).
 
 pub mod adam;
 #[cfg(target_arch = "x86_64")]
@@ -11,5 +12,6 @@ pub mod contract;
 pub mod field;
 pub mod fit;
 pub mod gemm;
+pub mod huge_pages;
 pub mod regularize;
 pub mod render;

@@ -8,6 +8,7 @@
 //! alpha mask, when given, silences samples none of whose 8 neighbour nodes is kept.
 
 use super::gemm::{give_spare, take_spare, Scalar};
+use super::huge_pages::HugePageBuffer;
 use crate::geometry::Aabb;
 use crate::kernels::trilinear;
 use glam::DVec3;
@@ -134,21 +135,44 @@ pub const MAX_GRID: usize = 512;
 /// summed (consecutive samples of a ray often share a cell). The weights are unscaled; the
 /// scatter multiplies them by the ray's `dL/dσ`. Two columns: finding a ray's run on a slab
 /// reads the cells alone, and each record's weights fill one aligned half cache line.
+///
+/// A batch's records share one arena on huge pages, each tracing task writing its rays' in its
+/// own region: in per-task buffers of 4 KiB pages the scatter, which reads runs of every
+/// task, met a new page at nearly every run.
 #[derive(Default)]
-struct Records<T> {
-    cells: Vec<u32>,
-    weights: Vec<CornerWeights<T>>,
+struct Records<T: Copy> {
+    cells: HugePageBuffer<u32>,
+    weights: HugePageBuffer<CornerWeights<T>>,
 }
 
 impl<T: Scalar> Records<T> {
-    fn len(&self) -> usize {
-        self.cells.len()
+    /// Room for at least `len` records; what the records held is not kept.
+    fn make_room(&mut self, len: usize) {
+        if self.cells.len() < len {
+            *self = Records {
+                cells: HugePageBuffer::filled(len, u32::MAX),
+                weights: HugePageBuffer::filled(len, CornerWeights([T::zero(); 8])),
+            };
+        }
     }
 
-    /// Grows (or shrinks) both columns to `len` records.
-    fn resize(&mut self, len: usize) {
-        self.cells.resize(len, u32::MAX);
-        self.weights.resize(len, CornerWeights([T::zero(); 8]));
+    /// The records cut into regions of `len`, in order.
+    fn regions(&mut self, len: usize) -> impl Iterator<Item = RecordsMut<'_, T>> {
+        let weights = self.weights.chunks_mut(len);
+        self.cells.chunks_mut(len).zip(weights).map(|(cells, weights)| RecordsMut { cells, weights })
+    }
+}
+
+/// Records to write: a region of [`Records`], or what is left of it.
+struct RecordsMut<'a, T> {
+    cells: &'a mut [u32],
+    weights: &'a mut [CornerWeights<T>],
+}
+
+impl<T> RecordsMut<'_, T> {
+    /// The records from `first` on.
+    fn from(&mut self, first: usize) -> RecordsMut<'_, T> {
+        RecordsMut { cells: &mut self.cells[first..], weights: &mut self.weights[first..] }
     }
 }
 
@@ -185,19 +209,21 @@ struct Traced<T> {
     footprints: Footprints<T>,
 }
 
-/// Rays' footprints, ray after ray, each ray's in the walk's order (a straight ray's planes
-/// are monotone), and for each scatter slab where each ray's run on the slab's planes lies.
-/// The walk writes a ray's records straight into `records` past the `used` ones (no copy);
-/// `records` only grows, and is reused batch to batch.
+/// One task's rays' footprints, ray after ray, each ray's in the walk's order (a straight
+/// ray's planes are monotone), and for each scatter slab where each ray's run on the slab's
+/// planes lies. The walk writes a ray's records straight into the task's region of the
+/// batch's [`Records`], past the `used` ones (no copy).
 #[derive(Default)]
 struct Footprints<T> {
-    records: Records<T>,
+    /// Where the task's region starts in the batch's records.
+    start: usize,
     used: usize,
     /// Per scatter slab, each ray's run of footprints on the slab's planes, in ray order.
     slab_runs: Vec<Vec<Run<T>>>,
 }
 
-/// A ray's footprints `from..to` on one scatter slab's planes, read `backwards` when the
+/// A ray's footprints `from..to` (positions in the batch's records) on one scatter slab's
+/// planes, read `backwards` when the
 /// ray's planes descend (so that they are added in ascending plane order), and the ray's
 /// `dL/dσ` that scales their weights.
 #[derive(Debug, Clone, Copy)]
@@ -209,27 +235,21 @@ struct Run<T> {
 }
 
 impl<T: Scalar> Footprints<T> {
-    fn clear(&mut self) {
-        self.used = 0;
+    /// No footprints yet, in a region from `start` of the batch's records.
+    fn clear(&mut self, start: usize) {
+        (self.start, self.used) = (start, 0);
         self.slab_runs.iter_mut().for_each(Vec::clear);
     }
 
-    /// Makes room for the walk to write `count` records after the used ones.
-    fn reserve_walk(&mut self, count: usize) {
-        if self.records.len() < self.used + count {
-            self.records.resize(self.used + count);
-        }
-    }
-
-    /// Keeps the `len` records the walk wrote after the used ones (monotone in plane, either
-    /// way) for a ray whose `dL/dσ` is `d_sigma`, and notes their run on each scatter slab of
-    /// a lattice with `plane_nodes` nodes a plane. A ray whose planes descend keeps its
-    /// records in walk order, and the scatter reads its runs backwards (reversing them here
-    /// cost ≈ 1.5 % of an iteration).
-    fn keep_ray(&mut self, len: usize, d_sigma: T, plane_nodes: usize) {
+    /// Keeps the `len` records the walk wrote after the used ones of the task's region
+    /// `region_cells` (monotone in plane, either way) for a ray whose `dL/dσ` is `d_sigma`,
+    /// and notes their run on each scatter slab of a lattice with `plane_nodes` nodes a plane.
+    /// A ray whose planes descend keeps its records in walk order, and the scatter reads its
+    /// runs backwards (reversing them here cost ≈ 1.5 % of an iteration).
+    fn keep_ray(&mut self, region_cells: &[u32], len: usize, d_sigma: T, plane_nodes: usize) {
         let first = self.used;
         self.used = first + len;
-        let cells = &self.records.cells[first..first + len];
+        let cells = &region_cells[first..first + len];
         let (Some(&head), Some(&tail)) = (cells.first(), cells.last()) else { return };
         let (head, tail) = (head as usize / plane_nodes, tail as usize / plane_nodes);
         let descending = head > tail;
@@ -243,7 +263,7 @@ impl<T: Scalar> Footprints<T> {
         // In ascending plane order, slab s's run is the records from the first on plane
         // sP − 1 or above to the last below (s + 1)P: counted, [below(sP − 1), below((s + 1)P)),
         // a record lying below plane p when its cell is below p's first node.
-        let end = (first + len) as u32;
+        let (first, end) = (self.start + first, (self.start + first + len) as u32);
         for chunk in (first_slab..=last_slab).step_by(LIMIT_SLABS) {
             let slabs = chunk..(chunk + LIMIT_SLABS).min(last_slab + 1);
             let mut limits = [0u32; 2 * LIMIT_SLABS];
@@ -264,14 +284,14 @@ impl<T: Scalar> Footprints<T> {
         }
     }
 
-    /// The runs of footprints on scatter slab `slab`, ray by ray: cells and weights, whether
-    /// to read them backwards, and the ray's `dL/dσ`.
-    fn on_slab(&self, slab: usize) -> impl Iterator<Item = RunView<'_, T>> {
+    /// The runs of footprints on scatter slab `slab`, ray by ray: cells and weights (in the
+    /// batch's `records`), whether to read them backwards, and the ray's `dL/dσ`.
+    fn on_slab<'a>(&'a self, slab: usize, records: &'a Records<T>) -> impl Iterator<Item = RunView<'a, T>> {
         self.slab_runs.get(slab).into_iter().flatten().map(|r| {
             let range = r.from as usize..r.to as usize;
             RunView {
-                cells: &self.records.cells[range.clone()],
-                weights: &self.records.weights[range],
+                cells: &records.cells[range.clone()],
+                weights: &records.weights[range],
                 backwards: r.backwards,
                 d_sigma: r.d_sigma,
             }
@@ -303,6 +323,17 @@ impl Renderer {
         (std::array::from_fn(|k| a[k] + first * b[k]), std::array::from_fn(|k| self.step * b[k]), count)
     }
 
+    /// At least as many samples as any of `rays` has: a line's chord through the box is at most
+    /// the box's diagonal, which a ray with direction `d` crosses in `diagonal / |d|` of its
+    /// parameter.
+    fn max_samples(&self, rays: &[Ray]) -> usize {
+        let Some(shortest) = rays.iter().map(|r| r.dir.length_squared()).reduce(f64::min) else { return 0 };
+        assert!(shortest > 0.0, "batch: a ray without a direction");
+        let (min, max) = (self.lattice.aabb.min, self.lattice.aabb.max);
+        let diagonal = (0..3).map(|a| (max[a] - min[a]).powi(2)).sum::<f64>().sqrt();
+        (diagonal / (shortest.sqrt() * self.step)).ceil() as usize + 1
+    }
+
     /// The walk of `ray`'s samples (offset `offset` ∈ [0, step)) through `dense`.
     fn walk<'a, T: Scalar>(
         &self,
@@ -331,7 +362,8 @@ impl Renderer {
 
     /// `Î` of one ray.
     pub fn render_ray<T: Scalar>(&self, dense: &[T], mask: Option<&AlphaMask>, ray: &Ray, offset: f64) -> f64 {
-        self.transmittance(walk::march::<T, false>(&self.walk(dense, mask, ray, offset), &mut Records::default(), 0).0)
+        let no_records = RecordsMut { cells: &mut [], weights: &mut [] };
+        self.transmittance(walk::march::<T, false>(&self.walk(dense, mask, ray, offset), no_records).0)
     }
 
     /// Renders `rays` (with their per-ray `offsets`), returns predictions and MSE, and when
@@ -350,19 +382,30 @@ impl Renderer {
         offsets: &[f64],
         grad: Option<&mut [T]>,
     ) -> BatchResult<T> {
-        let traced: Vec<Traced<T>> = rays
-            .par_chunks(RAYS_PER_TASK)
-            .zip(offsets.par_chunks(RAYS_PER_TASK))
-            .map(|(group, offsets)| {
-                if grad.is_some() {
-                    self.trace_recording(dense, mask, group, offsets, rays.len())
-                } else {
-                    let predicted =
-                        group.iter().zip(offsets).map(|(ray, &off)| self.render_ray(dense, mask, ray, off)).collect();
-                    Traced { predicted, ..Traced::default() }
-                }
-            })
-            .collect();
+        let groups = rays.par_chunks(RAYS_PER_TASK).zip(offsets.par_chunks(RAYS_PER_TASK));
+        let mut records: Records<T> = if grad.is_some() { take_spare() } else { Records::default() };
+        let traced: Vec<Traced<T>> = if grad.is_some() {
+            // Each task's region holds every sample of its rays.
+            let region = RAYS_PER_TASK * self.max_samples(rays);
+            let len = rays.len().div_ceil(RAYS_PER_TASK) * region;
+            assert!(len <= u32::MAX as usize, "batch: {len} footprints do not fit 32-bit positions");
+            records.make_room(len);
+            let regions: Vec<RecordsMut<T>> = records.regions(region).collect();
+            groups
+                .zip(regions)
+                .enumerate()
+                .map(|(i, ((group, offsets), records))| {
+                    self.trace_recording(dense, mask, (group, offsets), rays.len(), records, i * region)
+                })
+                .collect()
+        } else {
+            let render = |(group, offsets): (&[Ray], &[f64])| {
+                let predicted =
+                    group.iter().zip(offsets).map(|(ray, &off)| self.render_ray(dense, mask, ray, off)).collect();
+                Traced { predicted, ..Traced::default() }
+            };
+            groups.map(render).collect()
+        };
         let predicted: Vec<f64> = traced.iter().flat_map(|t| t.predicted.iter().copied()).collect();
         let b = rays.len() as f64;
         let mse = rays.iter().zip(&predicted).map(|(r, p)| (p - r.target).powi(2)).sum::<f64>() / b;
@@ -371,36 +414,39 @@ impl Renderer {
             kind => rays.iter().zip(&predicted).map(|(r, &p)| kind.error(p, r.target)).sum::<f64>() / b,
         };
         if let Some(grad) = grad {
-            self.scatter(&traced, grad);
+            self.scatter(&traced, &records, grad);
             traced.into_iter().for_each(give_spare);
+            give_spare(records);
         }
         BatchResult { predicted: predicted.into_iter().map(|p| T::from(p).expect("finite")).collect(), mse, loss }
     }
 
-    /// Traces one group of rays of a batch of `batch_len`, recording each ray's footprints
-    /// scaled by its `dL/dσ`. The buffers come from the previous batch.
+    /// Traces one group of rays (with their offsets) of a batch of `batch_len`, recording each
+    /// ray's footprints into `records`, the group's region of the batch's records, which
+    /// starts at `start` of them and has room for every sample. The other buffers come from
+    /// the previous batch.
     fn trace_recording<T: Scalar>(
         &self,
         dense: &[T],
         mask: Option<&AlphaMask>,
-        group: &[Ray],
-        offsets: &[f64],
+        (group, offsets): (&[Ray], &[f64]),
         batch_len: usize,
+        mut records: RecordsMut<T>,
+        start: usize,
     ) -> Traced<T> {
         let mut t: Traced<T> = take_spare();
         let walks: Vec<RayWalk<T>> =
             group.iter().zip(offsets).map(|(ray, &off)| self.walk(dense, mask, ray, off)).collect();
-        t.footprints.clear();
+        t.footprints.clear(start);
         t.predicted.clear();
         for (ray, walk) in group.iter().zip(&walks) {
-            t.footprints.reserve_walk(walk.count);
-            let (depth, len) = walk::march::<T, true>(walk, &mut t.footprints.records, t.footprints.used);
+            let (depth, len) = walk::march::<T, true>(walk, records.from(t.footprints.used));
             let p = self.transmittance(depth);
             // dσ/dF = 1[F + Δ > 0]: the ray's active samples share its dL/dσ.
             let d_sigma = self.loss.d_sigma(p, ray.target, batch_len, self.scale * self.step);
             let d_sigma = T::from(d_sigma).expect("finite");
             if d_sigma != T::zero() {
-                t.footprints.keep_ray(len, d_sigma, self.lattice.n * self.lattice.n);
+                t.footprints.keep_ray(records.cells, len, d_sigma, self.lattice.n * self.lattice.n);
             }
             t.predicted.push(p);
         }
@@ -410,7 +456,7 @@ impl Renderer {
     /// Writes the gradient: every footprint, scaled by its ray's `dL/dσ`, added to the
     /// corners of its cell, each slab of `grad` zeroed first (in the same pass, while it is in
     /// cache).
-    fn scatter<T: Scalar>(&self, traced: &[Traced<T>], grad: &mut [T]) {
+    fn scatter<T: Scalar>(&self, traced: &[Traced<T>], records: &Records<T>, grad: &mut [T]) {
         let n = self.lattice.n;
         let (sy, sz) = (n, n * n);
         grad.par_chunks_mut(sz * PLANES_PER_SLAB).enumerate().for_each(move |(slab, out)| {
@@ -421,7 +467,7 @@ impl Renderer {
             out.fill(T::zero());
             // Each ray's run of footprints on these planes, in ray order: short runs far apart
             // in memory, so the runs a few rays ahead are prefetched.
-            let runs: Vec<RunView<T>> = traced.iter().flat_map(|t| t.footprints.on_slab(slab)).collect();
+            let runs: Vec<RunView<T>> = traced.iter().flat_map(|t| t.footprints.on_slab(slab, records)).collect();
             let add = |out: &mut [T], cell: u32, weights: &CornerWeights<T>, d_sigma: T| {
                 let cell = cell as usize;
                 let [l0, l1, l2, l3, u0, u1, u2, u3] = weights.0.map(|w| w * d_sigma);
@@ -560,10 +606,14 @@ mod tests {
     #[test]
     fn each_slab_gets_the_run_of_records_on_its_planes() {
         // Rays up and down through a lattice of 160 planes (ten slabs, more than one pass of
-        // limits), three rays after one another in one list, each record's cell anywhere on
-        // its plane.
+        // limits), three rays after one another in one task's region (the batch's second),
+        // each record's cell anywhere on its plane.
         let (mut rng, plane_nodes) = (ChaCha8Rng::seed_from_u64(11), 160 * 160);
+        let mut records = Records::<f32>::default();
+        records.make_room(2 * 360);
+        let region = records.regions(360).nth(1).expect("two regions");
         let mut footprints = Footprints::<f32>::default();
+        footprints.clear(360);
         let mut rays: Vec<Vec<u32>> = Vec::new();
         for ray in 0..3 {
             let (low, high) = (rng.gen_range(0..80u32), rng.gen_range(80..159u32));
@@ -572,12 +622,11 @@ mod tests {
             if ray == 1 {
                 planes.reverse();
             }
-            footprints.reserve_walk(planes.len());
             for (i, &plane) in planes.iter().enumerate() {
                 let cell = plane * plane_nodes as u32 + rng.gen_range(0..plane_nodes as u32);
-                footprints.records.cells[footprints.used + i] = cell;
+                region.cells[footprints.used + i] = cell;
             }
-            footprints.keep_ray(planes.len(), 2.0 + ray as f32, plane_nodes);
+            footprints.keep_ray(region.cells, planes.len(), 2.0 + ray as f32, plane_nodes);
             rays.push(planes);
         }
         for slab in 0..10 {
@@ -593,7 +642,7 @@ mod tests {
                 .filter(|(on_slab, _)| !on_slab.is_empty())
                 .collect();
             let found: Vec<(Vec<u32>, f32)> = footprints
-                .on_slab(slab)
+                .on_slab(slab, &records)
                 .map(|run| {
                     let planes = run.cells.iter().map(|&c| c / plane_nodes as u32);
                     let planes = if run.backwards { planes.rev().collect() } else { planes.collect() };

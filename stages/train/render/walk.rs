@@ -11,7 +11,7 @@
 //! one lattice row reads its corners with one load a row instead of 32 pair loads: together
 //! ≈ 4 % of a training step.
 
-use super::{CornerWeights, Records};
+use super::{CornerWeights, RecordsMut};
 use crate::train::gemm::Scalar;
 
 /// Samples per block: one AVX2 vector of f32.
@@ -32,17 +32,12 @@ pub(super) struct RayWalk<'a, T> {
 }
 
 /// The optical depth `Σ σ_k` of the ray (without `s·δ`) and, with `RECORD`, its footprints
-/// (weights unscaled) as records `first..first + len` of `records`, returned with `len`;
-/// `records` must then hold at least `first + count` (the open record is stored every
-/// sample, branch-free).
+/// (weights unscaled) as the first `len` of `records`, returned with `len`; `records` must
+/// then hold at least `count` (the open record is stored every sample, branch-free).
 ///
 /// # Panics
 /// If `dense` (or the mask) has fewer than `n³` values, or `n` is outside `[2, 1024]`.
-pub(super) fn march<T: Scalar, const RECORD: bool>(
-    walk: &RayWalk<T>,
-    records: &mut Records<T>,
-    first: usize,
-) -> (T, usize) {
+pub(super) fn march<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, records: RecordsMut<T>) -> (T, usize) {
     let n = walk.n;
     assert!(
         (2..=1024).contains(&n) && walk.dense.len() >= n * n * n,
@@ -50,8 +45,8 @@ pub(super) fn march<T: Scalar, const RECORD: bool>(
         n * n * n
     );
     assert!(walk.kept.is_none_or(|k| k.len() >= n * n * n), "walk: the mask must cover the lattice");
-    assert!(!RECORD || records.len() >= first + walk.count, "walk: room for {} records needed", walk.count);
-    let (cells, weights) = (&mut records.cells[first..], &mut records.weights[first..]);
+    assert!(!RECORD || records.cells.len() >= walk.count, "walk: room for {} records needed", walk.count);
+    let RecordsMut { cells, weights } = records;
     #[cfg(target_arch = "x86_64")]
     if let (Some(dense), Some(weights)) = (T::as_f32(walk.dense), CornerWeights::as_f32_mut(&mut *weights)) {
         if std::arch::is_x86_feature_detected!("avx2") {
@@ -554,10 +549,10 @@ mod tests {
         walk: &RayWalk<f32>,
         kernel: impl FnOnce(&RayWalk<f32>, Recorder<f32>) -> (f32, usize),
     ) -> (f32, Vec<(u32, [f32; 8])>) {
-        let mut records = Records::default();
-        records.resize(walk.count);
-        let (depth, len) = kernel(walk, Recorder::new(&mut records.cells, &mut records.weights));
-        (depth, records.cells[..len].iter().zip(&records.weights).map(|(&c, w)| (c, w.0)).collect())
+        let mut cells = vec![u32::MAX; walk.count];
+        let mut weights = vec![CornerWeights([0.0; 8]); walk.count];
+        let (depth, len) = kernel(walk, Recorder::new(&mut cells, &mut weights));
+        (depth, cells[..len].iter().zip(&weights).map(|(&c, w)| (c, w.0)).collect())
     }
 
     #[test]
