@@ -199,25 +199,29 @@ fn transpose_piece(source: &[f32], nodes: usize, first: usize, piece: &mut [f32]
     #[cfg(target_arch = "x86_64")]
     if wide::has_avx2_fma() && rank.is_multiple_of(8) {
         use std::arch::x86_64::*;
-        while done + 8 <= count {
-            for r0 in (0..rank).step_by(8) {
+        // Eight ranks' rows at a time along the whole piece: the rows lie a plane apart, in
+        // one set of L1, so sixteen of them at once evicted one another before each line's
+        // second block of 8 nodes was read.
+        let whole = count - count % 8;
+        for r0 in (0..rank).step_by(8) {
+            for block in (0..whole).step_by(8) {
                 // SAFETY: the CPU has AVX (checked above).
                 let mut rows = [unsafe { _mm256_setzero_ps() }; 8];
                 for (i, row) in rows.iter_mut().enumerate() {
-                    let values = &source[(r0 + i) * nodes + first + done..][..8];
+                    let values = &source[(r0 + i) * nodes + first + block..][..8];
                     // SAFETY: as above; `values` holds 8 floats.
                     *row = unsafe { _mm256_loadu_ps(values.as_ptr()) };
                 }
                 // SAFETY: as above.
                 let columns = unsafe { wide::transpose_8x8(rows) };
                 for (j, column) in columns.into_iter().enumerate() {
-                    let entry = &mut piece[(done + j) * stride + r0..][..8];
+                    let entry = &mut piece[(block + j) * stride + r0..][..8];
                     // SAFETY: as above; `entry` holds 8 floats.
                     unsafe { _mm256_storeu_ps(entry.as_mut_ptr(), column) };
                 }
             }
-            done += 8;
         }
+        done = whole;
     }
     // Rank by rank: each reads a contiguous run (the ranks are a plane apart).
     for (r, row) in source.chunks_exact(nodes).enumerate() {
