@@ -209,6 +209,14 @@ struct Traced<T> {
     footprints: Footprints<T>,
 }
 
+/// What a recording batch keeps for the next: its records and each task's traced rays (one
+/// spare, rather than one a task: handing 64 back and forth cost a lock and a box each).
+#[derive(Default)]
+struct BatchBuffers<T: Copy> {
+    records: Records<T>,
+    traced: Vec<Traced<T>>,
+}
+
 /// One task's rays' footprints, ray after ray, each ray's in the walk's order (a straight
 /// ray's planes are monotone), and for each scatter slab where each ray's run on the slab's
 /// planes lies. The walk writes a ray's records straight into the task's region of the
@@ -383,29 +391,27 @@ impl Renderer {
         grad: Option<&mut [T]>,
     ) -> BatchResult<T> {
         let groups = rays.par_chunks(RAYS_PER_TASK).zip(offsets.par_chunks(RAYS_PER_TASK));
-        let mut records: Records<T> = if grad.is_some() { take_spare() } else { Records::default() };
-        let traced: Vec<Traced<T>> = if grad.is_some() {
+        let mut buffers: BatchBuffers<T> = if grad.is_some() { take_spare() } else { BatchBuffers::default() };
+        let BatchBuffers { records, traced } = &mut buffers;
+        if grad.is_some() {
             // Each task's region holds every sample of its rays.
             let region = RAYS_PER_TASK * self.max_samples(rays);
-            let len = rays.len().div_ceil(RAYS_PER_TASK) * region;
-            assert!(len <= u32::MAX as usize, "batch: {len} footprints do not fit 32-bit positions");
-            records.make_room(len);
-            let regions: Vec<RecordsMut<T>> = records.regions(region).collect();
-            groups
-                .zip(regions)
-                .enumerate()
-                .map(|(i, ((group, offsets), records))| {
-                    self.trace_recording(dense, mask, (group, offsets), rays.len(), records, i * region)
-                })
-                .collect()
+            let tasks = rays.len().div_ceil(RAYS_PER_TASK);
+            assert!(tasks * region <= u32::MAX as usize, "batch: footprints beyond 32-bit positions");
+            records.make_room(tasks * region);
+            traced.resize_with(tasks, Traced::default);
+            let regions = records.regions(region).collect::<Vec<_>>();
+            traced.par_iter_mut().zip(groups).zip(regions).enumerate().for_each(|(i, ((t, group), records))| {
+                self.trace_recording(t, dense, mask, group, rays.len(), (records, i * region))
+            });
         } else {
             let render = |(group, offsets): (&[Ray], &[f64])| {
                 let predicted =
                     group.iter().zip(offsets).map(|(ray, &off)| self.render_ray(dense, mask, ray, off)).collect();
                 Traced { predicted, ..Traced::default() }
             };
-            groups.map(render).collect()
-        };
+            *traced = groups.map(render).collect();
+        }
         let predicted: Vec<f64> = traced.iter().flat_map(|t| t.predicted.iter().copied()).collect();
         let b = rays.len() as f64;
         let mse = rays.iter().zip(&predicted).map(|(r, p)| (p - r.target).powi(2)).sum::<f64>() / b;
@@ -414,32 +420,30 @@ impl Renderer {
             kind => rays.iter().zip(&predicted).map(|(r, &p)| kind.error(p, r.target)).sum::<f64>() / b,
         };
         if let Some(grad) = grad {
-            self.scatter(&traced, &records, grad);
-            traced.into_iter().for_each(give_spare);
-            give_spare(records);
+            self.scatter(traced, records, grad);
+            give_spare(buffers);
         }
         BatchResult { predicted: predicted.into_iter().map(|p| T::from(p).expect("finite")).collect(), mse, loss }
     }
 
-    /// Traces one group of rays (with their offsets) of a batch of `batch_len`, recording each
-    /// ray's footprints into `records`, the group's region of the batch's records, which
-    /// starts at `start` of them and has room for every sample. The other buffers come from
-    /// the previous batch.
+    /// Traces one group of rays (with their offsets) of a batch of `batch_len` into `t`,
+    /// recording each ray's footprints into `records`, the group's region of the batch's
+    /// records, which starts at `start` of them and has room for every sample.
     fn trace_recording<T: Scalar>(
         &self,
+        t: &mut Traced<T>,
         dense: &[T],
         mask: Option<&AlphaMask>,
         (group, offsets): (&[Ray], &[f64]),
         batch_len: usize,
-        mut records: RecordsMut<T>,
-        start: usize,
-    ) -> Traced<T> {
-        let mut t: Traced<T> = take_spare();
-        let walks: Vec<RayWalk<T>> =
-            group.iter().zip(offsets).map(|(ray, &off)| self.walk(dense, mask, ray, off)).collect();
+        (mut records, start): (RecordsMut<T>, usize),
+    ) {
+        assert!(group.len() <= RAYS_PER_TASK, "trace: at most {RAYS_PER_TASK} rays a task");
+        let walks: [Option<RayWalk<T>>; RAYS_PER_TASK] =
+            std::array::from_fn(|i| Some(self.walk(dense, mask, group.get(i)?, offsets[i])));
         t.footprints.clear(start);
         t.predicted.clear();
-        for (ray, walk) in group.iter().zip(&walks) {
+        for (ray, walk) in group.iter().zip(walks.iter().flatten()) {
             let (depth, len) = walk::march::<T, true>(walk, records.from(t.footprints.used));
             let p = self.transmittance(depth);
             // dσ/dF = 1[F + Δ > 0]: the ray's active samples share its dL/dσ.
@@ -450,7 +454,6 @@ impl Renderer {
             }
             t.predicted.push(p);
         }
-        t
     }
 
     /// Writes the gradient: every footprint, scaled by its ray's `dL/dσ`, added to the
