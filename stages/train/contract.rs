@@ -108,13 +108,11 @@ pub fn contract_with(f: Factors, grad: &[f32], out: Gradients, width: Width) {
     let mut partial = std::mem::take(&mut t.partial);
     partial.resize(rank * nn, 0.0);
     let slab_nodes = TASK_PLANES * n;
-    let mut tasks: Vec<Task> = pieces(dp0, nn, TASK_NODES)
-        .into_iter()
-        .enumerate()
-        .map(|(i, dp0)| Task::PlaneXY { start: i * TASK_NODES, dp0 })
-        .collect();
+    // The largest tasks first and the smallest last, so that the workers' last tasks, and the
+    // wait for the slower one, are short: dL2's two (1/12 of the work each), the slabs' 16,
+    // then dP0's 16 (1/96 each).
     let line_x = pieces(dl2, n, LINE_TASK_X).into_iter().enumerate();
-    tasks.extend(line_x.map(|(i, dl2)| Task::LineX { start: i * LINE_TASK_X, dl2 }));
+    let mut tasks: Vec<Task> = line_x.map(|(i, dl2)| Task::LineX { start: i * LINE_TASK_X, dl2 }).collect();
     let slabs = pieces(dp1, nn, slab_nodes)
         .into_iter()
         .zip(pieces(&mut partial, nn, slab_nodes))
@@ -127,6 +125,8 @@ pub fn contract_with(f: Factors, grad: &[f32], out: Gradients, width: Width) {
         dp2,
         dl0,
     }));
+    let plane_xy = pieces(dp0, nn, TASK_NODES).into_iter().enumerate();
+    tasks.extend(plane_xy.map(|(i, dp0)| Task::PlaneXY { start: i * TASK_NODES, dp0 }));
     let kernels = Kernels { f, grad, t: &t, width };
     tasks.into_par_iter().for_each(|task| kernels.run(task));
     // dL1 sums the per-z terms in z order, as the GEMM path does.
