@@ -87,23 +87,55 @@ enum Task<'a> {
     Slab { z0: usize, dp1: Rows<'a>, partial: Rows<'a>, dp2: Rows<'a>, dl0: Rows<'a> },
 }
 
+/// The factors transposed for [`contract_prepared`], made ahead by [`prepare`]: they depend
+/// on the factors alone, so a training step makes them while it traces the batch, where they
+/// fill the workers' idle moments instead of taking a parallel pass of their own.
+pub struct Prepared {
+    transposed: Transposed,
+    /// The factors they were made from (where each starts, and the shape).
+    from: ([usize; 6], usize, usize),
+}
+
+/// Where `f`'s factors lie, and its shape: what [`Prepared`] was made from.
+fn identity(f: &Factors) -> ([usize; 6], usize, usize) {
+    let [p0, p1, p2] = f.planes.map(|p| p.as_ptr() as usize);
+    let [l0, l1, l2] = f.lines.map(|l| l.as_ptr() as usize);
+    ([p0, p1, p2, l0, l1, l2], f.n, f.rank)
+}
+
+/// `f`'s factors transposed for [`contract_prepared`] (in parallel).
+pub fn prepare(f: Factors) -> Prepared {
+    let mut transposed: Transposed = take_spare();
+    transpose_all(f, &mut transposed);
+    Prepared { transposed, from: identity(&f) }
+}
+
 /// The factors' gradient from `grad` (`dL/dF`, `N³` values) into `out`, overwritten, with the
 /// CPU's widest vectors.
 ///
 /// # Panics
 /// If [`available`] is false.
 pub fn contract(f: Factors, grad: &[f32], out: Gradients) {
-    let width = Width::widest().expect("contract: the FMA kernels need AVX2 + FMA");
-    contract_with(f, grad, out, width)
+    contract_prepared(f, prepare(f), grad, out)
 }
 
-/// [`contract`] with the vectors `width` (one the CPU has): every width gives the same bits.
-pub fn contract_with(f: Factors, grad: &[f32], out: Gradients, width: Width) {
+/// [`contract`] with `f` already [`prepare`]d (the factors unchanged since).
+///
+/// # Panics
+/// If [`available`] is false, or `prepared` was made from other factors.
+pub fn contract_prepared(f: Factors, prepared: Prepared, grad: &[f32], out: Gradients) {
+    let width = Width::widest().expect("contract: the FMA kernels need AVX2 + FMA");
+    contract_with(f, prepared, grad, out, width)
+}
+
+/// [`contract_prepared`] with the vectors `width` (one the CPU has): every width gives the
+/// same bits.
+pub fn contract_with(f: Factors, prepared: Prepared, grad: &[f32], out: Gradients, width: Width) {
     assert!(width.is_available(), "contract: this CPU lacks {width:?}");
+    assert!(prepared.from == identity(&f), "contract: prepared from other factors");
     let (n, nn, rank) = (f.n, f.n * f.n, f.rank);
     assert_eq!(grad.len(), nn * n, "contract: dL/dF has N³ values");
-    let mut t: Transposed = take_spare();
-    transpose_all(f, &mut t);
+    let mut t = prepared.transposed;
     let Gradients { planes: [dp0, dp1, dp2], lines: [dl0, dl1, dl2] } = out;
     let mut partial = std::mem::take(&mut t.partial);
     partial.resize(rank * nn, 0.0);

@@ -171,13 +171,23 @@ impl<T: Scalar> VmField<T> {
     /// bit-identical to the products here and faster (no packing of `grad`); otherwise (f64,
     /// or other CPUs) `matrixmultiply`'s products.
     pub fn contract_into(&self, grad: &[T], out: &mut VmField<T>) {
+        self.contract_prepared(grad, out, self.prepare_contraction())
+    }
+
+    /// What [`VmField::contract_into`]'s FMA kernels first make of the factors alone
+    /// ([`contract::prepare`]), to make ahead; `None` where the GEMM path runs.
+    pub fn prepare_contraction(&self) -> Option<contract::Prepared> {
+        contract::available().then(|| self.f32_factors().map(contract::prepare)).flatten()
+    }
+
+    /// [`VmField::contract_into`] with `prepared` made by [`VmField::prepare_contraction`]
+    /// from this field, unchanged since.
+    pub fn contract_prepared(&self, grad: &[T], out: &mut VmField<T>, prepared: Option<contract::Prepared>) {
         assert!(out.n == self.n && out.rank == self.rank, "contract: the output has the field's shape");
-        if contract::available() {
-            if let (Some(factors), Some(grad), Some(gradients)) =
-                (self.f32_factors(), T::as_f32(grad), out.f32_factors_mut())
-            {
-                return contract::contract(factors, grad, gradients);
-            }
+        if let (Some(prepared), Some(factors), Some(grad), Some(gradients)) =
+            (prepared, self.f32_factors(), T::as_f32(grad), out.f32_factors_mut())
+        {
+            return contract::contract_prepared(factors, prepared, grad, gradients);
         }
         self.contract_gemm(grad, out);
     }
@@ -346,7 +356,8 @@ mod tests {
             for width in Width::available() {
                 let mut fast = VmField::zeros(n, rank);
                 let factors = f.f32_factors().expect("f32");
-                contract::contract_with(factors, &grad, fast.f32_factors_mut().expect("f32"), width);
+                let prepared = contract::prepare(factors);
+                contract::contract_with(factors, prepared, &grad, fast.f32_factors_mut().expect("f32"), width);
                 let same = all_same_as_gemm(fast.params().flatten(), gemm.params().flatten());
                 assert!(same, "N = {n}, rank = {rank}, {width:?}");
             }
@@ -386,6 +397,26 @@ mod tests {
                 assert!(all_same_as_gemm(&fast, &gemm), "N = {n}, rank = {rank}, {width:?}");
             }
         }
+    }
+
+    #[test]
+    fn a_contraction_refuses_factors_prepared_from_another_field() {
+        let (a, b): (VmField<f32>, VmField<f32>) = (VmField::random(8, 4, 0.5, 1), VmField::random(8, 4, 0.5, 2));
+        let Some(prepared) = a.prepare_contraction() else {
+            eprintln!("skipped: this CPU lacks AVX2 + FMA, so the GEMM path is the only one");
+            return;
+        };
+        let grad = vec![1f32; 8 * 8 * 8];
+        let mut out = VmField::zeros(8, 4);
+        let refused = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            b.contract_prepared(&grad, &mut out, Some(prepared));
+        }));
+        assert!(refused.is_err(), "b contracted with a's transposes");
+        // Prepared from itself, the same field contracts as without preparing.
+        let mut expected = VmField::zeros(8, 4);
+        b.contract_into(&grad, &mut expected);
+        b.contract_prepared(&grad, &mut out, b.prepare_contraction());
+        assert!(out.params().flatten().zip(expected.params().flatten()).all(|(x, y)| x.to_bits() == y.to_bits()));
     }
 
     #[test]

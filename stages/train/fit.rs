@@ -358,7 +358,10 @@ fn photometric_gradient(params: &TrainParams, step: BatchStep, buffers: &mut Ste
     let BatchStep { renderer, field, mask, rays, offsets, logged } = step;
     let StepBuffers { dense, grad_dense, grad } = buffers;
     field.compose_into(dense);
-    let result = renderer.batch(dense, mask, rays, offsets, Some(grad_dense));
+    // The contraction's transposes of the factors, made beside the tracing: they fill the
+    // workers' idle moments there instead of taking a parallel pass of their own.
+    let (result, prepared) =
+        rayon::join(|| renderer.batch(dense, mask, rays, offsets, Some(grad_dense)), || field.prepare_contraction());
     // The 3-D TV acts on F itself: its gradient joins dL/dF before the contraction.
     let tv3d = if params.lambda_tv3d > 0.0 {
         regularize::tv_dense(dense, field.n, params.lambda_tv3d as f32, grad_dense)
@@ -367,7 +370,7 @@ fn photometric_gradient(params: &TrainParams, step: BatchStep, buffers: &mut Ste
     } else {
         0.0
     };
-    field.contract_into(grad_dense, grad);
+    field.contract_prepared(grad_dense, grad, prepared);
     Terms { photo: result.loss, l1: 0.0, tv: 0.0, tv3d }
 }
 
