@@ -231,9 +231,8 @@ struct Footprints<T> {
 }
 
 /// A ray's footprints `from..to` (positions in the batch's records) on one scatter slab's
-/// planes, read `backwards` when the
-/// ray's planes descend (so that they are added in ascending plane order), and the ray's
-/// `dL/dσ` that scales their weights.
+/// planes, read `backwards` when the ray's planes descend (so that they are added in
+/// ascending plane order), and the ray's `dL/dσ` that scales their weights.
 #[derive(Debug, Clone, Copy)]
 struct Run<T> {
     from: u32,
@@ -605,6 +604,38 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn no_ray_has_more_samples_than_the_bound_the_records_are_sized_by() {
+        // Rays from every side of a flat box, at every angle, directions of any length: the
+        // walk asserts its room, so a bound too small would fail the training tests too, but
+        // here it is checked where it is tight (rays along the diagonal).
+        let aabb = Aabb { min: [-30.0, -20.0, -5.0], max: [30.0, 25.0, 5.0] };
+        let renderer = Renderer {
+            lattice: Lattice { n: 16, aabb },
+            shift: 0.0,
+            scale: 1.0,
+            step: 0.37,
+            loss: PhotoLoss::Intensity,
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut rays: Vec<Ray> = (0..500)
+            .map(|_| {
+                let dir = DVec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0));
+                let length = rng.gen_range(0.2..3.0);
+                Ray { origin: -80.0 * dir.normalize(), dir: length * dir.normalize(), target: 0.5 }
+            })
+            .collect();
+        let corner = DVec3::from(aabb.max) - DVec3::from(aabb.min);
+        let diagonal = Ray { origin: DVec3::from(aabb.min) - corner, dir: 0.5 * corner.normalize(), target: 0.5 };
+        rays.push(diagonal);
+        let bound = renderer.max_samples(&rays);
+        let most = rays.iter().map(|ray| renderer.samples(ray, 0.0).2).max().expect("rays");
+        assert!(most <= bound, "{most} samples, bound {bound}");
+        // Along the diagonal the bound is tight.
+        let (count, bound) = (renderer.samples(&diagonal, 0.0).2, renderer.max_samples(&[diagonal]));
+        assert!(count <= bound && bound <= count + 2, "the diagonal ray: {count} samples, bound {bound}");
+    }
 
     #[test]
     fn each_slab_gets_the_run_of_records_on_its_planes() {
