@@ -4,7 +4,7 @@
 //! of the pipeline. Inputs and outputs are MetaImage (`.mhd` + `.raw`); a mask is MET_UCHAR,
 //! non-zero meaning set. A JSON summary goes to stdout. `statistics` instead reads paired
 //! samples as JSON and prints every cohort statistic of them. The image filters (`gaussian`,
-//! `blob`, `edt`, `otsu`, `fill-holes`) take the spacing from the header. See `docs/kernels.md`.
+//! `blob`, `hessian-blob`, `edt`, `otsu`, `fill-holes`) take the spacing from the header. See `docs/kernels.md`.
 
 use crate::formats::{mhd, obj};
 use crate::kernels::components::{label, Connectivity};
@@ -84,6 +84,14 @@ pub enum KernelCommand {
         #[arg(long)]
         s_mm: f64,
     },
+    /// The scale-normalised Hessian blob response s²·max(0, −λ₁) at scale S_MM of a MET_FLOAT
+    /// volume (kernels::filters::hessian_blob_response); MET_FLOAT out. Prints {"voxels"}.
+    HessianBlob {
+        values: PathBuf,
+        out: PathBuf,
+        #[arg(long)]
+        s_mm: f64,
+    },
     /// Euclidean distance in mm from every set voxel to the nearest unset one
     /// (scipy.ndimage.distance_transform_edt with the header's spacing); MET_DOUBLE out, +inf
     /// everywhere when no voxel is unset. Prints {"voxels", "max_mm"} (null when infinite).
@@ -153,6 +161,9 @@ pub fn run(command: &KernelCommand) -> anyhow::Result<String> {
         }
         KernelCommand::Blob { values, out, s_mm } => {
             filter(values, out, |v, d, s| filters::blob_response(v, d, s, *s_mm))?
+        }
+        KernelCommand::HessianBlob { values, out, s_mm } => {
+            filter(values, out, |v, d, s| filters::hessian_blob_response(v, d, s, *s_mm))?
         }
         KernelCommand::Edt { mask, out } => {
             let m = read_mask(mask)?;

@@ -5,6 +5,8 @@
     tools/experiments.py --only tv3d     # run the named rows only (the table keeps the others)
     tools/experiments.py --no-run        # rebuild the table from the results already in out dirs
 
+A row whose out dir is not on this machine keeps its line from the table as it stands.
+
 Every configuration is a preset in presets/ (or pipeline.toml itself) run with
 `aret-pipe run`; presets share cache/, so a row that changes only a downstream stage recomputes
 only that stage. The numbers are read back from each run's summary.json and results.csv.
@@ -54,6 +56,8 @@ ROWS = [
      "the default with twice the learning rate (0.04, same decay)"),
     ("grid-128", "presets/grid128.toml", "B", "C*",
      "the default on a 128³ lattice instead of 64³ (same box and views)"),
+    ("blob-hessian", "presets/blob_hessian.toml", "B", "C*",
+     "the default with the blob search on the Hessian's least-negative curvature instead of the Laplacian"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),
@@ -142,7 +146,18 @@ def row_numbers(out):
     )
 
 
-def table(results):
+def rows_in(doc):
+    """The table's current line per row name, kept for rows whose results are not on disk (their
+    out dir was never run on this machine, or was cleaned) instead of blanking them."""
+    kept = {}
+    for line in doc.split(START, 1)[-1].split(END, 1)[0].splitlines():
+        cells = [c.strip() for c in line.split("|")]
+        if len(cells) > 2 and any(cells[1] == name for name, *_ in ROWS):
+            kept[cells[1]] = line
+    return kept
+
+
+def table(results, kept):
     lines = [
         "| row | config | level (primary / blind) | ≥10 mm hit: primary / blind / oracle | ≥10 mm median Dice"
         " | median APE: all / ≥10 mm / ≥10 mm over hits | blind APE over hits (≥10 mm) | all 19: hit / blind"
@@ -152,7 +167,7 @@ def table(results):
     for name, config, level, blind_level, _ in ROWS:
         r = results.get(name)
         if r is None:
-            lines.append(f"| {name} | `{config}` | {level} / {blind_level} | not run | | | | | | | |")
+            lines.append(kept.get(name, f"| {name} | `{config}` | {level} / {blind_level} | not run | | | | | | | |"))
             continue
         g, a = r["ge10"], r["all"]
         lines.append(
@@ -182,13 +197,14 @@ def main():
         out = out_dir(path)
         if os.path.exists(os.path.join(out, "summary.json")):
             results[name] = row_numbers(out)
-    text = table(results)
-    legend = "\n".join(f"- **{k}**: {v}" for k, v in LEVELS.items())
-    rows = "\n".join(f"- **{name}**: {what}" for name, _, _, _, what in ROWS)
-    block = f"{START}\n{text}\n\nRows:\n{rows}\n\nAssistance levels:\n{legend}\n{END}"
     doc = open(args.doc).read()
     if START not in doc or END not in doc:
         sys.exit(f"{args.doc} has no {START} … {END} block to fill")
+    text = table(results, rows_in(doc))
+    legend = "\n".join(f"- **{k}**: {v}" for k, v in LEVELS.items())
+    rows = "\n".join(f"- **{name}**: {what}" for name, _, _, _, what in ROWS)
+    block = f"{START}\n{text}\n\nRows:\n{rows}\n\nAssistance levels:\n{legend}\n{END}"
+
     head, rest = doc.split(START, 1)
     with open(args.doc, "w") as f:
         f.write(head + block + rest.split(END, 1)[1])

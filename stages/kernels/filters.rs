@@ -5,6 +5,9 @@
 //! - [`gaussian_mm`]: `scipy.ndimage.gaussian_filter(x, sigma_mm / spacing, mode="nearest")`;
 //! - [`blob_response`]: the scale-normalised negative Laplacian of Gaussian, from scipy's
 //!   second-derivative Gaussian filters;
+//! - [`hessian_blob_response`]: the scale-normalised Hessian of Gaussian's least-negative
+//!   eigenvalue (numpy's `eigvalsh` of scipy's Gaussian derivative filters), which answers
+//!   blobs and not lines or sheets;
 //! - [`distance_inside_mm`]: `scipy.ndimage.distance_transform_edt(mask, sampling=spacing)`;
 //! - [`otsu_threshold`]: `skimage.filters.threshold_otsu(values, nbins=256)`, float32
 //!   arithmetic and all, so the threshold is the same float;
@@ -77,10 +80,81 @@ pub fn blob_response(values: &[f32], dims: [usize; 3], spacing_mm: [f64; 3], s_m
     x_term.iter().zip(&yz_term).map(|(&x, &yz)| (scale * (x * inv_sq[0] + yz)) as f32).collect()
 }
 
+/// The scale-normalised Hessian blob response at scale `s_mm`: `s² · max(0, −λ₁)`, where λ₁ is
+/// the largest (least negative) eigenvalue of the Hessian of `G_s ∗ values` in mm⁻². It is
+/// positive only where all three curvatures are negative, so it answers bright blobs and not
+/// bright lines (one curvature ≈ 0: vessels, the field's axis-aligned streaks) or sheets and
+/// edges; at a ball's centre the three are equal and it is a third of [`blob_response`], with
+/// the same best scale (radius ≈ √3·s). The Hessian's terms are scipy's
+/// `gaussian_filter(x, sv, order=o, mode="nearest") / (spacing_a · spacing_b)` with `o` the
+/// derivative orders on axes a and b; λ₁ is numpy's `eigvalsh(H)[..., -1]` (closed form here).
+/// Computed in f64, rounded to f32 once.
+///
+/// # Panics
+/// As [`gaussian_mm`].
+pub fn hessian_blob_response(values: &[f32], dims: [usize; 3], spacing_mm: [f64; 3], s_mm: f64) -> Vec<f32> {
+    check(values.len(), dims, spacing_mm, s_mm);
+    if s_mm == 0.0 {
+        return vec![0.0; values.len()];
+    }
+    let v: Vec<f64> = values.iter().map(|&v| f64::from(v)).collect();
+    let sigma = [0, 1, 2].map(|a| s_mm / spacing_mm[a]);
+    let k = |a: usize, order: Order| gaussian_kernel(sigma[a], order);
+    // pass(order, axis) on f; odd kernels take the antisymmetric path.
+    let pass = |f: &[f64], axis: usize, order: Order| match order {
+        Order::First => along_odd(f, dims, axis, &k(axis, order)),
+        _ => along(f, dims, axis, &k(axis, order)),
+    };
+    use Order::{First as D1, Second as D2, Smooth as D0};
+    // In scipy's axis order (z, y, x), sharing the z and y passes the six terms have in common.
+    let z = [D0, D1, D2].map(|o| pass(&v, 2, o));
+    let y_of = |zi: usize, o: Order| pass(&z[zi], 1, o);
+    let (y0z0, y1z0, y2z0, y0z1, y1z1, y0z2) =
+        (y_of(0, D0), y_of(0, D1), y_of(0, D2), y_of(1, D0), y_of(1, D1), y_of(2, D0));
+    let [sx, sy, sz] = spacing_mm;
+    let term = |f: &[f64], o: Order, per_mm2: f64| -> Vec<f64> { pass(f, 0, o).iter().map(|&h| h * per_mm2).collect() };
+    let hxx = term(&y0z0, D2, 1.0 / (sx * sx));
+    let hxy = term(&y1z0, D1, 1.0 / (sx * sy));
+    let hyy = term(&y2z0, D0, 1.0 / (sy * sy));
+    let hxz = term(&y0z1, D1, 1.0 / (sx * sz));
+    let hyz = term(&y1z1, D0, 1.0 / (sy * sz));
+    let hzz = term(&y0z2, D0, 1.0 / (sz * sz));
+    let s2 = s_mm * s_mm;
+    (0..v.len())
+        .into_par_iter()
+        .map(|i| {
+            let largest = largest_eigenvalue([hxx[i], hyy[i], hzz[i]], [hxy[i], hxz[i], hyz[i]]);
+            (s2 * (-largest).max(0.0)) as f32
+        })
+        .collect()
+}
+
+/// The largest eigenvalue of the symmetric 3 × 3 matrix with diagonal `[a00, a11, a22]` and
+/// off-diagonal `[a01, a02, a12]`, in closed form (the trigonometric solution of the
+/// characteristic cubic; Smith, CACM 1961).
+fn largest_eigenvalue(diagonal: [f64; 3], off: [f64; 3]) -> f64 {
+    let [a00, a11, a22] = diagonal;
+    let [a01, a02, a12] = off;
+    let p1 = a01 * a01 + a02 * a02 + a12 * a12;
+    let q = (a00 + a11 + a22) / 3.0;
+    let p2 = (a00 - q).powi(2) + (a11 - q).powi(2) + (a22 - q).powi(2) + 2.0 * p1;
+    if p2 == 0.0 {
+        return q; // a multiple of the identity
+    }
+    let p = (p2 / 6.0).sqrt();
+    // B = (A − qI)/p; r = det(B)/2 ∈ [−1, 1] up to rounding.
+    let (b00, b11, b22, b01, b02, b12) = ((a00 - q) / p, (a11 - q) / p, (a22 - q) / p, a01 / p, a02 / p, a12 / p);
+    let det = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02);
+    let phi = (det / 2.0).clamp(-1.0, 1.0).acos() / 3.0;
+    q + 2.0 * p * phi.cos()
+}
+
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum Order {
     /// The Gaussian itself.
     Smooth,
+    /// Its first derivative (an odd kernel).
+    First,
     /// Its second derivative.
     Second,
 }
@@ -99,6 +173,9 @@ fn gaussian_kernel(sigma: f64, order: Order) -> Vec<f64> {
     let phi = phi.into_iter().map(|p| p / sum);
     match order {
         Order::Smooth => phi.collect(),
+        // scipy's q = [0, −1/σ²]: φ(x)·(−x/σ²). scipy convolves (it reverses the weights), so
+        // the pass correlates with the reversed kernel: weight x/σ²·φ(x) at offset +x.
+        Order::First => (-radius..=radius).zip(phi).map(|(x, phi)| x as f64 / sigma2 * phi).collect(),
         Order::Second => {
             let p = 1.0 / -sigma2;
             let (q0, q2) = (p, p * p);
@@ -112,6 +189,22 @@ fn gaussian_kernel(sigma: f64, order: Order) -> Vec<f64> {
 /// Each output is `w₀·v₀ + Σ_{j=1..r} w_j·(v₋ⱼ + v₊ⱼ)`, j ascending, as scipy's symmetric path
 /// sums it.
 fn along(src: &[f64], dims: [usize; 3], axis: usize, kernel: &[f64]) -> Vec<f64> {
+    along_with(src, dims, axis, kernel, Parity::Even)
+}
+
+/// [`along`] for an odd `kernel` (`w₋ⱼ = −w_j`, `w₀ = 0`, `w_j` the weight at offset +j):
+/// `Σ_{j=1..r} w_j·(v₊ⱼ − v₋ⱼ)`, scipy's antisymmetric path.
+fn along_odd(src: &[f64], dims: [usize; 3], axis: usize, kernel: &[f64]) -> Vec<f64> {
+    along_with(src, dims, axis, kernel, Parity::Odd)
+}
+
+#[derive(Clone, Copy)]
+enum Parity {
+    Even,
+    Odd,
+}
+
+fn along_with(src: &[f64], dims: [usize; 3], axis: usize, kernel: &[f64], parity: Parity) -> Vec<f64> {
     let [nx, ny, nz] = dims;
     let plane = nx * ny;
     let mut out = vec![0.0; src.len()];
@@ -128,7 +221,7 @@ fn along(src: &[f64], dims: [usize; 3], axis: usize, kernel: &[f64]) -> Vec<f64>
                 padded[r..r + nx].copy_from_slice(row);
                 padded[r + nx..].fill(row[nx - 1]);
                 let padded = &padded;
-                accumulate(dst, w0, wings, |k| {
+                accumulate(dst, w0, wings, parity, |k| {
                     let start = (r as i64 + k) as usize;
                     &padded[start..start + nx]
                 });
@@ -140,7 +233,7 @@ fn along(src: &[f64], dims: [usize; 3], axis: usize, kernel: &[f64]) -> Vec<f64>
                 &src[y * nx..(y + 1) * nx]
             };
             for (y, dst) in dst.chunks_exact_mut(nx).enumerate() {
-                accumulate(dst, w0, wings, |k| row(y as i64 + k));
+                accumulate(dst, w0, wings, parity, |k| row(y as i64 + k));
             }
         }),
         2 => out.par_chunks_mut(plane).enumerate().for_each(|(z, dst)| {
@@ -148,17 +241,18 @@ fn along(src: &[f64], dims: [usize; 3], axis: usize, kernel: &[f64]) -> Vec<f64>
                 let z = k.clamp(0, nz as i64 - 1) as usize;
                 &src[z * plane..(z + 1) * plane]
             };
-            accumulate(dst, w0, wings, |k| slab(z as i64 + k));
+            accumulate(dst, w0, wings, parity, |k| slab(z as i64 + k));
         }),
         _ => panic!("axis {axis} is not 0, 1 or 2"),
     }
     out
 }
 
-/// `dst = w0·line(0) + Σ_j w_j·(line(−j) + line(+j))`, elementwise over whole rows or planes,
-/// j ascending, in its AVX2 copy where the CPU has it. (Keeping blocks of sums in registers
-/// across the kernel instead was measured slower.)
-fn accumulate<'a>(dst: &mut [f64], w0: f64, wings: &[f64], line: impl Fn(i64) -> &'a [f64]) {
+/// `dst = w0·line(0) + Σ_j w_j·(line(−j) + line(+j))` (even kernels) or
+/// `Σ_j w_j·(line(+j) − line(−j))` (odd kernels, whose `w0` is 0), elementwise over whole rows
+/// or planes, j ascending, in its AVX2 copy where the CPU has it. (Keeping blocks of sums in
+/// registers across the kernel instead was measured slower.)
+fn accumulate<'a>(dst: &mut [f64], w0: f64, wings: &[f64], parity: Parity, line: impl Fn(i64) -> &'a [f64]) {
     with_avx2(
         #[inline(always)]
         || {
@@ -167,8 +261,10 @@ fn accumulate<'a>(dst: &mut [f64], w0: f64, wings: &[f64], line: impl Fn(i64) ->
             }
             for (j, &w) in wings.iter().enumerate() {
                 let k = j as i64 + 1;
-                for ((d, &a), &b) in dst.iter_mut().zip(line(-k)).zip(line(k)) {
-                    *d += w * (a + b);
+                let pairs = dst.iter_mut().zip(line(-k)).zip(line(k));
+                match parity {
+                    Parity::Even => pairs.for_each(|((d, &a), &b)| *d += w * (a + b)),
+                    Parity::Odd => pairs.for_each(|((d, &a), &b)| *d += w * (b - a)),
                 }
             }
         },
@@ -622,6 +718,48 @@ mod tests {
         let small = blob_response(&v, dims, spacing, s / 2.0)[at(dims, 20, 16, 18)];
         let large = blob_response(&v, dims, spacing, s * 2.0)[at(dims, 20, 16, 18)];
         assert!(c > small && c > large, "{small} {c} {large}");
+    }
+
+    #[test]
+    fn largest_eigenvalue_of_known_matrices() {
+        assert_eq!(largest_eigenvalue([-3.0, 2.0, -1.0], [0.0; 3]), 2.0);
+        assert_eq!(largest_eigenvalue([-4.0; 3], [0.0; 3]), -4.0);
+        // R·diag(−3, −1, 2)·Rᵀ for a rotation of 30° about z then 45° about x.
+        let (c1, s1, c2, s2) = (30f64.to_radians().cos(), 30f64.to_radians().sin(), 0.5f64.sqrt(), 0.5f64.sqrt());
+        let r = [[c1, -s1, 0.0], [c2 * s1, c2 * c1, -s2], [s2 * s1, s2 * c1, c2]];
+        let d = [-3.0, -1.0, 2.0];
+        let a = |i: usize, j: usize| (0..3).map(|k| r[i][k] * d[k] * r[j][k]).sum::<f64>();
+        let got = largest_eigenvalue([a(0, 0), a(1, 1), a(2, 2)], [a(0, 1), a(0, 2), a(1, 2)]);
+        assert!((got - 2.0).abs() < 1e-12, "{got}");
+    }
+
+    #[test]
+    fn hessian_response_is_a_third_of_the_laplacian_at_a_ball_centre_and_zero_on_a_rod() {
+        // The rod runs from x = 26 to the edge (replicated: it goes on for ever), its middle 18
+        // voxels, six of the scale's σ, from its one end.
+        let dims = [56, 36, 36];
+        let spacing = [1.0, 1.2, 1.1];
+        let radius = 5.0;
+        let mut v = ball(dims, spacing, [12.0, 18.0, 18.0], radius);
+        for z in 0..dims[2] {
+            for y in 0..dims[1] {
+                for x in 26..dims[0] {
+                    let d2 = ((y as f64 - 18.0) * spacing[1]).powi(2) + ((z as f64 - 18.0) * spacing[2]).powi(2);
+                    if d2 <= radius * radius {
+                        v[at(dims, x, y, z)] = 1.0;
+                    }
+                }
+            }
+        }
+        let s = radius / 3f64.sqrt();
+        let (log, hessian) = (blob_response(&v, dims, spacing, s), hessian_blob_response(&v, dims, spacing, s));
+        let (ball_centre, rod_middle) = (at(dims, 12, 18, 18), at(dims, 44, 18, 18));
+        // At the ball's centre the three curvatures are about equal (the lattice is anisotropic).
+        let third = log[ball_centre] / 3.0;
+        assert!((hessian[ball_centre] - third).abs() < 0.2 * third, "{} vs {third}", hessian[ball_centre]);
+        assert!(log[rod_middle] > 0.5 * log[ball_centre], "the Laplacian answers the rod");
+        assert!(hessian[rod_middle] < 1e-3 * hessian[ball_centre], "the Hessian does not: {}", hessian[rod_middle]);
+        assert!(hessian.iter().all(|&h| h >= 0.0));
     }
 
     #[test]

@@ -10,7 +10,9 @@
 //! slice along x, y and z, so that the nodules inside it belong to the field.
 
 use super::components::{label, Connectivity};
-use super::filters::{blob_response, distance_inside_mm, fill_holes_per_slice, gaussian_mm, otsu_threshold};
+use super::filters::{
+    blob_response, distance_inside_mm, fill_holes_per_slice, gaussian_mm, hessian_blob_response, otsu_threshold,
+};
 use super::morphology;
 use rayon::prelude::*;
 
@@ -80,18 +82,41 @@ pub fn blob_sites(region: &[bool], dims: [usize; 3], spacing_mm: [f64; 3], insid
     distance_inside_mm(region, dims, spacing_mm).iter().map(|&d| d > inside_mm).collect()
 }
 
-/// The strongest bright-blob response (−s²∇²G_s * σ, max over `scales_mm`) at one of the
+/// Which scale-normalised bright-blob response the search maximises.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BlobFilter {
+    /// `−s²∇²(G_s ∗ σ)`, the Laplacian of Gaussian ([`blob_response`]): also positive along
+    /// bright lines and beside edges.
+    Laplacian,
+    /// `s²·max(0, −λ₁)`, the Hessian's least-negative curvature ([`hessian_blob_response`]):
+    /// positive only where σ curves down along all three axes, so vessels and streaks do not
+    /// answer.
+    Hessian,
+}
+
+impl BlobFilter {
+    pub fn response(self, density: &[f32], dims: [usize; 3], spacing_mm: [f64; 3], s_mm: f64) -> Vec<f32> {
+        match self {
+            BlobFilter::Laplacian => blob_response(density, dims, spacing_mm, s_mm),
+            BlobFilter::Hessian => hessian_blob_response(density, dims, spacing_mm, s_mm),
+        }
+    }
+}
+
+/// The strongest bright-blob response of `filter` (max over `scales_mm`) at one of the
 /// `sites` ([`blob_sites`]). `None` when no site has a positive response.
 pub fn strongest_blob(
     density: &[f32],
     dims: [usize; 3],
     spacing_mm: [f64; 3],
+    filter: BlobFilter,
     scales_mm: &[f64],
     sites: &[bool],
 ) -> Option<BlobPeak> {
     // The scales are independent; the search then runs in scale order, so ties resolve alike.
     let responses: Vec<Vec<f32>> =
-        scales_mm.par_iter().map(|&scale_mm| blob_response(density, dims, spacing_mm, scale_mm)).collect();
+        scales_mm.par_iter().map(|&scale_mm| filter.response(density, dims, spacing_mm, scale_mm)).collect();
     let mut best: Option<(usize, f32, f64)> = None;
     for (&scale_mm, response) in scales_mm.iter().zip(&responses) {
         for (i, &r) in response.iter().enumerate() {

@@ -6,6 +6,8 @@ with anisotropic spacing taken from the header:
   float64 array (ours is computed in float64 and rounded to float32 once);
 - `kernel blob`: -s^2 * sum over axes of gaussian_filter(x, s / spacing, order=2 on that axis,
   mode="nearest") / spacing^2, on float64;
+- `kernel hessian-blob`: s^2 * max(0, -numpy.linalg.eigvalsh(H)[..., -1]) with H the Hessian from
+  scipy's Gaussian derivative filters (order 1 or 2 per axis, mode="nearest") over spacing_a * spacing_b;
 - `kernel edt`: scipy.ndimage.distance_transform_edt(mask, sampling=spacing), to 1e-9 mm;
 - `kernel otsu`: skimage.filters.threshold_otsu(x, nbins=256) on the float32 array: the same float;
 - `kernel fill-holes`: scipy.ndimage.binary_fill_holes on every 2-D slice along x, y or z: equal.
@@ -106,6 +108,48 @@ def test_blob_response_finds_a_ball(tmp_path):
     assert ours[centre] > 0
     at_centre = [run_filter(tmp_path, "blob", image, spacing, "--s-mm", f * s)[centre] for f in (0.6, 1.0, 1.6)]
     assert at_centre[1] > max(at_centre[0], at_centre[2]), at_centre
+
+
+def hessian_blob_reference(x, s_mm, spacing_xyz):
+    spacing_zyx = np.array(spacing_xyz[::-1])
+    sv = s_mm / spacing_zyx
+    hessian = np.empty(x.shape + (3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            order = [0, 0, 0]
+            order[a] += 1
+            order[b] += 1
+            h = ndi.gaussian_filter(x.astype(np.float64), sv, order=order, mode="nearest")
+            hessian[..., a, b] = hessian[..., b, a] = h / (spacing_zyx[a] * spacing_zyx[b])
+    largest = np.linalg.eigvalsh(hessian)[..., -1]
+    return s_mm * s_mm * np.maximum(0.0, -largest)
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("s_mm", [1.0, 3.0, 8.0])
+def test_hessian_blob_response_equals_numpy(tmp_path, shape, s_mm):
+    for name, x in images(shape).items():
+        ours = run_filter(tmp_path, "hessian-blob", x, SPACING, "--s-mm", s_mm)
+        assert ours.dtype == np.float32
+        assert_close(ours, hessian_blob_reference(x, s_mm, SPACING), f"{name} {shape} s {s_mm} mm")
+
+
+def test_hessian_blob_response_ignores_a_line(tmp_path):
+    """A bright ball and a bright rod of the same radius: the Laplacian answers both, the Hessian
+    response only the ball (on the rod's axis one curvature is zero)."""
+    shape, spacing = (48, 40, 56), (1.0, 1.0, 1.0)
+    z, y, x = np.indices(shape).astype(float)
+    radius = 5.0
+    ball = (z - 24) ** 2 + (y - 20) ** 2 + (x - 14) ** 2 <= radius ** 2
+    rod = ((z - 24) ** 2 + (y - 20) ** 2 <= radius ** 2) & (x >= 28)
+    image = (ball | rod).astype(np.float32)
+    s = radius / np.sqrt(3)
+    log = run_filter(tmp_path, "blob", image, spacing, "--s-mm", s)
+    hess = run_filter(tmp_path, "hessian-blob", image, spacing, "--s-mm", s)
+    assert log[24, 20, 42] > 0.5 * log[24, 20, 14] > 0  # the LoG answers the rod's middle
+    assert hess[24, 20, 14] > 0
+    assert hess[24, 20, 42] < 1e-3 * hess[24, 20, 14]
+    assert np.unravel_index(np.argmax(hess), shape) == (24, 20, 14)
 
 
 def extent_mm(shape):

@@ -6,7 +6,8 @@
 //!   nodule's consensus centroid — no more assisted than the ROI itself, and meaningless
 //!   otherwise (the stage says so in its verdict's localization line).
 //! - `blob` (assistance B for the guided rule, C for the blind ones): the strongest bright-blob
-//!   response of σ more than `inside_mm` inside the lung field found in σ. The guided rule
+//!   response of σ (`blob_filter`: the Laplacian or the Hessian of Gaussian) more than
+//!   `inside_mm` inside the lung field found in σ. The guided rule
 //!   uses the one scale matched to the annotated diameter (s = d / (2√3): a ball of radius
 //!   √3·s answers most at s); the blind rules the maximum over `blob_scales_mm`.
 
@@ -60,7 +61,7 @@ pub fn centres(
     annotated_diameter_mm: Option<f64>,
     coverage: Option<&[f32]>,
 ) -> Centres {
-    let Params { localize, ref blob_scales_mm, inside_mm, .. } = *params;
+    let Params { localize, blob_filter, ref blob_scales_mm, inside_mm, .. } = *params;
     let geometry = &density.geometry;
     let (dims, spacing) = (geometry.dims, geometry.spacing_mm);
     let centre = |voxel: [usize; 3], blob: Option<BlobPeak>| Centre {
@@ -95,7 +96,8 @@ pub fn centres(
             // Both rules search the same sites.
             let sites = blob_sites(lungs, dims, spacing, inside_mm);
             let peak = |scales: &[f64]| {
-                strongest_blob(&density.data, dims, spacing, scales, &sites).map(|p| centre(p.voxel, Some(p)))
+                strongest_blob(&density.data, dims, spacing, blob_filter, scales, &sites)
+                    .map(|p| centre(p.voxel, Some(p)))
             };
             let matched = annotated_diameter_mm.map(|d| [0.5 * d / 3f64.sqrt()]);
             // Independent searches: on two cores, side by side beats each one's own parallelism.

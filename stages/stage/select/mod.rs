@@ -23,6 +23,7 @@
 use crate::engine::{Context, Output, Stage};
 use crate::formats::obj;
 use crate::kernels::localization::{ground_truth_on_grid, Localization};
+use crate::kernels::lung_mask::BlobFilter;
 use crate::kernels::marching_cubes::mesh_mask;
 use crate::kernels::mesh::{enclosed_volume_mm3, vertex_normals};
 use crate::stage::drr::CameraSet;
@@ -51,6 +52,8 @@ pub struct Params {
     pub blind: Rule,
     /// How the nodule is found before it is sized: "none", "origin" or "blob".
     pub localize: Localize,
+    /// The blob search's response: "laplacian" or "hessian".
+    pub blob_filter: BlobFilter,
     /// Scales (mm) of the blind rules' blob search.
     pub blob_scales_mm: Vec<f64>,
     /// A blob centre lies more than this (mm) inside the lung field.
@@ -63,6 +66,7 @@ impl Default for Params {
             primary: Rule::Guided,
             blind: Rule::BlindPersistent,
             localize: Localize::Blob,
+            blob_filter: BlobFilter::Laplacian,
             blob_scales_mm: vec![6.0, 9.0, 13.0],
             inside_mm: 8.0,
         }
