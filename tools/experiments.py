@@ -63,6 +63,8 @@ ROWS = [
      " rules through the origin"),
 ]
 MEASURED = "experiment.json"
+# Columns of the table, the row's name included.
+COLUMNS = 12
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
 LEVELS = {
     "A": "location and diameter known",
@@ -104,6 +106,11 @@ def pct(x):
     return "–" if x is None else f"{100 * x:.0f}%"
 
 
+def count(rate, n):
+    """A rate of n patients as "k/n"."""
+    return "–" if rate is None else f"{round(rate * n)}/{n}"
+
+
 def num(x, fmt="{:.1f}"):
     return "–" if x is None else fmt.format(x)
 
@@ -127,6 +134,9 @@ def row_numbers(out):
             blind=loc["hit_rate_blind"],
             oracle=loc["hit_rate_oracle"],
             dice=loc["median_dice_ours"],
+            # Absent from summaries written before metrics v4.
+            centre_guided=loc.get("centre_rate_guided"),
+            centre_blind=loc.get("centre_rate_blind"),
             ape_all=value(g["ours"]["all"]["median_ape_pct"]),
             ape_hits=value(g["ours"]["over_hits"]["median_ape_pct"]),
             blind_ape_hits=value(g["blind"]["over_hits"]["median_ape_pct"]),
@@ -153,26 +163,30 @@ def rows_in(doc):
     for line in doc.split(START, 1)[-1].split(END, 1)[0].splitlines():
         cells = [c.strip() for c in line.split("|")]
         if len(cells) > 2 and any(cells[1] == name for name, *_ in ROWS):
+            if len(cells) == COLUMNS + 1:  # a line from before the centre column (cells has the
+                # empty text before the first | and after the last): not measured
+                line = "| " + " | ".join(cells[1:5] + ["–"] + cells[5:-1]) + " |"
             kept[cells[1]] = line
     return kept
 
 
 def table(results, kept):
     lines = [
-        "| row | config | level (primary / blind) | ≥10 mm hit: primary / blind / oracle | ≥10 mm median Dice"
+        "| row | config | level (primary / blind) | ≥10 mm hit: primary / blind / oracle"
+        " | ≥10 mm centre on the nodule: guided / blind | ≥10 mm median Dice"
         " | median APE: all / ≥10 mm / ≥10 mm over hits | blind APE over hits (≥10 mm) | all 19: hit / blind"
         " | hits beating the sphere | train s (median) | measured at |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "|" + " --- |" * COLUMNS,
     ]
     for name, config, level, blind_level, _ in ROWS:
         r = results.get(name)
         if r is None:
-            lines.append(kept.get(name, f"| {name} | `{config}` | {level} / {blind_level} | not run | | | | | | | |"))
+            lines.append(kept.get(name, f"| {name} | `{config}` | {level} / {blind_level} | not run |" + " |" * (COLUMNS - 4)))
             continue
         g, a = r["ge10"], r["all"]
         lines.append(
             f"| {name} | `{config}` | {level} / {blind_level} | {pct(g['hit'])} / {pct(g['blind'])} / {pct(g['oracle'])}"
-            f" | {num(g['dice'], '{:.2f}')} | {num(a['ape_all'])}% / {num(g['ape_all'])}% / {num(g['ape_hits'])}%"
+            f" | {count(g['centre_guided'], g['n'])} / {count(g['centre_blind'], g['n'])} | {num(g['dice'], '{:.2f}')} | {num(a['ape_all'])}% / {num(g['ape_all'])}% / {num(g['ape_hits'])}%"
             f" | {num(g['blind_ape_hits'])}% | {pct(a['hit'])} / {pct(a['blind'])} | {r['hits_beating_sphere']}"
             f" | {num(r['train_s'])} | {r['at'] or '–'} |"
         )

@@ -59,7 +59,18 @@ pub struct PatientRow {
     pub sphere_volume_mm3: f64,
     pub sphere_ape_pct: f64,
     pub oracle_hit: bool,
+    /// Whether the guided and the blind rules' centres (`localize`) lie on the nodule: `None`
+    /// where the rule found none. A hit through a centre elsewhere is a large candidate that
+    /// grazes the nodule, not localization.
+    pub centre_on_nodule: CentreOnNodule,
     pub train_seconds: f64,
+}
+
+/// Whether each rule's centre lies on the nodule (select's diagnostic `on_nodule`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct CentreOnNodule {
+    pub guided: Option<bool>,
+    pub blind: Option<bool>,
 }
 
 /// Absolute percentage error of `predicted` against `truth`.
@@ -95,6 +106,10 @@ impl PatientRow {
             sphere_volume_mm3: sphere,
             sphere_ape_pct: ape_pct(sphere, gt),
             oracle_hit: result.oracle.as_ref().is_some_and(|o| o.any_hit),
+            centre_on_nodule: CentreOnNodule {
+                guided: result.centres.guided.as_ref().and_then(|c| c.on_nodule),
+                blind: result.centres.blind.as_ref().and_then(|c| c.on_nodule),
+            },
             train_seconds,
         })
     }

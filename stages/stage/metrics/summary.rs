@@ -4,7 +4,7 @@
 //! statistic is given over all scored patients and again over hits only, so no volume error
 //! appears without the hit rate it stands on.
 
-use super::rows::{Measured, PatientRow, SizeClass};
+use super::rows::{CentreOnNodule, Measured, PatientRow, SizeClass};
 use super::Params;
 use crate::kernels::statistics::{self, BlandAltman, StatisticsError, Wilcoxon};
 use crate::kernels::stats;
@@ -44,6 +44,10 @@ pub struct HitRates {
     pub hit_rate_oracle: Option<f64>,
     pub median_dice_ours: Option<f64>,
     pub median_dice_blind: Option<f64>,
+    /// The fraction of patients whose guided rule's centre lies on the nodule (`None` when no
+    /// patient's rule had a centre: `localize = "none"`), and the same for the blind rule.
+    pub centre_rate_guided: Option<f64>,
+    pub centre_rate_blind: Option<f64>,
 }
 
 /// A selection's volume errors over all patients and over its hits only.
@@ -182,6 +186,11 @@ fn group(rows: &[&PatientRow], params: &Params) -> Group {
         let dice: Vec<f64> = rows.iter().map(|r| pick(r).map_or(0.0, |m| m.dice)).collect();
         (!dice.is_empty()).then(|| stats::median(&dice))
     };
+    let centre_rate = |pick: fn(&CentreOnNodule) -> Option<bool>| {
+        let found: Vec<bool> = rows.iter().filter_map(|r| pick(&r.centre_on_nodule)).collect();
+        // A patient without a centre counts as not on the nodule, once any patient has one.
+        (!found.is_empty()).then(|| rate(found.iter().filter(|&&on| on).count())).flatten()
+    };
     Group {
         n,
         localization: HitRates {
@@ -190,6 +199,8 @@ fn group(rows: &[&PatientRow], params: &Params) -> Group {
             hit_rate_oracle: rate(rows.iter().filter(|r| r.oracle_hit).count()),
             median_dice_ours: median_dice(ours),
             median_dice_blind: median_dice(blind),
+            centre_rate_guided: centre_rate(|c| c.guided),
+            centre_rate_blind: centre_rate(|c| c.blind),
         },
         ours: volumes(rows, ours, params),
         blind: volumes(rows, blind, params),
@@ -267,11 +278,13 @@ pub fn headline(summary_json: &[u8]) -> anyhow::Result<String> {
         let g = &s["groups"][name];
         let (loc, all) = (&g["localization"], &g["ours"]["all"]);
         out += &format!(
-            "  {name:<6} n={:<3} hit {} (blind {}, oracle {}) | median APE {} (over {} hits: {}) | Pearson r {} | bias {} mm³\n",
+            "  {name:<6} n={:<3} hit {} (blind {}, oracle {}; centre on the nodule {} / {}) | median APE {} (over {} hits: {}) | Pearson r {} | bias {} mm³\n",
             g["n"],
             pct(&loc["hit_rate_ours"]),
             pct(&loc["hit_rate_blind"]),
             pct(&loc["hit_rate_oracle"]),
+            pct(&loc["centre_rate_guided"]),
+            pct(&loc["centre_rate_blind"]),
             num(&all["median_ape_pct"]["value"], 1) + "%",
             g["ours"]["hits"],
             num(&g["ours"]["over_hits"]["median_ape_pct"]["value"], 1),
@@ -307,6 +320,7 @@ mod tests {
             sphere_volume_mm3: sphere,
             sphere_ape_pct: super::super::rows::ape_pct(sphere, gt),
             oracle_hit: hit,
+            centre_on_nodule: CentreOnNodule { guided: Some(hit), blind: None },
             train_seconds: 1.0,
         }
     }
@@ -324,6 +338,9 @@ mod tests {
         let all = &s.groups["all"];
         assert_eq!(all.localization.hit_rate_ours, Some(2.0 / 3.0));
         assert_eq!(all.localization.median_dice_ours, Some(0.6));
+        // Centres: the guided rule's on the nodule for the two hits; the blind rule found none.
+        assert_eq!(all.localization.centre_rate_guided, Some(2.0 / 3.0));
+        assert_eq!(all.localization.centre_rate_blind, None);
         assert_eq!(all.ours.hits, 2);
         // Over hits only (A, C): APE 10% and 20%.
         assert_eq!(all.ours.over_hits.median_ape_pct.value().unwrap().value, 15.0);
