@@ -66,7 +66,7 @@ impl Default for Params {
             primary: Rule::Guided,
             blind: Rule::BlindPersistent,
             localize: Localize::Blob,
-            blob_filter: BlobFilter::Laplacian,
+            blob_filter: BlobFilter::Hessian,
             blob_scales_mm: vec![6.0, 9.0, 13.0],
             inside_mm: 8.0,
         }
