@@ -163,9 +163,6 @@ def rows_in(doc):
     for line in doc.split(START, 1)[-1].split(END, 1)[0].splitlines():
         cells = [c.strip() for c in line.split("|")]
         if len(cells) > 2 and any(cells[1] == name for name, *_ in ROWS):
-            if len(cells) == COLUMNS + 1:  # a line from before the centre column (cells has the
-                # empty text before the first | and after the last): not measured
-                line = "| " + " | ".join(cells[1:5] + ["–"] + cells[5:-1]) + " |"
             kept[cells[1]] = line
     return kept
 

@@ -187,9 +187,13 @@ fn group(rows: &[&PatientRow], params: &Params) -> Group {
         (!dice.is_empty()).then(|| stats::median(&dice))
     };
     let centre_rate = |pick: fn(&CentreOnNodule) -> Option<bool>| {
-        let found: Vec<bool> = rows.iter().filter_map(|r| pick(&r.centre_on_nodule)).collect();
         // A patient without a centre counts as not on the nodule, once any patient has one.
-        (!found.is_empty()).then(|| rate(found.iter().filter(|&&on| on).count())).flatten()
+        let found: Vec<bool> = rows.iter().filter_map(|r| pick(&r.centre_on_nodule)).collect();
+        if found.is_empty() {
+            None
+        } else {
+            rate(found.iter().filter(|&&on| on).count())
+        }
     };
     Group {
         n,
