@@ -13,11 +13,10 @@ use aret_pipe::kernels::localization::ground_truth_on_grid;
 use aret_pipe::kernels::marching_cubes::mesh_mask;
 use aret_pipe::kernels::mesh::{enclosed_volume_mm3, vertex_normals};
 use aret_pipe::stage::drr::CameraSet;
-use aret_pipe::stage::grid::{gradient_magnitude_unit, lattice_geometry};
+use aret_pipe::stage::grid::{gradient_magnitude_unit, lattice_geometry, node_density};
 use aret_pipe::stage::ingest::truth::GroundTruth;
 use aret_pipe::stage::select::{centres, Analysis, Params as SelectParams, Rule};
 use aret_pipe::stage::sweep::{levels_of, scored, Params};
-use aret_pipe::train::render::AlphaMask;
 use aret_pipe::volume::Volume;
 use std::time::Instant;
 
@@ -31,14 +30,11 @@ fn main() -> anyhow::Result<()> {
     let gt_mask: Volume<u8> = mhd::decode(&String::from_utf8(read("gt_mask.mhd")?)?, &read("gt_mask.raw")?)?;
     let truth: GroundTruth = serde_json::from_slice(&read("ground_truth.json")?)?;
     let annotated = truth.target.map(|t| truth.nodules[t].annotated_diameter_mm);
-    let renderer = meta.renderer();
-    let mask = mask.map(|m| AlphaMask::from_nodes(m, meta.grid));
     let mut phases: Vec<[f64; 6]> = Vec::new();
     for _ in 0..runs {
         let t = Instant::now();
         let geometry = lattice_geometry(meta.grid, &meta.aabb, &set.frame);
-        let density =
-            Volume { geometry: geometry.clone(), data: renderer.node_density(&field.compose(), mask.as_ref()) };
+        let density = Volume { geometry: geometry.clone(), data: node_density(field.clone(), mask.clone(), &meta) };
         let uncertainty = gradient_magnitude_unit(&density);
         let grid = |name, values| vdb::FloatGrid {
             name,

@@ -58,6 +58,9 @@ ROWS = [
      "the default on a 128³ lattice instead of 64³ (same box and views)"),
     ("blob-laplacian", "presets/blob_laplacian.toml", "B", "C*",
      "the default with the blob search on the Laplacian of Gaussian instead of the Hessian (the default until 2026-11-26)"),
+    ("dense-tv", "presets/dense_tv.toml", "B", "C*",
+     "the default with σ fitted as a dense 64³ lattice under a smoothed 3-D TV (FISTA on the optical depths)"
+     " instead of TensoRF's VM factors"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),

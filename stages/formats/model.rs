@@ -3,12 +3,15 @@
 //!
 //! Tensors (float32, row-major): `plane_xy`, `plane_xz`, `plane_yz` of shape `[R, N, N]`
 //! (index `[r, v, u]`: u = the plane's first axis, fastest), `line_z`, `line_y`, `line_x` of shape
-//! `[R, N]`, and optionally `alpha_mask` (uint8 `[N, N, N]`, index `[z, y, x]`). The metadata has
+//! `[R, N]`, and optionally `alpha_mask` (uint8 `[N, N, N]`, index `[z, y, x]`). A dense model
+//! (`"model": "dense_tv"` in the metadata) holds one tensor instead, `density` (float32
+//! `[N, N, N]`, index `[z, y, x]`): σ at the lattice nodes. The metadata has
 //! one key, `aret_pipe`, whose value is the JSON of [`ModelMeta`] (one key keeps the bytes
 //! deterministic).
 
 use crate::geometry::Aabb;
 use crate::train::field::VmField;
+use crate::train::fit::FieldModel;
 use crate::train::render::{Lattice, PhotoLoss, Renderer};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
@@ -17,6 +20,9 @@ use std::collections::HashMap;
 /// Everything needed to evaluate the field besides its factors.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ModelMeta {
+    /// What the tensors hold (absent, as in files from before dense models: VM factors).
+    #[serde(default, skip_serializing_if = "FieldModel::is_vm")]
+    pub model: FieldModel,
     pub grid: usize,
     pub rank: usize,
     pub aabb: Aabb,
@@ -51,9 +57,20 @@ fn bytes(v: &[f32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
 
+/// A trained field as the file stores it.
+#[derive(Debug, Clone)]
+pub enum Field {
+    /// VM factors: σ = ReLU(F + Δ) of their composition.
+    Vm(VmField<f32>),
+    /// σ at the N³ nodes, index `x + N·(y + N·z)`.
+    Dense(Vec<f32>),
+}
+
+type Tensors = Vec<(String, Dtype, Vec<usize>, Vec<u8>)>;
+
 pub fn encode(field: &VmField<f32>, mask: Option<&[bool]>, meta: &ModelMeta) -> anyhow::Result<Vec<u8>> {
     let (n, r) = (field.n, field.rank);
-    let mut owned: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = Vec::new();
+    let mut owned: Tensors = Vec::new();
     for p in 0..3 {
         owned.push((PLANES[p].into(), Dtype::F32, vec![r, n, n], bytes(&field.planes[p])));
         owned.push((LINES[p].into(), Dtype::F32, vec![r, n], bytes(&field.lines[p])));
@@ -61,6 +78,17 @@ pub fn encode(field: &VmField<f32>, mask: Option<&[bool]>, meta: &ModelMeta) -> 
     if let Some(mask) = mask {
         owned.push(("alpha_mask".into(), Dtype::U8, vec![n, n, n], mask.iter().map(|&k| u8::from(k)).collect()));
     }
+    serialize(&owned, meta)
+}
+
+/// A dense model: σ at the `meta.grid³` nodes.
+pub fn encode_dense(sigma: &[f32], meta: &ModelMeta) -> anyhow::Result<Vec<u8>> {
+    let n = meta.grid;
+    anyhow::ensure!(sigma.len() == n * n * n, "a {n}³ dense model needs {} values, not {}", n * n * n, sigma.len());
+    serialize(&vec![("density".into(), Dtype::F32, vec![n, n, n], bytes(sigma))], meta)
+}
+
+fn serialize(owned: &Tensors, meta: &ModelMeta) -> anyhow::Result<Vec<u8>> {
     let views = owned
         .iter()
         .map(|(name, dtype, shape, data)| Ok((name.clone(), TensorView::new(*dtype, shape.clone(), data)?)))
@@ -69,8 +97,8 @@ pub fn encode(field: &VmField<f32>, mask: Option<&[bool]>, meta: &ModelMeta) -> 
     Ok(safetensors::serialize(views, &Some(metadata))?)
 }
 
-/// The factors, the mask (if stored) and the metadata of a model file.
-pub fn decode(data: &[u8]) -> anyhow::Result<(VmField<f32>, Option<Vec<bool>>, ModelMeta)> {
+/// The field, the mask (if stored) and the metadata of a model file.
+pub fn decode(data: &[u8]) -> anyhow::Result<(Field, Option<Vec<bool>>, ModelMeta)> {
     let (_, header) = SafeTensors::read_metadata(data)?;
     let meta_json = header
         .metadata()
@@ -88,11 +116,51 @@ pub fn decode(data: &[u8]) -> anyhow::Result<(VmField<f32>, Option<Vec<bool>>, M
         Ok(t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
     };
     let (n, r) = (meta.grid, meta.rank);
+    if meta.model == FieldModel::DenseTv {
+        return Ok((Field::Dense(floats("density", n * n * n)?), None, meta));
+    }
     let mut field = VmField::zeros(n, r);
     for p in 0..3 {
         field.planes[p] = floats(PLANES[p], r * n * n)?;
         field.lines[p] = floats(LINES[p], r * n)?;
     }
     let mask = tensors.tensor("alpha_mask").ok().map(|t| t.data().iter().map(|&b| b != 0).collect());
-    Ok((field, mask, meta))
+    Ok((Field::Vm(field), mask, meta))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn meta(model: FieldModel, grid: usize, rank: usize) -> ModelMeta {
+        ModelMeta {
+            model,
+            grid,
+            rank,
+            aabb: Aabb { min: [-1.0; 3], max: [1.0; 3] },
+            shift: 0.0,
+            scale: 1.0,
+            step: 0.1,
+            seed: 3,
+            iterations: 10,
+            backend: "cpu".into(),
+            parameters: 0,
+        }
+    }
+
+    #[test]
+    fn a_dense_model_round_trips_and_a_vm_model_keeps_its_metadata() {
+        let sigma: Vec<f32> = (0..27).map(|i| i as f32 * 0.5).collect();
+        let bytes = encode_dense(&sigma, &meta(FieldModel::DenseTv, 3, 0)).unwrap();
+        let (field, mask, decoded) = decode(&bytes).unwrap();
+        assert!(matches!(field, Field::Dense(ref s) if *s == sigma) && mask.is_none());
+        assert_eq!(decoded, meta(FieldModel::DenseTv, 3, 0));
+        assert!(encode_dense(&sigma[..26], &meta(FieldModel::DenseTv, 3, 0)).is_err());
+        // A VM model's metadata has no `model` key, as files written before dense models.
+        let vm = VmField::zeros(3, 2);
+        let bytes = encode(&vm, None, &meta(FieldModel::Vm, 3, 2)).unwrap();
+        let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+        assert!(!header.metadata().as_ref().unwrap()["aret_pipe"].contains("model"));
+        assert!(matches!(decode(&bytes).unwrap().0, Field::Vm(ref f) if f.rank == 2));
+    }
 }

@@ -65,6 +65,7 @@ impl Kernels {
 /// the GPU must never silently train a different loss than the CPU would.
 pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
     let TrainParams {
+        model,
         grid: _,
         rank: _,
         shift: _,
@@ -85,7 +86,12 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         seed: _,
         backend: _,
         threads: _,
+        dense_tv_lambda: _,
+        dense_tv_epsilon: _,
     } = params;
+    if !model.is_vm() {
+        anyhow::bail!("[train] model = \"dense_tv\" runs on the CPU only: its solver has no shaders");
+    }
     Ok(())
 }
 

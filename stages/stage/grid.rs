@@ -3,7 +3,7 @@
 //! Input: `train/model.safetensors` (factors, alpha mask, Δ, AABB) and `drr/cameras.json` (the
 //! scene frame: scene units → patient mm). σ is evaluated at the N³ lattice nodes, which are
 //! the cell centres of the AABB (the training lattice itself), with the renderer's alpha-mask
-//! rule. Outputs: `density.mhd/.raw` (f32), `uncertainty.mhd/.raw` (|∇σ| by central
+//! rule; a dense model (`[train] model = "dense_tv"`) holds σ at those nodes already. Outputs: `density.mhd/.raw` (f32), `uncertainty.mhd/.raw` (|∇σ| by central
 //! differences in mm, scaled to [0, 1]) and `density.vdb` holding both as FloatGrids, all in
 //! patient millimetres.
 
@@ -47,11 +47,8 @@ impl Stage for Grid {
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let set: CameraSet = serde_json::from_slice(&ctx.read("drr", "cameras.json")?)?;
         let (field, mask, meta) = model::decode(&ctx.read("train", "model.safetensors")?)?;
-        let renderer = meta.renderer();
-        let mask = mask.map(|nodes| AlphaMask::from_nodes(nodes, meta.grid));
         let geometry = lattice_geometry(meta.grid, &meta.aabb, &set.frame);
-        let density =
-            Volume { geometry: geometry.clone(), data: renderer.node_density(&field.compose(), mask.as_ref()) };
+        let density = Volume { geometry: geometry.clone(), data: node_density(field, mask, &meta) };
         let uncertainty = Volume { geometry, data: gradient_magnitude_unit(&density) };
         let vdb_bytes = vdb::encode(&[
             vdb_grid("density", &density, GridClass::FogVolume),
@@ -65,6 +62,18 @@ impl Stage for Grid {
         }
         outputs.push(Output::new("density.vdb", vdb_bytes));
         Ok(outputs)
+    }
+}
+
+/// σ at the lattice nodes of a decoded model, index `x + N·(y + N·z)`: the VM field composed and
+/// sampled as the renderer samples it (with its alpha mask), or a dense model's own values.
+pub fn node_density(field: model::Field, mask: Option<Vec<bool>>, meta: &model::ModelMeta) -> Vec<f32> {
+    match field {
+        model::Field::Vm(factors) => {
+            let mask = mask.map(|nodes| AlphaMask::from_nodes(nodes, meta.grid));
+            meta.renderer().node_density(&factors.compose(), mask.as_ref())
+        }
+        model::Field::Dense(sigma) => sigma,
     }
 }
 

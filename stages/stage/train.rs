@@ -9,11 +9,30 @@ use crate::formats::model::{self, ModelMeta};
 use crate::formats::{exr_image, svg};
 use crate::gpu;
 use crate::stage::drr::CameraSet;
-use crate::train::fit::{fit, LogRow, Views};
+use crate::train::dense_tv;
+use crate::train::fit::{fit, renderer, FieldModel, LogRow, Views};
 use anyhow::bail;
 use std::fmt::Write as _;
 
 pub const VERSION: u32 = 4;
+
+/// The `[train]` keys only the VM fit reads.
+const VM_ONLY_KEYS: [&str; 14] = [
+    "rank",
+    "shift",
+    "batch_rays",
+    "lr",
+    "lr_decay_ratio",
+    "lambda_l1",
+    "lambda_tv",
+    "tv_norm",
+    "lambda_tv3d",
+    "loss",
+    "init_scale",
+    "alpha_mask_iterations",
+    "alpha_threshold",
+    "seed",
+];
 
 /// `[train]` is the fit's own parameter table.
 pub use crate::train::fit::{Backend, TrainParams as Params};
@@ -24,8 +43,22 @@ pub struct Train {
 
 impl Train {
     /// Where this stage runs: `auto` resolved to `cpu` or `gpu` (for the key and the run alike).
+    /// The dense model's solver runs on the CPU only.
     fn backend(&self) -> Backend {
-        self.params.backend.resolve("[train]")
+        match self.params.model {
+            FieldModel::Vm => self.params.backend.resolve("[train]"),
+            FieldModel::DenseTv => Backend::Cpu,
+        }
+    }
+}
+
+impl Train {
+    /// Runs `work` on `[train] threads` workers (0: rayon's global pool, all cores).
+    fn in_pool<R: Send>(&self, work: impl FnOnce() -> R + Send) -> anyhow::Result<R> {
+        if self.params.threads == 0 {
+            return Ok(work());
+        }
+        Ok(rayon::ThreadPoolBuilder::new().num_threads(self.params.threads).build()?.install(work))
     }
 }
 
@@ -42,7 +75,15 @@ impl Stage for Train {
     fn params(&self) -> serde_json::Value {
         let resolved = Params { backend: self.backend(), ..self.params.clone() };
         let mut json = super::params_json(&resolved);
-        json.as_object_mut().expect("params are a table").remove("threads");
+        let table = json.as_object_mut().expect("params are a table");
+        // Only what the chosen model reads is part of its key (so VM fits keep their keys).
+        let unread: &[&str] = match self.params.model {
+            FieldModel::Vm => &["model", "dense_tv_lambda", "dense_tv_epsilon"],
+            FieldModel::DenseTv => &VM_ONLY_KEYS,
+        };
+        for key in unread.iter().chain(&["threads"]) {
+            table.remove(*key);
+        }
         json
     }
     fn reads(&self, _stage: &str, output: &str) -> bool {
@@ -76,15 +117,36 @@ impl Stage for Train {
         }
         let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
         let params = &self.params;
+        let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();
+        if params.model == FieldModel::DenseTv {
+            let renderer = renderer(params, set.aabb);
+            let fitted = self.in_pool(|| dense_tv::fit(params, &views, &renderer, |_| {}))?;
+            let meta = ModelMeta {
+                model: FieldModel::DenseTv,
+                grid: params.grid,
+                rank: 0,
+                aabb: set.aabb,
+                shift: 0.0,
+                scale: params.scale,
+                step: renderer.step,
+                seed: 0,
+                iterations: params.iterations,
+                backend: backend.name().into(),
+                parameters: fitted.sigma.len(),
+            };
+            return Ok(vec![
+                Output::new("model.safetensors", model::encode_dense(&fitted.sigma, &meta)?),
+                Output::new("train_log.csv", log_csv(&fitted.log, &views_named)),
+                Output::new("loss.svg", loss_svg(&fitted.log)),
+            ]);
+        }
         let fitted = if let Some(device) = device {
             gpu::fit::fit(&device, params, &views, |_| {})?
-        } else if self.params.threads > 0 {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(self.params.threads).build()?;
-            pool.install(|| fit(params, &views, |_| {}))
         } else {
-            fit(params, &views, |_| {})
+            self.in_pool(|| fit(params, &views, |_| {}))?
         };
         let meta = ModelMeta {
+            model: FieldModel::Vm,
             grid: params.grid,
             rank: params.rank,
             aabb: set.aabb,
@@ -96,7 +158,6 @@ impl Stage for Train {
             backend: backend.name().into(),
             parameters: fitted.field.len(),
         };
-        let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();
         Ok(vec![
             Output::new(
                 "model.safetensors",

@@ -17,6 +17,8 @@ use std::time::Instant;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrainParams {
+    /// What is fitted: TensoRF's VM factors (SPEC §3) or a dense lattice under 3-D TV.
+    pub model: FieldModel,
     /// Lattice nodes per axis (N); planes are N×N, lines N.
     pub grid: usize,
     /// Components per plane/line pair (R).
@@ -45,10 +47,33 @@ pub struct TrainParams {
     /// Evaluate and log every this many iterations (and at the last).
     pub log_every: usize,
     pub seed: u64,
+    /// `model = "dense_tv"`: the weight λ of the smoothed 3-D TV (per node, against the data
+    /// term per ray).
+    pub dense_tv_lambda: f64,
+    /// `model = "dense_tv"`: ε of the smoothed TV `√(|∇σ|² + ε²)`, in σ per lattice step.
+    pub dense_tv_epsilon: f64,
     /// Where the fit runs (part of the cache key: backends differ in rounding).
     pub backend: Backend,
     /// Worker threads (0: all cores). Results do not depend on it: not part of the cache key.
     pub threads: usize,
+}
+
+/// What `train` fits.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FieldModel {
+    /// TensoRF's vector–matrix factors (SPEC §3 train).
+    #[default]
+    Vm,
+    /// σ itself on the N³ lattice, fitted to the optical depths under a smoothed 3-D TV by a
+    /// convex solver ([`super::dense_tv`]; issue 8's experiment, CPU only).
+    DenseTv,
+}
+
+impl FieldModel {
+    pub fn is_vm(&self) -> bool {
+        *self == FieldModel::Vm
+    }
 }
 
 /// Where the training runs (shared with `[drr] backend`).
@@ -59,10 +84,21 @@ impl TrainParams {
         if self.grid < 2 || self.grid > MAX_GRID || self.rank == 0 || self.iterations == 0 || self.batch_rays == 0 {
             anyhow::bail!("[train] grid must be in [2, {MAX_GRID}] and rank, iterations, batch_rays ≥ 1");
         }
-        for (key, v) in [("scale", self.scale), ("lr", self.lr), ("lr_decay_ratio", self.lr_decay_ratio)] {
+        for (key, v) in [
+            ("scale", self.scale),
+            ("lr", self.lr),
+            ("lr_decay_ratio", self.lr_decay_ratio),
+            ("dense_tv_epsilon", self.dense_tv_epsilon),
+        ] {
             if !(v.is_finite() && v > 0.0) {
                 anyhow::bail!("[train] {key} must be positive (got {v})");
             }
+        }
+        if self.model == FieldModel::DenseTv && self.backend == Backend::Gpu {
+            anyhow::bail!("[train] model = \"dense_tv\" runs on the CPU only: set backend = \"cpu\" or \"auto\"");
+        }
+        if !(self.dense_tv_lambda.is_finite() && self.dense_tv_lambda >= 0.0) {
+            anyhow::bail!("[train] dense_tv_lambda must be 0 or more (got {})", self.dense_tv_lambda);
         }
         Ok(())
     }
@@ -93,6 +129,7 @@ impl TrainParams {
 impl Default for TrainParams {
     fn default() -> Self {
         TrainParams {
+            model: FieldModel::Vm,
             grid: 64,
             rank: 16,
             shift: 0.0,
@@ -111,6 +148,8 @@ impl Default for TrainParams {
             alpha_threshold: 1e-3,
             log_every: 100,
             seed: 0,
+            dense_tv_lambda: 1e-3,
+            dense_tv_epsilon: 1e-3,
             backend: Backend::Cpu,
             threads: 0,
         }

@@ -9,6 +9,7 @@ pub mod adam;
 #[cfg(target_arch = "x86_64")]
 pub mod compose;
 pub mod contract;
+pub mod dense_tv;
 pub mod field;
 pub mod fit;
 pub mod gemm;

@@ -14,6 +14,7 @@ use crate::kernels::trilinear;
 use glam::DVec3;
 use num_traits::Float;
 use rayon::prelude::*;
+pub(crate) use walk::trilinear_weights;
 use walk::RayWalk;
 
 mod walk;

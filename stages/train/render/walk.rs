@@ -205,7 +205,7 @@ fn portable<T: Scalar, const RECORD: bool>(walk: &RayWalk<T>, mut recorder: Reco
 
 /// The trilinear weights of the 8 corners at `frac`, in [`CornerWeights`] order.
 #[inline(always)]
-fn trilinear_weights<T: Scalar>([fx, fy, fz]: [T; 3]) -> [T; 8] {
+pub(crate) fn trilinear_weights<T: Scalar>([fx, fy, fz]: [T; 3]) -> [T; 8] {
     let (gx, gy, gz) = (T::one() - fx, T::one() - fy, T::one() - fz);
     let face = [gx * gy, fx * gy, gx * fy, fx * fy];
     [face[0] * gz, face[1] * gz, face[2] * gz, face[3] * gz, face[0] * fz, face[1] * fz, face[2] * fz, face[3] * fz]
