@@ -148,7 +148,7 @@ impl Default for TrainParams {
             alpha_threshold: 1e-3,
             log_every: 100,
             seed: 0,
-            dense_tv_lambda: 1e-3,
+            dense_tv_lambda: 1e-2,
             dense_tv_epsilon: 1e-3,
             backend: Backend::Cpu,
             threads: 0,
