@@ -61,6 +61,8 @@ ROWS = [
     ("dense-tv", "presets/dense_tv.toml", "B", "C*",
      "the default with σ fitted as a dense 64³ lattice under a smoothed 3-D TV (FISTA on the optical depths)"
      " instead of TensoRF's VM factors"),
+    ("dense-tv-128", "presets/dense_tv_128.toml", "B", "C*",
+     "the dense model on a 128³ lattice (same box, views and λ)"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),

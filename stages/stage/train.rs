@@ -10,7 +10,7 @@ use crate::formats::{exr_image, svg};
 use crate::gpu;
 use crate::stage::drr::CameraSet;
 use crate::train::dense_tv;
-use crate::train::fit::{fit, renderer, FieldModel, LogRow, Views};
+use crate::train::fit::{fit, renderer, FieldModel, Fitted, LogRow, Views};
 use anyhow::bail;
 use std::fmt::Write as _;
 
@@ -50,9 +50,7 @@ impl Train {
             FieldModel::DenseTv => Backend::Cpu,
         }
     }
-}
 
-impl Train {
     /// Runs `work` on `[train] threads` workers (0: rayon's global pool, all cores).
     fn in_pool<R: Send>(&self, work: impl FnOnce() -> R + Send) -> anyhow::Result<R> {
         if self.params.threads == 0 {
@@ -116,56 +114,65 @@ impl Stage for Train {
             images.push(image.pixels);
         }
         let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
-        let params = &self.params;
-        let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();
-        if params.model == FieldModel::DenseTv {
-            let renderer = renderer(params, set.aabb);
-            let fitted = self.in_pool(|| dense_tv::fit(params, &views, &renderer, |_| {}))?;
-            let meta = ModelMeta {
-                model: FieldModel::DenseTv,
-                grid: params.grid,
-                rank: 0,
-                aabb: set.aabb,
-                shift: 0.0,
-                scale: params.scale,
-                step: renderer.step,
-                seed: 0,
-                iterations: params.iterations,
-                backend: backend.name().into(),
-                parameters: fitted.sigma.len(),
-            };
-            return Ok(vec![
-                Output::new("model.safetensors", model::encode_dense(&fitted.sigma, &meta)?),
-                Output::new("train_log.csv", log_csv(&fitted.log, &views_named)),
-                Output::new("loss.svg", loss_svg(&fitted.log)),
-            ]);
-        }
-        let fitted = if let Some(device) = device {
-            gpu::fit::fit(&device, params, &views, |_| {})?
-        } else {
-            self.in_pool(|| fit(params, &views, |_| {}))?
+        let (model_bytes, log) = match device {
+            _ if self.params.model == FieldModel::DenseTv => self.fit_dense(&views)?,
+            Some(device) => self.fit_vm(&views, |params, views| gpu::fit::fit(&device, params, views, |_| {}))?,
+            None => self.fit_vm(&views, |params, views| self.in_pool(|| fit(params, views, |_| {})))?,
         };
+        let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();
+        Ok(vec![
+            Output::new("model.safetensors", model_bytes),
+            Output::new("train_log.csv", log_csv(&log, &views_named)),
+            Output::new("loss.svg", loss_svg(&log)),
+        ])
+    }
+}
+
+impl Train {
+    /// The VM factors fitted by `fit_on` (the CPU or the GPU loop): the model file and the log.
+    fn fit_vm(
+        &self,
+        views: &Views,
+        fit_on: impl FnOnce(&Params, &Views) -> anyhow::Result<Fitted>,
+    ) -> anyhow::Result<(Vec<u8>, Vec<LogRow>)> {
+        let params = &self.params;
+        let fitted = fit_on(params, views)?;
         let meta = ModelMeta {
             model: FieldModel::Vm,
             grid: params.grid,
             rank: params.rank,
-            aabb: set.aabb,
+            aabb: views.aabb,
             shift: params.shift,
             scale: params.scale,
             step: fitted.renderer.step,
             seed: params.seed,
             iterations: params.iterations,
-            backend: backend.name().into(),
+            backend: self.backend().name().into(),
             parameters: fitted.field.len(),
         };
-        Ok(vec![
-            Output::new(
-                "model.safetensors",
-                model::encode(&fitted.field, fitted.mask.as_ref().map(|m| m.nodes.as_slice()), &meta)?,
-            ),
-            Output::new("train_log.csv", log_csv(&fitted.log, &views_named)),
-            Output::new("loss.svg", loss_svg(&fitted.log)),
-        ])
+        let mask = fitted.mask.as_ref().map(|m| m.nodes.as_slice());
+        Ok((model::encode(&fitted.field, mask, &meta)?, fitted.log))
+    }
+
+    /// The dense lattice (`model = "dense_tv"`, on the CPU): the model file and the log.
+    fn fit_dense(&self, views: &Views) -> anyhow::Result<(Vec<u8>, Vec<LogRow>)> {
+        let params = &self.params;
+        let renderer = renderer(params, views.aabb);
+        let fitted = self.in_pool(|| dense_tv::fit(params, views, &renderer, |_| {}))?;
+        let meta = ModelMeta {
+            model: FieldModel::DenseTv,
+            grid: params.grid,
+            rank: 0,
+            aabb: views.aabb,
+            shift: 0.0,
+            scale: params.scale,
+            step: renderer.step,
+            seed: 0,
+            iterations: params.iterations,
+            backend: self.backend().name().into(),
+            parameters: fitted.sigma.len(),
+        };
+        Ok((model::encode_dense(&fitted.sigma, &meta)?, fitted.log))
     }
 }
 
