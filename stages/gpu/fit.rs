@@ -86,6 +86,7 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         seed: _,
         backend: _,
         threads: _,
+        dense_tv_iterations: _,
         dense_tv_lambda: _,
         dense_tv_epsilon: _,
     } = params;

@@ -17,8 +17,9 @@ use std::fmt::Write as _;
 pub const VERSION: u32 = 4;
 
 /// The `[train]` keys only the VM fit reads.
-const VM_ONLY_KEYS: [&str; 14] = [
+const VM_ONLY_KEYS: [&str; 15] = [
     "rank",
+    "iterations",
     "shift",
     "batch_rays",
     "lr",
@@ -76,7 +77,7 @@ impl Stage for Train {
         let table = json.as_object_mut().expect("params are a table");
         // Only what the chosen model reads is part of its key (so VM fits keep their keys).
         let unread: &[&str] = match self.params.model {
-            FieldModel::Vm => &["model", "dense_tv_lambda", "dense_tv_epsilon"],
+            FieldModel::Vm => &["model", "dense_tv_iterations", "dense_tv_lambda", "dense_tv_epsilon"],
             FieldModel::DenseTv => &VM_ONLY_KEYS,
         };
         for key in unread.iter().chain(&["threads"]) {
@@ -168,7 +169,7 @@ impl Train {
             scale: params.scale,
             step: renderer.step,
             seed: 0,
-            iterations: params.iterations,
+            iterations: params.dense_tv_iterations,
             backend: self.backend().name().into(),
             parameters: fitted.sigma.len(),
         };

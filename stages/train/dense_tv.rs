@@ -176,7 +176,7 @@ struct Evaluation {
     depths: Vec<f64>,
 }
 
-/// Fits σ to `views` as the module describes, `params.iterations` FISTA steps, logging as the
+/// Fits σ to `views` as the module describes, `params.dense_tv_iterations` FISTA steps, logging as the
 /// VM fit logs (`photo` is the data term, `tv3d` the smoothed TV, `lr` the step `1/L`).
 pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, mut on_log: impl FnMut(&LogRow)) -> DenseFitted {
     let started = Instant::now();
@@ -222,7 +222,7 @@ pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, mut on_log:
     let mut sigma = vec![0.0; nodes];
     record(0, &evaluate(&sigma, false).0);
     let (mut ahead, mut t) = (sigma.clone(), 1.0f64);
-    for it in 0..params.iterations {
+    for it in 0..params.dense_tv_iterations {
         let (_, gradient) = evaluate(&ahead, true);
         let gradient = gradient.expect("asked for");
         let next: Vec<f64> = ahead.iter().zip(&gradient).map(|(a, g)| (a - step * g).max(0.0)).collect();

@@ -47,6 +47,8 @@ pub struct TrainParams {
     /// Evaluate and log every this many iterations (and at the last).
     pub log_every: usize,
     pub seed: u64,
+    /// `model = "dense_tv"`: FISTA steps (`iterations` counts the VM fit's Adam steps).
+    pub dense_tv_iterations: usize,
     /// `model = "dense_tv"`: the weight λ of the smoothed 3-D TV (per node, against the data
     /// term per ray).
     pub dense_tv_lambda: f64,
@@ -81,8 +83,16 @@ pub use crate::gpu::Backend;
 
 impl TrainParams {
     pub fn check(&self) -> anyhow::Result<()> {
-        if self.grid < 2 || self.grid > MAX_GRID || self.rank == 0 || self.iterations == 0 || self.batch_rays == 0 {
-            anyhow::bail!("[train] grid must be in [2, {MAX_GRID}] and rank, iterations, batch_rays ≥ 1");
+        if self.grid < 2
+            || self.grid > MAX_GRID
+            || self.rank == 0
+            || self.iterations == 0
+            || self.batch_rays == 0
+            || self.dense_tv_iterations == 0
+        {
+            anyhow::bail!(
+                "[train] grid must be in [2, {MAX_GRID}] and rank, iterations, batch_rays, dense_tv_iterations ≥ 1"
+            );
         }
         for (key, v) in [
             ("scale", self.scale),
@@ -105,7 +115,15 @@ impl TrainParams {
 
     /// Whether the three views are evaluated and a row logged after `done` iterations.
     pub fn logs_after(&self, done: usize) -> bool {
-        done.is_multiple_of(self.log_every.max(1)) || done == self.iterations
+        done.is_multiple_of(self.log_every.max(1)) || done == self.steps()
+    }
+
+    /// The fit's length: Adam iterations (VM) or FISTA steps (dense).
+    pub fn steps(&self) -> usize {
+        match self.model {
+            FieldModel::Vm => self.iterations,
+            FieldModel::DenseTv => self.dense_tv_iterations,
+        }
     }
 
     /// Whether the alpha mask is (re)computed after `done` iterations.
@@ -148,6 +166,7 @@ impl Default for TrainParams {
             alpha_threshold: 1e-3,
             log_every: 100,
             seed: 0,
+            dense_tv_iterations: 500,
             dense_tv_lambda: 1e-2,
             dense_tv_epsilon: 1e-3,
             backend: Backend::Cpu,

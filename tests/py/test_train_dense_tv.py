@@ -7,7 +7,7 @@ objective `1/(2B) Σ (τ̂ − τ)² + λ mean √(|∇σ|² + ε²)`; then:
 - the logged final loss is that objective at the stored σ;
 - scipy's L-BFGS-B (bounds σ ≥ 0) on the same objective reaches no lower, and its σ is close;
 - `density.mhd` is the stored σ; same inputs give the same bytes, and the VM-only keys
-  (`seed`, `lr`) do not enter the dense fit's cache key.
+  (`seed`, `lr`, `iterations`) do not enter the dense fit's cache key.
 """
 import csv
 import json
@@ -28,7 +28,7 @@ from test_train_safetensors import BIN
 
 N, LAMBDA, EPSILON = 12, 2e-3, 1e-2
 TRAIN = (
-    f'[train]\nmodel = "dense_tv"\ngrid = {N}\niterations = 400\nlog_every = 100\n'
+    f'[train]\nmodel = "dense_tv"\ngrid = {N}\ndense_tv_iterations = 400\nlog_every = 100\n'
     f"dense_tv_lambda = {LAMBDA}\ndense_tv_epsilon = {EPSILON}\n"
 )
 
@@ -158,5 +158,5 @@ def test_deterministic_and_keyed_only_by_what_it_reads(tmp, out):
     assert (again / "model.safetensors").read_bytes() == (out / "model.safetensors").read_bytes()
     # Same cache as "a", with keys only the VM fit reads: the dense fit is not redone.
     (tmp / "cache-c").symlink_to(tmp / "cache-a")
-    _, log = run(tmp, "c", "seed = 9\nlr = 0.5\n")
+    _, log = run(tmp, "c", "seed = 9\nlr = 0.5\niterations = 7\n")
     assert "grid P1: computed" not in log and "train P1: computed" not in log, log
