@@ -34,8 +34,9 @@ ROWS = [
      "+ 3-D TV (λ = 1e-4) on the composed field during training"),
     ("lungs-contrast", "presets/lungs_contrast.toml", "B", "C*",
      "+ sweep of the local contrast inside the lung field found in σ"),
-    ("find-then-size", "pipeline.toml", "B", "C*",
-     "+ blob centre (the Hessian's) inside the lung field first, then the candidates holding it (the default)"),
+    ("find-then-size", "presets/tensorf.toml", "B", "C*",
+     "+ blob centre (the Hessian's) inside the lung field first, then the candidates holding it, on TensoRF's VM"
+     " field (the default until 2026-11-26)"),
     ("find-then-size-A", "presets/origin.toml", "A", "A",
      "the same, centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
     ("blind", "presets/blind.toml", "C", "C",
@@ -61,8 +62,8 @@ ROWS = [
     ("dense-tv", "presets/dense_tv.toml", "B", "C*",
      "the default with σ fitted as a dense 64³ lattice under a smoothed 3-D TV (FISTA on the optical depths)"
      " instead of TensoRF's VM factors"),
-    ("dense-tv-128", "presets/dense_tv_128.toml", "B", "C*",
-     "the dense model on a 128³ lattice (same box, views and λ)"),
+    ("dense-tv-128", "pipeline.toml", "B", "C*",
+     "the dense model on a 128³ lattice (same box, views and λ): the default since 2026-11-26"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),
