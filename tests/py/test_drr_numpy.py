@@ -101,14 +101,20 @@ def trilinear(v, p):
     return (c00 * (1 - ty) + c10 * ty) * (1 - tz) + (c01 * (1 - ty) + c11 * ty) * tz
 
 
-def reference_image(cam, cams, v, origin, spacing):
+def pixel_rays(cam):
+    """Origins and unit directions (scene units) of every pixel centre's ray, row-major."""
     w, h, f = cam["width"], cam["height"], cam["focal_px"]
     m = np.array(cam["camera_to_world"])
     i, j = np.meshgrid(np.arange(w), np.arange(h))
     d_cam = np.stack([(i + 0.5 - w / 2) / f, -(j + 0.5 - h / 2) / f, -np.ones_like(i, float)], -1).reshape(-1, 3)
     d = d_cam @ m[:3, :3].T
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = np.broadcast_to(m[:3, 3], d.shape)
+    return np.broadcast_to(m[:3, 3], d.shape), d
+
+
+def reference_image(cam, cams, v, origin, spacing):
+    w, h = cam["width"], cam["height"]
+    o, d = pixel_rays(cam)
     scale, center = cams["frame"]["mm_per_unit"], np.array(cams["frame"]["roi_center_mm"])
     # Continuous voxel index of scene point p: (p * scale + center - origin) / spacing.
     o_idx = (o * scale + center - origin) / spacing

@@ -23,7 +23,7 @@ from safetensors import safe_open
 from safetensors.numpy import load_file
 from scipy.optimize import minimize
 
-from test_drr_numpy import phantom_hu, slab, write_series
+from test_drr_numpy import phantom_hu, pixel_rays, slab, write_series
 from test_train_safetensors import BIN
 
 N, LAMBDA, EPSILON = 12, 2e-3, 1e-2
@@ -69,13 +69,7 @@ def system(out):
     rows, cols, vals, taus = [], [], [], []
     r0 = 0
     for cam in cams["cameras"]:
-        w, h, f = cam["width"], cam["height"], cam["focal_px"]
-        m = np.array(cam["camera_to_world"])
-        i, j = np.meshgrid(np.arange(w), np.arange(h))
-        d = np.stack([(i + 0.5 - w / 2) / f, -(j + 0.5 - h / 2) / f, -np.ones_like(i, float)], -1).reshape(-1, 3)
-        d = d @ m[:3, :3].T
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        o = np.broadcast_to(m[:3, 3], d.shape)
+        o, d = pixel_rays(cam)
         t0, t1 = slab(lo, hi, o, d)
         with OpenEXR.File(str(out / f"drr_{cam['view']}.exr")) as exr:
             pixels = exr.channels()["Y"].pixels.astype(np.float64).reshape(-1)
