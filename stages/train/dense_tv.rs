@@ -29,10 +29,16 @@ struct Csr {
 impl Csr {
     /// `M x`, each row summed in column order (bit-identical whatever the thread count).
     fn times(&self, x: &[f64]) -> Vec<f64> {
-        self.offsets
-            .par_windows(2)
-            .map(|w| (w[0]..w[1]).map(|k| self.weight[k] * x[self.index[k] as usize]).sum())
-            .collect()
+        let mut out = vec![0.0; self.offsets.len() - 1];
+        self.times_into(x, &mut out);
+        out
+    }
+
+    /// [`Csr::times`] into `out`.
+    fn times_into(&self, x: &[f64], out: &mut [f64]) {
+        out.par_iter_mut().zip(self.offsets.par_windows(2)).for_each(|(o, w)| {
+            *o = (w[0]..w[1]).map(|k| self.weight[k] * x[self.index[k] as usize]).sum();
+        });
     }
 
     /// The transpose (`columns` of them), its rows in ascending row order of `self`.
@@ -117,7 +123,14 @@ impl Projector {
 
     /// `Aᵀ r`: each ray's residual spread back over the nodes it samples.
     pub fn back(&self, residual: &[f64]) -> Vec<f64> {
-        self.columns.times(residual)
+        let mut out = vec![0.0; self.columns.offsets.len() - 1];
+        self.back_into(residual, &mut out);
+        out
+    }
+
+    /// [`Projector::back`] into `out` (one value per node).
+    pub fn back_into(&self, residual: &[f64], out: &mut [f64]) {
+        self.columns.times_into(residual, out)
     }
 }
 
@@ -137,28 +150,24 @@ fn cell_and_weights(q: [f64; 3], n: usize) -> (usize, [f64; 8]) {
 /// `Σ √(|∇σ|² + ε²)` over the nodes of an `n³` lattice (index `x + n·(y + n·z)`), forward
 /// differences with none across the far faces, and its gradient.
 pub fn smoothed_tv(sigma: &[f64], n: usize, epsilon: f64) -> (f64, Vec<f64>) {
-    let strides = [1, n, n * n];
-    let at = |i: usize| [i % n, (i / n) % n, i / (n * n)];
-    // Each node's normalised difference vector p = ∇σ / √(|∇σ|² + ε²).
-    let (magnitudes, p): (Vec<f64>, Vec<[f64; 3]>) = (0..sigma.len())
-        .into_par_iter()
-        .map(|i| {
-            let c = at(i);
-            let d: [f64; 3] =
-                std::array::from_fn(|a| if c[a] + 1 < n { sigma[i + strides[a]] - sigma[i] } else { 0.0 });
-            let m = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + epsilon * epsilon).sqrt();
-            (m, d.map(|v| v / m))
-        })
-        .unzip();
-    // ∂/∂σ_i = Σ_a p_a(i − e_a) − p_a(i): minus the backward divergence of p.
-    let gradient = (0..sigma.len())
-        .into_par_iter()
-        .map(|i| {
-            let c = at(i);
-            (0..3).map(|a| if c[a] > 0 { p[i - strides[a]][a] } else { 0.0 } - p[i][a]).sum()
-        })
-        .collect();
+    let (magnitudes, p): (Vec<f64>, Vec<[f64; 3]>) =
+        (0..sigma.len()).into_par_iter().map(|i| normalised_difference(sigma, n, epsilon, i)).unzip();
+    let gradient = (0..sigma.len()).into_par_iter().map(|i| tv_gradient_at(&p, n, i)).collect();
     (magnitudes.iter().sum(), gradient)
+}
+
+/// Node `i`'s `m = √(|∇σ|² + ε²)` and normalised difference vector `p = ∇σ / m`.
+fn normalised_difference(sigma: &[f64], n: usize, epsilon: f64, i: usize) -> (f64, [f64; 3]) {
+    let (c, strides) = ([i % n, (i / n) % n, i / (n * n)], [1, n, n * n]);
+    let d: [f64; 3] = std::array::from_fn(|a| if c[a] + 1 < n { sigma[i + strides[a]] - sigma[i] } else { 0.0 });
+    let m = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + epsilon * epsilon).sqrt();
+    (m, d.map(|v| v / m))
+}
+
+/// `∂TV/∂σ_i = Σ_a p_a(i − e_a) − p_a(i)`: minus the backward divergence of `p`.
+fn tv_gradient_at(p: &[[f64; 3]], n: usize, i: usize) -> f64 {
+    let (c, strides) = ([i % n, (i / n) % n, i / (n * n)], [1, n, n * n]);
+    (0..3).map(|a| if c[a] > 0 { p[i - strides[a]][a] } else { 0.0 } - p[i][a]).sum()
 }
 
 /// The fitted lattice (σ at the nodes, index `x + N·(y + N·z)`) and its log.
@@ -189,18 +198,14 @@ pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, mut on_log:
     let b = seen.iter().filter(|&&s| s).count().max(1) as f64;
     let measured: Vec<f64> = rays.iter().map(|r| -r.target.max(MIN_INTENSITY).ln()).collect();
     let (lambda, epsilon) = (params.dense_tv_lambda, params.dense_tv_epsilon);
-    let evaluate = |sigma: &[f64], gradient: bool| -> (Evaluation, Option<Vec<f64>>) {
+    let residual_of = |depths: &[f64]| -> Vec<f64> {
+        depths.iter().zip(&measured).zip(&seen).map(|((d, m), &s)| if s { d - m } else { 0.0 }).collect()
+    };
+    let evaluate = |sigma: &[f64]| -> Evaluation {
         let depths = projector.depths(sigma);
-        let residual: Vec<f64> =
-            depths.iter().zip(&measured).zip(&seen).map(|((d, m), &s)| if s { d - m } else { 0.0 }).collect();
-        let data = residual.iter().map(|r| r * r).sum::<f64>() / (2.0 * b);
-        let (tv_sum, tv_gradient) = smoothed_tv(sigma, n, epsilon);
-        let gradient = gradient.then(|| {
-            let back = projector.back(&residual);
-            let w = lambda / nodes as f64;
-            back.iter().zip(&tv_gradient).map(|(d, t)| d / b + w * t).collect()
-        });
-        (Evaluation { data, tv: tv_sum / nodes as f64, depths }, gradient)
+        let data = residual_of(&depths).iter().map(|r| r * r).sum::<f64>() / (2.0 * b);
+        let (tv_sum, _) = smoothed_tv(sigma, n, epsilon);
+        Evaluation { data, tv: tv_sum / nodes as f64, depths }
     };
     let step = 1.0 / lipschitz(&projector, nodes, b, lambda, epsilon);
     let mut log = Vec::new();
@@ -220,18 +225,24 @@ pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, mut on_log:
         log.push(row);
     };
     let mut sigma = vec![0.0; nodes];
-    record(0, &evaluate(&sigma, false).0);
+    record(0, &evaluate(&sigma));
     let (mut ahead, mut t) = (sigma.clone(), 1.0f64);
+    // The step's buffers, reused: at 128³ each is 16 MB, and fresh ones cost their page faults.
+    let (mut gradient, mut next, mut p) = (vec![0.0; nodes], vec![0.0; nodes], vec![[0.0; 3]; nodes]);
+    let w = lambda / nodes as f64;
     for it in 0..params.dense_tv_iterations {
-        let (_, gradient) = evaluate(&ahead, true);
-        let gradient = gradient.expect("asked for");
-        let next: Vec<f64> = ahead.iter().zip(&gradient).map(|(a, g)| (a - step * g).max(0.0)).collect();
+        // ∇E = Aᵀ(Aσ − τ)/B + λ/N³ ∇TV, at the look-ahead point.
+        projector.back_into(&residual_of(&projector.depths(&ahead)), &mut gradient);
+        p.par_iter_mut().enumerate().for_each(|(i, p)| *p = normalised_difference(&ahead, n, epsilon, i).1);
+        gradient.par_iter_mut().enumerate().for_each(|(i, g)| *g = *g / b + w * tv_gradient_at(&p, n, i));
+        next.par_iter_mut().zip(&ahead).zip(&gradient).for_each(|((x, a), g)| *x = (a - step * g).max(0.0));
         let t_next = (1.0 + (1.0 + 4.0 * t * t).sqrt()) / 2.0;
         let momentum = (t - 1.0) / t_next;
-        ahead = next.iter().zip(&sigma).map(|(x, old)| x + momentum * (x - old)).collect();
-        (sigma, t) = (next, t_next);
+        ahead.par_iter_mut().zip(&next).zip(&sigma).for_each(|((a, x), old)| *a = x + momentum * (x - old));
+        std::mem::swap(&mut sigma, &mut next);
+        t = t_next;
         if params.logs_after(it + 1) {
-            record(it + 1, &evaluate(&sigma, false).0);
+            record(it + 1, &evaluate(&sigma));
         }
     }
     DenseFitted { sigma: sigma.iter().map(|&v| v as f32).collect(), log }
