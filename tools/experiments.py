@@ -66,6 +66,8 @@ ROWS = [
      "the dense model on a 128³ lattice (same box, views and λ): the default since 2026-11-26"),
     ("default-A", "presets/default_origin.toml", "A", "A",
      "the default (dense 128³) centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
+    ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
+     "the default (dense 128³) fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),
