@@ -115,10 +115,14 @@ impl Stage for Train {
             images.push(image.pixels);
         }
         let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
-        let (model_bytes, log) = match device {
-            _ if self.params.model == FieldModel::DenseTv => self.fit_dense(&views)?,
-            Some(device) => self.fit_vm(&views, |params, views| gpu::fit::fit(&device, params, views, |_| {}))?,
-            None => self.fit_vm(&views, |params, views| self.in_pool(|| fit(params, views, |_| {})))?,
+        let (model_bytes, log) = match (self.params.model, device) {
+            (FieldModel::DenseTv, _) => self.fit_dense(&views)?,
+            (FieldModel::Vm, Some(device)) => {
+                self.fit_vm(&views, |params, views| gpu::fit::fit(&device, params, views, |_| {}))?
+            }
+            (FieldModel::Vm, None) => {
+                self.fit_vm(&views, |params, views| self.in_pool(|| fit(params, views, |_| {})))?
+            }
         };
         let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();
         Ok(vec![

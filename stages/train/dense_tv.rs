@@ -15,7 +15,7 @@
 //! reconstruction, whose cheapest explanation of a blob seen in three views is one compact blob.
 
 use super::fit::{psnr_db, LogRow, TrainParams, Views};
-use super::render::{trilinear_weights, Ray, Renderer};
+use super::render::{trilinear_weights, Ray, Renderer, MIN_INTENSITY};
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -248,9 +248,6 @@ pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, mut on_log:
     DenseFitted { sigma: sigma.iter().map(|&v| v as f32).collect(), log }
 }
 
-/// The smallest intensity whose logarithm is taken (as the VM fit's log loss takes it).
-const MIN_INTENSITY: f64 = 1e-6;
-
 /// A bound on the curvature of E: the largest eigenvalue of `AᵀA/B` by power iteration (from
 /// all ones: A is non-negative, so its leading vector is too), with 5 % to spare, plus the
 /// smoothed TV's `λ/N³ · 12/ε` (the squared norm of the 3-D forward difference is at most 12).
@@ -312,12 +309,11 @@ mod tests {
     fn the_projection_is_the_renderers_optical_depth() {
         let (renderer, rays) = (renderer(6), rays());
         let sigma: Vec<f64> = (0..216).map(|i| ((i * 37) % 11) as f64 * 0.1).collect();
-        let dense: Vec<f64> = sigma.clone();
         let depths = Projector::new(&renderer, &rays).depths(&sigma);
         assert!(depths.iter().filter(|&&d| d > 0.0).count() >= 30, "most rays cross the box: {depths:?}");
         assert_eq!(depths.last(), Some(&0.0), "the last ray misses it");
         for (ray, depth) in rays.iter().zip(depths) {
-            let rendered = renderer.render_ray(&dense, None, ray, renderer.step / 2.0);
+            let rendered = renderer.render_ray(&sigma, None, ray, renderer.step / 2.0);
             assert!((rendered - (-depth).exp()).abs() < 1e-12, "{rendered} against {}", (-depth).exp());
         }
     }

@@ -69,7 +69,7 @@ pub enum PhotoLoss {
 }
 
 /// The smallest measured intensity whose logarithm the log loss takes (a fully blocked ray).
-const MIN_INTENSITY: f64 = 1e-6;
+pub(crate) const MIN_INTENSITY: f64 = 1e-6;
 
 impl PhotoLoss {
     /// One ray's squared error, predicted `p` against measured `target`.
