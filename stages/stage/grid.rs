@@ -3,7 +3,8 @@
 //! Input: `train/model.safetensors` (factors, alpha mask, Δ, AABB) and `drr/cameras.json` (the
 //! scene frame: scene units → patient mm). σ is evaluated at the N³ lattice nodes, which are
 //! the cell centres of the AABB (the training lattice itself), with the renderer's alpha-mask
-//! rule; a dense model (`[train] model = "dense_tv"`) holds σ at those nodes already. Outputs: `density.mhd/.raw` (f32), `uncertainty.mhd/.raw` (|∇σ| by central
+//! rule; a dense model (`[train] model = "dense_tv"`) holds σ at those nodes already.
+//! Outputs: `density.mhd/.raw` (f32), `uncertainty.mhd/.raw` (|∇σ| by central
 //! differences in mm, scaled to [0, 1]) and `density.vdb` holding both as FloatGrids, all in
 //! patient millimetres.
 

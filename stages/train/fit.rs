@@ -68,7 +68,7 @@ pub enum FieldModel {
     #[default]
     Vm,
     /// σ itself on the N³ lattice, fitted to the optical depths under a smoothed 3-D TV by a
-    /// convex solver ([`super::dense_tv`]; issue 8's experiment, CPU only).
+    /// convex solver ([`super::dense_tv`]; CPU only). `pipeline.toml` ships it, on 128³.
     DenseTv,
 }
 
