@@ -145,3 +145,32 @@ fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
     let blind = analysis.persistent(Some(at(peak.voxel))).unwrap();
     assert!(holds_nodule(blind));
 }
+
+#[test]
+fn blob_sites_keep_away_from_the_region_edges_and_the_lattice_faces() {
+    use aret_pipe::kernels::lung_mask::blob_sites;
+    // A region that fills the lattice but for one unset node: only the faces and that node bound it.
+    let (dims, spacing) = ([20, 16, 12], [1.0, 1.5, 2.0]);
+    let at = |x: usize, y: usize, z: usize| x + dims[0] * (y + dims[1] * z);
+    let mut region = vec![true; dims.iter().product()];
+    region[at(14, 8, 6)] = false;
+    let sites = blob_sites(&region, dims, spacing, 3.0);
+    // To a face: (i + 1) nodes before it, (n − i) after it, times the spacing; > 3 mm.
+    let away = |i: usize, n: usize, s: f64| ((i + 1).min(n - i) as f64) * s > 3.0;
+    for z in 0..dims[2] {
+        for y in 0..dims[1] {
+            for x in 0..dims[0] {
+                let from_hole = (((x as f64 - 14.0) * spacing[0]).powi(2)
+                    + ((y as f64 - 8.0) * spacing[1]).powi(2)
+                    + ((z as f64 - 6.0) * spacing[2]).powi(2))
+                .sqrt();
+                let expected = away(x, dims[0], spacing[0])
+                    && away(y, dims[1], spacing[1])
+                    && away(z, dims[2], spacing[2])
+                    && from_hole > 3.0;
+                assert_eq!(sites[at(x, y, z)], expected, "node ({x}, {y}, {z})");
+            }
+        }
+    }
+    assert!(sites[at(5, 8, 6)] && !sites[at(2, 8, 6)] && !sites[at(5, 8, 0)] && !sites[at(16, 8, 6)]);
+}

@@ -86,8 +86,10 @@ def responses(volume, s_mm, spacing):
 
 
 def strongest(volume, field, spacing, scales_mm):
-    """The node of the strongest response per filter, over the scales, > INSIDE_MM inside field."""
-    sites = ndimage.distance_transform_edt(field, sampling=spacing[::-1]) > INSIDE_MM
+    """The node of the strongest response per filter, over the scales, > INSIDE_MM inside field
+    and inside the lattice (its faces count as edges, as in the stage's `blob_sites`)."""
+    padded = np.pad(field, 1, constant_values=False)
+    sites = ndimage.distance_transform_edt(padded, sampling=spacing[::-1])[1:-1, 1:-1, 1:-1] > INSIDE_MM
     best = {}
     for s in scales_mm:
         for name, r in responses(volume, s, spacing).items():

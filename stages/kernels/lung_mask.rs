@@ -24,8 +24,11 @@ const AIR_FRACTION: f32 = 0.2;
 const EMPTY: f32 = 0.01;
 /// A lung component holds at least this fraction of the box.
 const MIN_LUNG_FRACTION: f64 = 0.02;
-/// Radius (voxels) of the closing that takes in nodules bulging from a lung's wall.
-const CLOSING_RADIUS: usize = 3;
+/// Radius of the closing that takes in nodules bulging from a lung's wall, as a fraction of the
+/// lattice's nodes per axis, so that it spans the same millimetres at any resolution: 3 nodes
+/// at 64³, 6 at 128³ (11 × 6 × 7 mm in the paper's box). At 128³ three nodes left juxtapleural
+/// nodules and the ends of the lung outside the field and cost the sizing (docs/experiments.md).
+const CLOSING_FRACTION: f64 = 3.0 / 64.0;
 
 /// The lungs of a reconstruction.
 #[derive(Debug, Clone)]
@@ -49,12 +52,13 @@ pub fn lung_field(density: &[f32], dims: [usize; 3], spacing_mm: [f64; 3]) -> Op
     let opened = morphology::dilate(&morphology::erode(&band, dims, 1), dims, 1);
     let components = label(&opened, dims, Connectivity::Six);
     let min_voxels = (MIN_LUNG_FRACTION * density.len() as f64).ceil() as usize;
+    let closing_radius = ((CLOSING_FRACTION * dims.into_iter().max().unwrap_or(0) as f64).round() as usize).max(1);
     let mut lungs = vec![false; density.len()];
     let mut field = vec![false; density.len()];
     for l in (1..=components.count() as u32).filter(|&l| components.size(l) >= min_voxels) {
         let lung = components.mask_of(l);
         // One lung at a time: closing both at once would bridge the mediastinum.
-        let closed = morphology::close(&lung, dims, CLOSING_RADIUS);
+        let closed = morphology::close(&lung, dims, closing_radius);
         for i in 0..density.len() {
             lungs[i] |= lung[i];
             field[i] |= closed[i];
@@ -76,10 +80,20 @@ pub struct BlobPeak {
     pub scale_mm: f64,
 }
 
-/// The voxels more than `inside_mm` inside `region`, where a blob centre may lie: edges of the
-/// region respond too, and a nodule is a blob surrounded by lung.
+/// The voxels more than `inside_mm` inside `region` and inside the lattice, where a blob centre
+/// may lie: edges of the region respond too, and a nodule is a blob surrounded by lung. The
+/// lattice's faces count as edges: σ ends there (the views see only the box), so a filter
+/// there sees half a neighbourhood, and the lungs the box cuts through touch them.
 pub fn blob_sites(region: &[bool], dims: [usize; 3], spacing_mm: [f64; 3], inside_mm: f64) -> Vec<bool> {
-    distance_inside_mm(region, dims, spacing_mm).iter().map(|&d| d > inside_mm).collect()
+    let inside_region = distance_inside_mm(region, dims, spacing_mm);
+    // The distance to the nearest node outside the lattice along `axis`, as the EDT measures
+    // the distance to the nearest unset node.
+    let to_face = |axis: usize, i: usize| (i + 1).min(dims[axis] - i) as f64 * spacing_mm[axis];
+    let far_from_faces = |i: usize| {
+        let (x, y, z) = (i % dims[0], (i / dims[0]) % dims[1], i / (dims[0] * dims[1]));
+        to_face(0, x).min(to_face(1, y)).min(to_face(2, z)) > inside_mm
+    };
+    inside_region.iter().enumerate().map(|(i, &d)| d > inside_mm && far_from_faces(i)).collect()
 }
 
 /// Which scale-normalised bright-blob response the search maximises.

@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 
 // 3: writes the lung field it swept.
-pub const VERSION: u32 = 3;
+pub const VERSION: u32 = 4;
 
 /// The lung field output (`.mhd/.raw`, 1 inside), written when `region = "lung_field"`.
 pub const LUNG_FIELD: &str = "lung_field";

@@ -40,7 +40,7 @@ mod rules;
 pub use localize::{centres, Centre, Centres, Localize};
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 6;
+pub const VERSION: u32 = 7;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
