@@ -3,7 +3,7 @@
 //! one (Dice 0, no hit, a "MISS" verdict), and the oracle must still see the nodule.
 
 use aret_pipe::kernels::localization::ground_truth_on_grid;
-use aret_pipe::stage::select::{verdict, Analysis, Localize, Rule};
+use aret_pipe::stage::select::{verdict, Analysis, Localize, Params as SelectParams, Rule};
 use aret_pipe::stage::sweep::{equivalent_diameter_mm, levels, Params, Region, Score};
 use aret_pipe::volume::{Geometry, Volume};
 
@@ -71,7 +71,8 @@ fn a_guided_match_on_the_body_wall_is_reported_as_a_miss() {
     assert!(guided.candidate.centroid_mm[0] < 15.0, "guided should land on the wall: {guided:?}");
     let l = guided.localization.unwrap();
     assert!(!l.hit && l.dice == 0.0 && l.centroid_distance_mm > 20.0, "{l:?}");
-    let line = verdict(Rule::Guided, Some(&guided), true, true, Localize::None);
+    let paper = SelectParams { localize: Localize::None, ..SelectParams::default() };
+    let line = verdict(Rule::Guided, Some(&guided), true, true, &paper);
     assert!(line.starts_with("MISS") && line.contains("Dice 0.00"), "{line}");
     // The oracle still finds the nodule among the candidates (Dice of a 22 mm blob against a
     // 14 mm truth: 2·7³/(11³ + 7³) ≈ 0.41).

@@ -238,7 +238,7 @@ pub fn equivalent_diameter_mm(volume_mm3: f64) -> f64 {
 }
 
 /// Each component's centroid in patient mm.
-fn summarize(components: &Components, geometry: &Geometry) -> Vec<[f64; 3]> {
+pub(crate) fn summarize(components: &Components, geometry: &Geometry) -> Vec<[f64; 3]> {
     let [nx, ny, _] = geometry.dims;
     let mut sums = vec![[0f64; 3]; components.count()];
     for (i, &l) in components.labels.iter().enumerate().filter(|(_, &l)| l != 0) {

@@ -148,3 +148,35 @@ def test_nodule_mesh_is_watertight_with_the_reported_volume(out):
     mask = np.fromfile(out / "nodule_mask.raw", dtype=np.uint8)
     spacing, _ = lattice(out)
     assert mask.sum() * np.prod(spacing) == pytest.approx(result["voxel_volume_mm3"], rel=1e-9)
+
+
+def test_half_max_sizing_equals_scipy(out):
+    """`[select] sizing = "half_max"` at the scene origin: the region of σ ≥ ½ of its peak beside
+    the centre that holds the peak, re-done with scipy.ndimage.label (26-connected)."""
+    tmp = out.parent.parent
+    config = CONFIG.replace('localize = "none"\n', 'localize = "origin"\nsizing = "half_max"\n').replace(
+        '[pipeline]\nname = "grid"\n', '[pipeline]\nname = "grid"\nout_dir = "out-half-max"\n'
+    )
+    (tmp / "half_max.toml").write_text(config)
+    proc = subprocess.run([BIN, "run", "half_max.toml", "--until", "select"], cwd=tmp, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "select P1: computed" in proc.stderr + proc.stdout and "train P1: computed" not in proc.stderr + proc.stdout
+    half = tmp / "out-half-max" / "P1"
+    result = json.loads((half / "result.json").read_text())
+    density = raw(out, "density", 24)
+    x, y, z = result["centres"]["blind"]["voxel"]
+    near = density[max(z - 1, 0) : z + 2, max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2]
+    assert near.max() > 0, "the test CT should have density at the origin"
+    dz, dy, dx = np.unravel_index(np.argmax(near), near.shape)
+    seed = (max(z - 1, 0) + dz, max(y - 1, 0) + dy, max(x - 1, 0) + dx)
+    labels, _ = ndimage.label(density >= 0.5 * np.float64(near.max()), ndimage.generate_binary_structure(3, 3))
+    expected = labels == labels[seed]
+    mask = np.fromfile(half / "nodule_mask.raw", dtype=np.uint8).reshape(24, 24, 24).astype(bool)
+    np.testing.assert_array_equal(mask, expected)
+    selection = result["blind_largest"]
+    # Both blind rules size the blind centre alike.
+    assert {**selection, "rule": None} == {**result["blind_persistent"], "rule": None}
+    assert selection["candidate"]["voxels"] == expected.sum()
+    assert selection["candidate"]["threshold"] == pytest.approx(0.5 * float(near.max()), rel=1e-12)
+    lo, hi = selection["volume_interval_mm3"]
+    assert lo <= selection["candidate"]["volume_mm3"] <= hi

@@ -33,6 +33,7 @@ use crate::volume::Volume;
 use anyhow::{bail, Context as _};
 use serde::{Deserialize, Serialize};
 
+mod half_max;
 mod localize;
 mod preview;
 mod rules;
@@ -58,6 +59,22 @@ pub struct Params {
     pub blob_scales_mm: Vec<f64>,
     /// A blob centre lies more than this (mm) inside the lung field.
     pub inside_mm: f64,
+    /// How a rule sizes the nodule at its centre: "candidates" (the sweep's, chosen by the
+    /// rule) or "half_max" (the region at half the score's peak, from the image alone).
+    pub sizing: Sizing,
+    /// `sizing = "half_max"`: the fraction of the peak the region is cut at.
+    pub half_max_fraction: f64,
+}
+
+/// How a rule sizes the nodule once it has chosen where it is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Sizing {
+    /// The paper: every rule picks a candidate of the sweep (holding its centre, if any).
+    Candidates,
+    /// The connected region of the sweep's score at `half_max_fraction` of its peak at the
+    /// rule's centre ([`half_max`]): both blind rules then size the blind centre alike.
+    HalfMax,
 }
 
 impl Default for Params {
@@ -69,6 +86,8 @@ impl Default for Params {
             blob_filter: BlobFilter::Hessian,
             blob_scales_mm: vec![6.0, 9.0, 13.0],
             inside_mm: 8.0,
+            sizing: Sizing::Candidates,
+            half_max_fraction: 0.5,
         }
     }
 }
@@ -80,6 +99,15 @@ impl Params {
         }
         if !(self.inside_mm.is_finite() && self.inside_mm >= 0.0) {
             bail!("[select] inside_mm must be a number ≥ 0 (got {})", self.inside_mm);
+        }
+        if !(self.half_max_fraction > 0.0 && self.half_max_fraction < 1.0) {
+            bail!("[select] half_max_fraction must lie strictly between 0 and 1 (got {})", self.half_max_fraction);
+        }
+        if self.sizing == Sizing::HalfMax && self.localize == Localize::None {
+            bail!(
+                "[select] sizing = \"half_max\" sizes around a centre, and localize = \"none\" finds none: \
+                 set localize to \"blob\" or \"origin\""
+            );
         }
         Ok(())
     }
@@ -135,6 +163,9 @@ pub struct SelectResult {
     pub candidates: usize,
     /// The centres the rules sized from (`localize`).
     pub localize: Localize,
+    /// How the rules sized the nodule.
+    #[serde(default = "candidates")]
+    pub sizing: Sizing,
     pub centres: Centres,
 }
 
@@ -147,6 +178,10 @@ impl SelectResult {
             Rule::BlindPersistent => self.blind_persistent.as_ref(),
         }
     }
+}
+
+fn candidates() -> Sizing {
+    Sizing::Candidates
 }
 
 pub struct Select {
@@ -223,18 +258,34 @@ impl Stage for Select {
                 centre.as_ref().map(|c| Some(c.linear(dims)))
             }
         };
-        let choose = |rule: Rule| through(rule).and_then(|cell| analysis.choose(rule, annotated, cell));
-        let report = |rule| choose(rule).map(|at| analysis.describe(rule, at));
-        let (guided, blind_largest, blind_persistent) =
-            (report(Rule::Guided), report(Rule::BlindLargest), report(Rule::BlindPersistent));
-        let primary_at = choose(self.params.primary);
-        let primary_mask = primary_at.map(|(i, label)| levels[i].components.mask_of(label));
-        let primary_sel = primary_at.map(|at| analysis.describe(self.params.primary, at));
+        // Each rule's selection and its mask.
+        let select = |rule: Rule| match p.sizing {
+            Sizing::Candidates => through(rule)
+                .and_then(|cell| analysis.choose(rule, annotated, cell))
+                .map(|at| (analysis.describe(rule, at), levels[at.0].components.mask_of(at.1))),
+            Sizing::HalfMax => {
+                let centre = if rule == Rule::Guided { &centres.guided } else { &centres.blind };
+                centre.as_ref().and_then(|c| {
+                    half_max::half_max_selection(&scored, &sweep.params, c, p.half_max_fraction, gt.as_ref(), rule)
+                })
+            }
+        };
+        let [guided, blind_largest, blind_persistent] =
+            [Rule::Guided, Rule::BlindLargest, Rule::BlindPersistent].map(select);
+        let primary = match self.params.primary {
+            Rule::Guided => &guided,
+            Rule::BlindLargest => &blind_largest,
+            Rule::BlindPersistent => &blind_persistent,
+        };
+        let primary_mask = primary.as_ref().map(|(_, mask)| mask.clone());
+        let primary_sel = primary.as_ref().map(|(s, _)| s.clone());
+        let [guided, blind_largest, blind_persistent] =
+            [guided, blind_largest, blind_persistent].map(|s| s.map(|s| s.0));
         let mesh = primary_mask.as_ref().map(|m| mesh_mask(m, &density.geometry));
         let mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
         let result = SelectResult {
             patient: ctx.patient().to_string(),
-            verdict: verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some(), p.localize),
+            verdict: verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some(), p),
             primary: self.params.primary,
             blind_rule: self.params.blind,
             gt_volume_mm3: target.map(|t| t.volume_mm3),
@@ -248,6 +299,7 @@ impl Stage for Select {
             mesh_triangles: mesh.as_ref().map_or(0, |m| m.triangles.len()),
             candidates: found.len(),
             localize: p.localize,
+            sizing: p.sizing,
             centres,
         };
         let mask_volume = Volume {
@@ -294,14 +346,17 @@ pub fn verdict(
     primary: Option<&Selection>,
     has_truth: bool,
     has_diameter: bool,
-    localize: Localize,
+    params: &Params,
 ) -> String {
     match (primary, has_truth) {
         (None, _) if rule == Rule::Guided && !has_diameter => {
             "unverified: no annotated diameter, so the guided rule cannot choose (set [select] primary to a blind rule)"
                 .into()
         }
-        (None, _) if localize != Localize::None => {
+        (None, _) if params.sizing == Sizing::HalfMax => "MISS: no nodule centre was found, or the score has no \
+             peak there, or its half-maximum region is not of a nodule's size ([sweep] diameter_mm)"
+            .into(),
+        (None, _) if params.localize != Localize::None => {
             "MISS: no nodule centre was found, or no candidate of the sweep holds it".into()
         }
         (None, _) => "MISS: no candidate survived the sweep".into(),
