@@ -62,12 +62,17 @@ ROWS = [
     ("dense-tv", "presets/dense_tv.toml", "B", "C*",
      "the default with σ fitted as a dense 64³ lattice under a smoothed 3-D TV (FISTA on the optical depths)"
      " instead of TensoRF's VM factors"),
-    ("dense-tv-128", "pipeline.toml", "B", "C*",
-     "the dense model on a 128³ lattice (same box, views and λ): the default since 2026-11-26"),
+    ("dense-tv-128", "presets/dense_tv_128.toml", "B", "C*",
+     "the dense model on a 128³ lattice (same box, views and λ), sized by the paper's rules among the"
+     " sweep's candidates"),
+    ("default", "pipeline.toml", "B", "C*",
+     "the same field, each rule sizing its centre at half maximum (sizing = \"half_max\"): the default"),
     ("default-A", "presets/default_origin.toml", "A", "A",
-     "the default (dense 128³) centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
+     "the default centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
     ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
-     "the default (dense 128³) fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
+     "the default fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
+    ("drr-256", "presets/drr256.toml", "B", "C*",
+     "the default fitted to views of 256 × 256 pixels instead of 128 × 128"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),
