@@ -160,7 +160,8 @@ def test_half_max_sizing_equals_scipy(out):
     (tmp / "half_max.toml").write_text(config)
     proc = subprocess.run([BIN, "run", "half_max.toml", "--until", "select"], cwd=tmp, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "select P1: computed" in proc.stderr + proc.stdout and "train P1: computed" not in proc.stderr + proc.stdout
+    # Only select recomputes: the fit, grid and sweep are the first run's.
+    assert "1 computed, 6 cached, 0 failed" in proc.stderr + proc.stdout, proc.stdout + proc.stderr
     half = tmp / "out-half-max" / "P1"
     result = json.loads((half / "result.json").read_text())
     density = raw(out, "density", 24)
