@@ -17,7 +17,7 @@ use crate::kernels::localization::GroundTruthOnGrid;
 use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params as SweepParams, Scored};
 
 /// How far below and above the fraction the volume interval looks (absolute, in units of the peak).
-pub const INTERVAL_STEP: f64 = 0.1;
+const INTERVAL_STEP: f64 = 0.1;
 
 /// The half-maximum region around `centre` at `fraction` of its peak, reported as `rule`'s
 /// selection with its mask, or `None` when the score has no positive peak at the centre or the
