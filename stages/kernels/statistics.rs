@@ -175,8 +175,10 @@ pub fn wilcoxon_signed_rank(x: &[f64], y: &[f64]) -> Result<Wilcoxon, Statistics
     let has_zeros = d.len() < n;
     let magnitudes: Vec<f64> = d.iter().map(|v| v.abs()).collect();
     let ranks = rank_average(&magnitudes);
-    let w_plus: f64 = d.iter().zip(&ranks).filter(|(v, _)| **v > 0.0).map(|(_, r)| r).sum();
-    let w_minus: f64 = d.iter().zip(&ranks).filter(|(v, _)| **v < 0.0).map(|(_, r)| r).sum();
+    // Folded from +0.0: an empty f64 `sum()` is −0.0, which the report would print as "-0".
+    let rank_sum =
+        |positive: bool| d.iter().zip(&ranks).filter(|(v, _)| (**v > 0.0) == positive).fold(0.0, |sum, (_, r)| sum + r);
+    let (w_plus, w_minus) = (rank_sum(true), rank_sum(false));
     let tie_sizes = tie_sizes(&magnitudes);
     let has_ties = tie_sizes.iter().any(|&t| t > 1);
 
@@ -466,6 +468,14 @@ mod tests {
         assert_eq!((w.w, w.method), (65.0, WilcoxonMethod::Normal));
         // statrs' erfc is good to about 1e-10 relative here.
         assert!(close(w.p_two_sided, 0.22732992995598733, 1e-9), "{w:?}");
+    }
+
+    #[test]
+    fn wilcoxon_w_is_plus_zero_when_every_difference_has_one_sign() {
+        // scipy.stats.wilcoxon([1, 2, 3, 4, 5, 6], [2, 4, 6, 8, 10, 12]): statistic 0.0, p 0.03125.
+        let w = wilcoxon_signed_rank(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0], &[2.0, 4.0, 6.0, 8.0, 10.0, 12.0]).unwrap();
+        assert!(w.w == 0.0 && w.w.is_sign_positive(), "{w:?}");
+        assert!(close(w.p_two_sided, 0.03125, 1e-12), "{w:?}");
     }
 
     #[test]
