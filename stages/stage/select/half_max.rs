@@ -35,14 +35,14 @@ pub fn half_max_selection(
     let (seed, peak) = peak_near(scored, centre.voxel)?;
     let peak = f64::from(peak);
     let at = |fraction: f64| region_at(scored, sweep, seed, fraction * peak);
-    let (components, own) = at(fraction);
+    let threshold = fraction * peak;
+    let (components, own) = region_at(scored, sweep, seed, threshold);
     let voxel_mm3: f64 = geometry.spacing_mm.iter().product();
     let volume_mm3 = components.size(own) as f64 * voxel_mm3;
     let diameter_mm = equivalent_diameter_mm(volume_mm3);
     if diameter_mm < sweep.diameter_mm[0] || diameter_mm > sweep.diameter_mm[1] {
         return None;
     }
-    let threshold = fraction * peak;
     let candidate = Candidate {
         percentile: percentile_of(scored, threshold),
         threshold,

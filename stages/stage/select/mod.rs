@@ -67,10 +67,11 @@ pub struct Params {
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Sizing {
     /// The paper: every rule picks a candidate of the sweep (holding its centre, if any).
+    #[default]
     Candidates,
     /// The connected region of the sweep's score at `half_max_fraction` of its peak at the
     /// rule's centre ([`half_max`]): both blind rules then size the blind centre alike.
@@ -86,7 +87,7 @@ impl Default for Params {
             blob_filter: BlobFilter::Hessian,
             blob_scales_mm: vec![6.0, 9.0, 13.0],
             inside_mm: 8.0,
-            sizing: Sizing::Candidates,
+            sizing: Sizing::default(),
             half_max_fraction: 0.5,
         }
     }
@@ -164,7 +165,7 @@ pub struct SelectResult {
     /// The centres the rules sized from (`localize`).
     pub localize: Localize,
     /// How the rules sized the nodule.
-    #[serde(default = "candidates")]
+    #[serde(default)]
     pub sizing: Sizing,
     pub centres: Centres,
 }
@@ -178,10 +179,6 @@ impl SelectResult {
             Rule::BlindPersistent => self.blind_persistent.as_ref(),
         }
     }
-}
-
-fn candidates() -> Sizing {
-    Sizing::Candidates
 }
 
 pub struct Select {
@@ -258,29 +255,33 @@ impl Stage for Select {
                 centre.as_ref().map(|c| Some(c.linear(dims)))
             }
         };
-        // Each rule's selection and its mask.
-        let select = |rule: Rule| match p.sizing {
-            Sizing::Candidates => through(rule)
-                .and_then(|cell| analysis.choose(rule, annotated, cell))
-                .map(|at| (analysis.describe(rule, at), levels[at.0].components.mask_of(at.1))),
+        // Each rule's selection and its mask, in `Rule` order: guided, blind_largest, blind_persistent.
+        let mut chosen = match p.sizing {
+            Sizing::Candidates => [Rule::Guided, Rule::BlindLargest, Rule::BlindPersistent].map(|rule| {
+                through(rule)
+                    .and_then(|cell| analysis.choose(rule, annotated, cell))
+                    .map(|at| (analysis.describe(rule, at), levels[at.0].components.mask_of(at.1)))
+            }),
             Sizing::HalfMax => {
-                let centre = if rule == Rule::Guided { &centres.guided } else { &centres.blind };
-                centre.as_ref().and_then(|c| {
-                    half_max::half_max_selection(&scored, &sweep.params, c, p.half_max_fraction, gt.as_ref(), rule)
-                })
+                let at = |rule, centre: &Option<Centre>| {
+                    centre.as_ref().and_then(|c| {
+                        half_max::half_max_selection(&scored, &sweep.params, c, p.half_max_fraction, gt.as_ref(), rule)
+                    })
+                };
+                // Both blind rules size the blind centre: one region, reported under each name.
+                let blind = at(Rule::BlindLargest, &centres.blind);
+                let persistent = blind.clone().map(|(s, m)| (Selection { rule: Rule::BlindPersistent, ..s }, m));
+                [at(Rule::Guided, &centres.guided), blind, persistent]
             }
         };
-        let [guided, blind_largest, blind_persistent] =
-            [Rule::Guided, Rule::BlindLargest, Rule::BlindPersistent].map(select);
-        let primary = match self.params.primary {
-            Rule::Guided => &guided,
-            Rule::BlindLargest => &blind_largest,
-            Rule::BlindPersistent => &blind_persistent,
+        let primary_index = match self.params.primary {
+            Rule::Guided => 0,
+            Rule::BlindLargest => 1,
+            Rule::BlindPersistent => 2,
         };
-        let primary_mask = primary.as_ref().map(|(_, mask)| mask.clone());
-        let primary_sel = primary.as_ref().map(|(s, _)| s.clone());
-        let [guided, blind_largest, blind_persistent] =
-            [guided, blind_largest, blind_persistent].map(|s| s.map(|s| s.0));
+        let primary_mask = chosen[primary_index].as_mut().map(|(_, mask)| std::mem::take(mask));
+        let [guided, blind_largest, blind_persistent] = chosen.map(|c| c.map(|(selection, _)| selection));
+        let primary_sel = [&guided, &blind_largest, &blind_persistent][primary_index].clone();
         let mesh = primary_mask.as_ref().map(|m| mesh_mask(m, &density.geometry));
         let mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
         let result = SelectResult {
