@@ -175,3 +175,45 @@ fn blob_sites_keep_away_from_the_region_edges_and_the_lattice_faces() {
     }
     assert!(sites[at(5, 8, 6)] && !sites[at(2, 8, 6)] && !sites[at(5, 8, 0)] && !sites[at(16, 8, 6)]);
 }
+
+#[test]
+fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
+    use aret_pipe::kernels::lung_mask::{ranked_blobs, strongest_blob, BlobFilter};
+    use aret_pipe::stage::select::{centres, Search};
+    // Two balls of radius 9 mm on 2 mm cells, the brighter at `strong`, in uniform parenchyma.
+    let g = Geometry { dims: [48, 40, 36], ..geometry([1; 3], 2.0, 0.0) };
+    let (strong, weak) = ([14usize, 20, 18], [34usize, 20, 18]);
+    let mut data = vec![0.1f32; g.len()];
+    for (i, v) in data.iter_mut().enumerate() {
+        let p = [i % 48, (i / 48) % 40, i / (48 * 40)];
+        let dist_mm = |c: [usize; 3]| 2.0 * (0..3).map(|a| (p[a] as f64 - c[a] as f64).powi(2)).sum::<f64>().sqrt();
+        if dist_mm(strong) <= 9.0 {
+            *v = 0.8;
+        } else if dist_mm(weak) <= 9.0 {
+            *v = 0.5;
+        }
+    }
+    let density = Volume { geometry: g.clone(), data };
+    let (dims, spacing) = (g.dims, g.spacing_mm);
+    let sites = vec![true; g.len()];
+    let ranked = ranked_blobs(&density.data, dims, spacing, BlobFilter::Hessian, &[5.0], &sites);
+    assert!(ranked.windows(2).all(|w| w[0].response >= w[1].response), "strongest first");
+    assert_eq!(Some(ranked[0]), strongest_blob(&density.data, dims, spacing, BlobFilter::Hessian, &[5.0], &sites));
+    let off = |v: [usize; 3], c: [usize; 3]| (0..3).map(|a| v[a].abs_diff(c[a])).max().unwrap();
+    assert!(off(ranked[0].voxel, strong) <= 1, "{:?}", ranked[0]);
+    assert!(off(ranked[1].voxel, weak) <= 1, "{:?}", ranked[1]);
+    // The guided search (18 mm annotated: scale 5.2 mm) takes the strongest blob it accepts.
+    let params = SelectParams { inside_mm: 0.0, ..SelectParams::default() };
+    let lungs = vec![true; g.len()];
+    let find = |accept: &(dyn Fn(Search, &aret_pipe::stage::select::Centre) -> bool + Sync)| {
+        centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, accept)
+    };
+    let all = find(&|_, _| true);
+    let first = all.guided.expect("a guided centre");
+    assert_eq!((first.rank, off(first.voxel, strong) <= 1), (0, true));
+    let not_strong = |_: Search, c: &aret_pipe::stage::select::Centre| off(c.voxel, strong) > 2;
+    let passed_over = find(&not_strong);
+    let second = passed_over.guided.expect("the weaker ball");
+    assert!(second.rank >= 1 && off(second.voxel, weak) <= 1, "{second:?}");
+    assert!(find(&|_, _| false).note.expect("a note").contains("could be sized"));
+}

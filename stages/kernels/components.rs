@@ -227,6 +227,45 @@ pub fn label(mask: &[bool], dims: [usize; 3], connectivity: Connectivity) -> Com
     Components { dims, labels, sizes }
 }
 
+/// The number of voxels in `seed`'s component of `inside` (the one [`label`] would give it),
+/// grown outward from the seed: a few thousand voxels cost what they hold, not the volume.
+/// `None` when the component holds more than `max_voxels` (the fill stops there), or when
+/// `seed` itself is not inside.
+pub fn component_size_within(
+    inside: impl Fn(usize) -> bool,
+    dims: [usize; 3],
+    connectivity: Connectivity,
+    seed: usize,
+    max_voxels: usize,
+) -> Option<usize> {
+    if !inside(seed) || max_voxels == 0 {
+        return None;
+    }
+    let offsets: Vec<[i64; 3]> = (-1..=1)
+        .flat_map(|dz| (-1..=1).flat_map(move |dy| (-1..=1).map(move |dx| [dx, dy, dz])))
+        .filter(|&d| d != [0, 0, 0] && connectivity.touches(d))
+        .collect();
+    let mut seen = std::collections::HashSet::from([seed]);
+    let mut stack = vec![seed];
+    while let Some(i) = stack.pop() {
+        let at = [i % dims[0], (i / dims[0]) % dims[1], i / (dims[0] * dims[1])].map(|v| v as i64);
+        for d in &offsets {
+            let n = [at[0] + d[0], at[1] + d[1], at[2] + d[2]];
+            if (0..3).any(|a| n[a] < 0 || n[a] >= dims[a] as i64) {
+                continue;
+            }
+            let j = n[0] as usize + dims[0] * (n[1] as usize + dims[1] * n[2] as usize);
+            if inside(j) && seen.insert(j) {
+                if seen.len() > max_voxels {
+                    return None;
+                }
+                stack.push(j);
+            }
+        }
+    }
+    Some(seen.len())
+}
+
 /// The root of `i`'s set, halving the path on the way.
 fn find(parent: &mut [u32], mut i: u32) -> u32 {
     while parent[i as usize] != i {
@@ -404,5 +443,24 @@ mod tests {
         assert_eq!(kept, label(&kept.mask(), dims, Connectivity::Six));
         assert_eq!(all.without_small(0), all);
         assert_eq!(all.mask_of(1).iter().filter(|&&v| v).count(), all.size(1));
+    }
+
+    #[test]
+    fn component_size_within_equals_the_labels_size_and_stops_at_the_bound() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        let dims = [14, 10, 12];
+        for c in [Connectivity::Six, Connectivity::Eighteen, Connectivity::TwentySix] {
+            let m: Vec<bool> = (0..14 * 10 * 12).map(|_| rng.gen_bool(0.3)).collect();
+            let all = label(&m, dims, c);
+            for seed in (0..m.len()).step_by(7) {
+                let grown = component_size_within(|i| m[i], dims, c, seed, usize::MAX);
+                let expected = (all.labels[seed] != 0).then(|| all.size(all.labels[seed]));
+                assert_eq!(grown, expected, "seed {seed}, connectivity {c}");
+                if let Some(size) = expected {
+                    assert_eq!(component_size_within(|i| m[i], dims, c, seed, size), Some(size));
+                    assert_eq!(component_size_within(|i| m[i], dims, c, seed, size - 1), None);
+                }
+            }
+        }
     }
 }

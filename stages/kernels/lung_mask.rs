@@ -128,23 +128,57 @@ pub fn strongest_blob(
     scales_mm: &[f64],
     sites: &[bool],
 ) -> Option<BlobPeak> {
-    // The scales are independent; the search then runs in scale order, so ties resolve alike.
+    ranked_blobs(density, dims, spacing_mm, filter, scales_mm, sites).into_iter().next()
+}
+
+/// Every blob the search could answer with, strongest first: the `sites` whose response
+/// (the max over `scales_mm`, each node keeping its first strongest scale) is positive and at
+/// least that of every neighbouring site (26-connected). The first is [`strongest_blob`]'s;
+/// ties keep linear order.
+pub fn ranked_blobs(
+    density: &[f32],
+    dims: [usize; 3],
+    spacing_mm: [f64; 3],
+    filter: BlobFilter,
+    scales_mm: &[f64],
+    sites: &[bool],
+) -> Vec<BlobPeak> {
     let responses: Vec<Vec<f32>> =
         scales_mm.par_iter().map(|&scale_mm| filter.response(density, dims, spacing_mm, scale_mm)).collect();
-    let mut best: Option<(usize, f32, f64)> = None;
-    for (&scale_mm, response) in scales_mm.iter().zip(&responses) {
-        for (i, &r) in response.iter().enumerate() {
-            // Strictly greater: ties keep the first scale, then the first voxel.
-            if sites[i] && r > 0.0 && best.is_none_or(|(_, b, _)| r > b) {
-                best = Some((i, r, scale_mm));
+    // The strongest response at each node, and the index of its first scale.
+    let mut best: Vec<(f32, usize)> = vec![(f32::NEG_INFINITY, 0); density.len()];
+    for (k, response) in responses.iter().enumerate() {
+        for (b, &r) in best.iter_mut().zip(response) {
+            if r > b.0 {
+                *b = (r, k);
             }
         }
     }
-    best.map(|(i, response, scale_mm)| BlobPeak {
-        voxel: [i % dims[0], (i / dims[0]) % dims[1], i / (dims[0] * dims[1])],
-        response,
-        scale_mm,
-    })
+    let [nx, ny, nz] = dims;
+    let voxel = |i: usize| [i % nx, (i / nx) % ny, i / (nx * ny)];
+    let is_peak = |i: usize| {
+        let r = best[i].0;
+        if !(sites[i] && r > 0.0) {
+            return false;
+        }
+        let [x, y, z] = voxel(i);
+        let range = |v: usize, n: usize| v.saturating_sub(1)..=(v + 1).min(n - 1);
+        range(z, nz).all(|zz| {
+            range(y, ny).all(|yy| {
+                range(x, nx).all(|xx| {
+                    let j = xx + nx * (yy + ny * zz);
+                    !sites[j] || best[j].0 <= r
+                })
+            })
+        })
+    };
+    let mut peaks: Vec<usize> = (0..density.len()).into_par_iter().filter(|&i| is_peak(i)).collect();
+    // Stable: equal responses keep linear order.
+    peaks.sort_by(|&a, &b| best[b].0.total_cmp(&best[a].0));
+    peaks
+        .into_iter()
+        .map(|i| BlobPeak { voxel: voxel(i), response: best[i].0, scale_mm: scales_mm[best[i].1] })
+        .collect()
 }
 
 /// `density − G(density, background_mm)`: each value above its local background.

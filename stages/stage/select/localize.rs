@@ -10,9 +10,13 @@
 //!   `inside_mm` inside the lung field found in σ. The guided rule
 //!   uses the one scale matched to the annotated diameter (s = d / (2√3): a ball of radius
 //!   √3·s answers most at s); the blind rules the maximum over `blob_scales_mm`.
+//!
+//! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
+//! a blob whose half-maximum region leaks out of the lung field or is not of the nodule's
+//! size) and take the strongest one left, among the [`MAX_WEIGHED`] strongest.
 
 use super::Params;
-use crate::kernels::lung_mask::{blob_sites, lung_field, strongest_blob, BlobPeak};
+use crate::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobPeak};
 use crate::volume::Volume;
 use serde::{Deserialize, Serialize};
 
@@ -22,6 +26,18 @@ pub enum Localize {
     None,
     Origin,
     Blob,
+}
+
+/// How many of the strongest blobs a search weighs before it gives up: a bound on the work,
+/// far beyond the ranks at which a nodule still stands out.
+pub const MAX_WEIGHED: usize = 16;
+
+/// Which search a centre is for: the guided rule's (one scale, matched to the annotated
+/// diameter) or the blind rules' (`blob_scales_mm`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Search {
+    Guided,
+    Blind,
 }
 
 /// The centres found for the guided and the blind rules.
@@ -40,6 +56,9 @@ pub struct Centre {
     pub position_mm: [f64; 3],
     /// The blob response and its scale, for `blob`.
     pub blob: Option<BlobPeak>,
+    /// How many stronger blobs the search passed over (0: the strongest).
+    #[serde(default)]
+    pub rank: usize,
     pub on_nodule: Option<bool>,
 }
 
@@ -52,7 +71,8 @@ impl Centre {
 /// Finds the centres `params.localize` asks for in `density`, whose lung field is `lungs` when
 /// the caller has it (else it is found here, for `blob`). `origin_mm` is the scene origin,
 /// `annotated_diameter_mm` the guided rule's diameter, `coverage` the ground truth's
-/// per-cell coverage (only to report whether a centre is on the nodule).
+/// per-cell coverage (only to report whether a centre is on the nodule). A blob search takes
+/// the strongest blob that `accept` accepts; the origin has no alternative and is taken as is.
 pub fn centres(
     params: &Params,
     density: &Volume<f32>,
@@ -60,21 +80,23 @@ pub fn centres(
     origin_mm: [f64; 3],
     annotated_diameter_mm: Option<f64>,
     coverage: Option<&[f32]>,
+    accept: &(dyn Fn(Search, &Centre) -> bool + Sync),
 ) -> Centres {
     let Params { localize, blob_filter, ref blob_scales_mm, inside_mm, .. } = *params;
     let geometry = &density.geometry;
     let (dims, spacing) = (geometry.dims, geometry.spacing_mm);
-    let centre = |voxel: [usize; 3], blob: Option<BlobPeak>| Centre {
+    let centre = |voxel: [usize; 3], blob: Option<BlobPeak>, rank: usize| Centre {
         voxel,
         position_mm: geometry.voxel_to_patient_mm(voxel.map(|v| v as f64)),
         blob,
+        rank,
         on_nodule: coverage.map(|c| c[voxel[0] + dims[0] * (voxel[1] + dims[1] * voxel[2])] > 0.0),
     };
     match localize {
         Localize::None => Centres::default(),
         Localize::Origin => {
             let voxel = geometry.nearest_voxel(origin_mm);
-            Centres { guided: Some(centre(voxel, None)), blind: Some(centre(voxel, None)), note: None }
+            Centres { guided: Some(centre(voxel, None, 0)), blind: Some(centre(voxel, None, 0)), note: None }
         }
         Localize::Blob => {
             let found;
@@ -95,15 +117,32 @@ pub fn centres(
             };
             // Both rules search the same sites.
             let sites = blob_sites(lungs, dims, spacing, inside_mm);
-            let peak = |scales: &[f64]| {
-                strongest_blob(&density.data, dims, spacing, blob_filter, scales, &sites)
-                    .map(|p| centre(p.voxel, Some(p)))
+            // How many blobs each search found, and the first it accepted.
+            let search = |scales: &[f64], which: Search| {
+                let ranked = ranked_blobs(&density.data, dims, spacing, blob_filter, scales, &sites);
+                let taken = ranked
+                    .iter()
+                    .take(MAX_WEIGHED)
+                    .enumerate()
+                    .map(|(rank, p)| centre(p.voxel, Some(*p), rank))
+                    .find(|c| accept(which, c));
+                (ranked.len(), taken)
             };
             let matched = annotated_diameter_mm.map(|d| [0.5 * d / 3f64.sqrt()]);
             // Independent searches: on two cores, side by side beats each one's own parallelism.
-            let (guided, blind) = rayon::join(|| matched.and_then(|s| peak(&s)), || peak(blob_scales_mm));
-            let note = (guided.is_none() && blind.is_none())
-                .then(|| format!("no blob more than {inside_mm} mm inside the lung field"));
+            let ((guided_found, guided), (blind_found, blind)) = rayon::join(
+                || matched.map_or((0, None), |s| search(&s, Search::Guided)),
+                || search(blob_scales_mm, Search::Blind),
+            );
+            let note = match (guided.is_none() && blind.is_none(), guided_found.max(blind_found)) {
+                (false, _) => None,
+                (true, 0) => Some(format!("no blob more than {inside_mm} mm inside the lung field")),
+                (true, found) => Some(format!(
+                    "none of the {} strongest of {found} blobs more than {inside_mm} mm inside the lung field \
+                     could be sized",
+                    found.min(MAX_WEIGHED)
+                )),
+            };
             Centres { guided, blind, note }
         }
     }

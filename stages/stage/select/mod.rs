@@ -38,10 +38,10 @@ mod localize;
 mod preview;
 mod rules;
 
-pub use localize::{centres, Centre, Centres, Localize};
+pub use localize::{centres, Centre, Centres, Localize, Search};
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 7;
+pub const VERSION: u32 = 8;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -64,6 +64,9 @@ pub struct Params {
     pub sizing: Sizing,
     /// `sizing = "half_max"`: the fraction of the peak the region is cut at.
     pub half_max_fraction: f64,
+    /// `sizing = "half_max"` with `localize = "blob"`: the guided rule passes over a blob whose
+    /// region's equivalent diameter lies outside [lo, hi] × the annotated diameter.
+    pub guided_diameter_ratio: [f64; 2],
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
@@ -89,6 +92,7 @@ impl Default for Params {
             inside_mm: 8.0,
             sizing: Sizing::default(),
             half_max_fraction: 0.5,
+            guided_diameter_ratio: [0.5, 2.0],
         }
     }
 }
@@ -103,6 +107,10 @@ impl Params {
         }
         if !(self.half_max_fraction > 0.0 && self.half_max_fraction < 1.0) {
             bail!("[select] half_max_fraction must lie strictly between 0 and 1 (got {})", self.half_max_fraction);
+        }
+        let [lo, hi] = self.guided_diameter_ratio;
+        if !(lo.is_finite() && hi.is_finite() && 0.0 <= lo && lo < hi) {
+            bail!("[select] guided_diameter_ratio must be [lo, hi] with 0 ≤ lo < hi (got [{lo}, {hi}])");
         }
         if self.sizing == Sizing::HalfMax && self.localize == Localize::None {
             bail!(
@@ -237,6 +245,17 @@ impl Stage for Select {
         let analysis = Analysis::new(&levels, gt.as_ref(), &density.geometry);
         let annotated = target.map(|t| t.annotated_diameter_mm);
         let p = &self.params;
+        // With half-maximum sizing a search passes over blobs whose region cannot be the nodule.
+        let accept = |search: Search, centre: &Centre| match p.sizing {
+            Sizing::Candidates => true,
+            Sizing::HalfMax => {
+                let range = match search {
+                    Search::Guided => annotated.map(|d| p.guided_diameter_ratio.map(|r| r * d)),
+                    Search::Blind => None,
+                };
+                half_max::plausible(&scored, &sweep.params, centre, p.half_max_fraction, range)
+            }
+        };
         let centres = localize::centres(
             p,
             &density,
@@ -244,6 +263,7 @@ impl Stage for Select {
             cameras.frame.roi_center_mm,
             annotated,
             gt.as_ref().map(|g| g.coverage.as_slice()),
+            &accept,
         );
         let dims = density.geometry.dims;
         // Some(None): any candidate; Some(Some(cell)): those holding the centre; None: the
@@ -354,8 +374,9 @@ pub fn verdict(
             "unverified: no annotated diameter, so the guided rule cannot choose (set [select] primary to a blind rule)"
                 .into()
         }
-        (None, _) if params.sizing == Sizing::HalfMax => "MISS: no nodule centre was found, or the score has no \
-             peak there, or its half-maximum region is not of a nodule's size ([sweep] diameter_mm)"
+        (None, _) if params.sizing == Sizing::HalfMax => "MISS: no nodule centre was found whose half-maximum \
+             region stays in the lung field and is of a nodule's size ([sweep] diameter_mm; for the guided rule also \
+             [select] guided_diameter_ratio × the annotated diameter)"
             .into(),
         (None, _) if params.localize != Localize::None => {
             "MISS: no nodule centre was found, or no candidate of the sweep holds it".into()
