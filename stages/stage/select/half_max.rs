@@ -10,9 +10,8 @@
 //! sets the guided centre's blob scale and bounds the region's size (assistance B), and the
 //! volume comes from σ alone.
 //!
-//! A blob search passes over the blobs whose region cannot be a nodule ([`plausible`]): a
-//! region that, grown without the lung field, lies mostly outside it (a hilar vessel running
-//! into the mediastinum, the chest wall), or whose size is not a nodule's.
+//! A blob search passes over the blobs whose region cannot be the nodule ([`plausible`]): its
+//! size is not a nodule's, or (guided) not that of the annotated diameter.
 
 use super::localize::Centre;
 use super::Rule;
@@ -24,15 +23,10 @@ use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params a
 /// How far below and above the fraction the volume interval looks (absolute, in units of the peak).
 const INTERVAL_STEP: f64 = 0.1;
 
-/// The least share of a region, grown without the lung field, that must lie in it: a nodule
-/// may touch the field's edge, a structure that only reaches into the field is not one.
-const MIN_SHARE_IN_REGION: f64 = 0.5;
-
-/// Whether the half-maximum region at `centre` can be a nodule: the score has a positive peak
-/// there; the region (inside the sweep's region) has an equivalent diameter within the sweep's
-/// `diameter_mm` and within `diameter_range_mm` when given; and at least half of the region
-/// grown without the sweep's region lies inside it. Grows only the regions it weighs, so a
-/// search can weigh many centres.
+/// Whether the half-maximum region at `centre` can be the nodule: the score has a positive
+/// peak there, and the region ([`half_max_selection`]'s) has an equivalent diameter within the
+/// sweep's `diameter_mm` and within `diameter_range_mm` when given. Grows only the region,
+/// and stops past the largest nodule, so a search can weigh many centres.
 pub fn plausible(
     scored: &Scored,
     sweep: &SweepParams,
@@ -46,19 +40,15 @@ pub fn plausible(
     let geometry = &scored.score.geometry;
     let voxel_mm3: f64 = geometry.spacing_mm.iter().product();
     let threshold = fraction * f64::from(peak);
-    let above = |i: usize| f64::from(scored.score.data[i]) >= threshold;
     let region = scored.region.as_deref();
     let largest_voxels = (std::f64::consts::PI / 6.0 * sweep.diameter_mm[1].powi(3) / voxel_mm3).floor() as usize;
-    let grow = |within: &dyn Fn(usize) -> bool, max_voxels| {
-        component_size_within(within, geometry.dims, sweep.connectivity, seed, max_voxels)
-    };
-    let Some(voxels) = grow(&|i| above(i) && region.is_none_or(|r| r[i]), largest_voxels) else {
+    let inside = |i: usize| f64::from(scored.score.data[i]) >= threshold && region.is_none_or(|r| r[i]);
+    let Some(voxels) = component_size_within(inside, geometry.dims, sweep.connectivity, seed, largest_voxels) else {
         return false; // larger than any nodule
     };
     let diameter_mm = equivalent_diameter_mm(voxels as f64 * voxel_mm3);
     let within = |[lo, hi]: [f64; 2]| diameter_mm >= lo && diameter_mm <= hi;
-    let stays_in_region = || grow(&above, (voxels as f64 / MIN_SHARE_IN_REGION).floor() as usize).is_some();
-    within(sweep.diameter_mm) && diameter_range_mm.is_none_or(within) && stays_in_region()
+    within(sweep.diameter_mm) && diameter_range_mm.is_none_or(within)
 }
 
 /// The half-maximum region around `centre` at `fraction` of its peak, reported as `rule`'s
@@ -244,7 +234,7 @@ mod tests {
     }
 
     #[test]
-    fn a_region_is_plausible_when_it_stays_in_the_region_and_fits_the_sizes() {
+    fn a_region_is_plausible_when_its_size_fits() {
         let mut scored = bump([16.0, 16.0, 16.0], 4.0);
         let sweep = SweepParams { diameter_mm: [1.0, 80.0], ..SweepParams::default() };
         let at = centre([16, 16, 16]);
@@ -255,19 +245,13 @@ mod tests {
         assert!(!plausible(&scored, &sweep, &at, 0.5, Some([2.0, 8.0])), "larger than the range");
         let narrow = SweepParams { diameter_mm: [1.0, 8.0], ..SweepParams::default() };
         assert!(!plausible(&scored, &narrow, &at, 0.5, None), "larger than any nodule");
-        // Half the ball in the region (x ≤ 16 holds the centre plane): it stays.
-        scored.region = Some((0..32usize.pow(3)).map(|i| i % 32 <= 16).collect());
-        assert!(plausible(&scored, &sweep, &at, 0.5, None));
-        // A sliver in the region (x ≤ 13, the ball reaches x = 12): mostly outside, passed over.
+        // Only the part inside the sweep's region counts: a cap of the ball (x ≤ 13) is small.
         scored.region = Some((0..32usize.pow(3)).map(|i| i % 32 <= 13).collect());
-        assert!(!plausible(&scored, &sweep, &centre([13, 16, 16]), 0.5, None));
-        // Its size alone would do: the same sliver with no region to leak from.
-        let mut sliver = bump([16.0, 16.0, 16.0], 4.0);
-        for (i, v) in sliver.score.data.iter_mut().enumerate() {
-            if i % 32 > 13 {
-                *v = 0.0;
-            }
-        }
-        assert!(plausible(&sliver, &sweep, &centre([13, 16, 16]), 0.5, None));
+        assert!(!plausible(&scored, &sweep, &centre([13, 16, 16]), 0.5, Some([8.0, 11.0])));
+        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), 0.5, Some([3.0, 8.0])));
+        // No positive peak: nothing to size.
+        let flat =
+            Scored { score: Volume { geometry: geometry([32; 3]), data: vec![0.0; 32 * 32 * 32] }, region: None };
+        assert!(!plausible(&flat, &sweep, &at, 0.5, None));
     }
 }

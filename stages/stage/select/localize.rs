@@ -12,8 +12,8 @@
 //!   √3·s answers most at s); the blind rules the maximum over `blob_scales_mm`.
 //!
 //! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
-//! a blob whose half-maximum region leaks out of the lung field or is not of the nodule's
-//! size) and take the strongest one left, among the [`MAX_WEIGHED`] strongest.
+//! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
+//! left, among the [`MAX_WEIGHED`] strongest.
 
 use super::Params;
 use crate::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobPeak};

@@ -41,7 +41,7 @@ mod rules;
 pub use localize::{centres, Centre, Centres, Localize, Search};
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 8;
+pub const VERSION: u32 = 9;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -375,7 +375,7 @@ pub fn verdict(
                 .into()
         }
         (None, _) if params.sizing == Sizing::HalfMax => "MISS: no nodule centre was found whose half-maximum \
-             region stays in the lung field and is of a nodule's size ([sweep] diameter_mm; for the guided rule also \
+             region is of a nodule's size ([sweep] diameter_mm; for the guided rule also \
              [select] guided_diameter_ratio × the annotated diameter)"
             .into(),
         (None, _) if params.localize != Localize::None => {
