@@ -195,8 +195,17 @@ fn cohort_row(h: &mut String, name: &str, g: &Group) {
         corr(&all.spearman),
         all.bland_altman.value().map_or("–".into(), |b| format!("{:.0} [{:.0}, {:.0}]", b.bias, b.bias_ci[0], b.bias_ci[1])),
         estimate(&g.sphere.median_pct),
-        all.wilcoxon_vs_sphere.value().map_or("–".into(), |w| format!("{:.0}, {:.3}", w.w, w.p_two_sided)),
+        all.wilcoxon_vs_sphere.value().map_or("–".into(), |w| format!("{:.0}, {}", w.w, p_value(w.p_two_sided))),
     );
+}
+
+/// A p-value to three decimals for an HTML cell; below 0.001 as "< 0.001", never as 0.000.
+fn p_value(p: f64) -> String {
+    if p < 0.001 {
+        "&lt; 0.001".into()
+    } else {
+        format!("{p:.3}")
+    }
 }
 
 fn paper_rows(summary: &Summary) -> String {
@@ -291,4 +300,14 @@ fn list(names: &[String]) -> String {
 
 fn escape(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn small_p_values_read_as_below_a_thousandth_not_as_zero() {
+        assert_eq!(super::p_value(0.00048828125), "&lt; 0.001");
+        assert_eq!(super::p_value(0.044769287109375), "0.045");
+        assert_eq!(super::p_value(1.0), "1.000");
+    }
 }
