@@ -23,6 +23,22 @@ use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params a
 /// How far below and above the fraction the volume interval looks (absolute, in units of the peak).
 const INTERVAL_STEP: f64 = 0.1;
 
+/// Where a rule cuts its region: at `fraction` of the peak, and no farther than `reach_mm`
+/// from the peak when given (the guided rule: a nodule's voxels lie within its largest extent,
+/// the annotated diameter, of any of its points, so what lies farther is attached to it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Cut {
+    pub fraction: f64,
+    pub reach_mm: Option<f64>,
+}
+
+impl Cut {
+    /// At `fraction` of the peak, however far from it.
+    pub fn at(fraction: f64) -> Cut {
+        Cut { fraction, reach_mm: None }
+    }
+}
+
 /// Whether the half-maximum region at `centre` can be the nodule: the score has a positive
 /// peak there, and the region ([`half_max_selection`]'s) has an equivalent diameter within the
 /// sweep's `diameter_mm` and within `diameter_range_mm` when given. Grows only the region,
@@ -31,7 +47,7 @@ pub fn plausible(
     scored: &Scored,
     sweep: &SweepParams,
     centre: &Centre,
-    fraction: f64,
+    cut: Cut,
     diameter_range_mm: Option<[f64; 2]>,
 ) -> bool {
     let Some((seed, peak)) = peak_near(scored, centre.voxel) else {
@@ -39,10 +55,8 @@ pub fn plausible(
     };
     let geometry = &scored.score.geometry;
     let voxel_mm3: f64 = geometry.spacing_mm.iter().product();
-    let threshold = fraction * f64::from(peak);
-    let region = scored.region.as_deref();
     let largest_voxels = (std::f64::consts::PI / 6.0 * sweep.diameter_mm[1].powi(3) / voxel_mm3).floor() as usize;
-    let inside = |i: usize| f64::from(scored.score.data[i]) >= threshold && region.is_none_or(|r| r[i]);
+    let inside = member(scored, seed, cut.fraction * f64::from(peak), cut.reach_mm);
     let Some(voxels) = component_size_within(inside, geometry.dims, sweep.connectivity, seed, largest_voxels) else {
         return false; // larger than any nodule
     };
@@ -51,24 +65,25 @@ pub fn plausible(
     within(sweep.diameter_mm) && diameter_range_mm.is_none_or(within)
 }
 
-/// The half-maximum region around `centre` at `fraction` of its peak, reported as `rule`'s
-/// selection with its mask, or `None` when the score has no positive peak at the centre or the
-/// region's equivalent diameter lies outside the sweep's `diameter_mm` (it leaked into the
+/// The half-maximum region around `centre`, cut as `cut` says, reported as `rule`'s selection
+/// with its mask, or `None` when the score has no positive peak at the centre or the region's
+/// equivalent diameter lies outside the sweep's `diameter_mm` (it leaked into the
 /// surroundings, or is a speck). The volume interval holds the regions at `fraction ± 0.1`.
 pub fn half_max_selection(
     scored: &Scored,
     sweep: &SweepParams,
     centre: &Centre,
-    fraction: f64,
+    cut: Cut,
     gt: Option<&GroundTruthOnGrid>,
     rule: Rule,
 ) -> Option<(Selection, Vec<bool>)> {
     let geometry = &scored.score.geometry;
     let (seed, peak) = peak_near(scored, centre.voxel)?;
     let peak = f64::from(peak);
-    let at = |fraction: f64| region_at(scored, sweep, seed, fraction * peak);
+    let at = |fraction: f64| region_at(scored, sweep, seed, fraction * peak, cut.reach_mm);
+    let fraction = cut.fraction;
     let threshold = fraction * peak;
-    let (components, own) = region_at(scored, sweep, seed, threshold);
+    let (components, own) = at(fraction);
     let voxel_mm3: f64 = geometry.spacing_mm.iter().product();
     let volume_mm3 = components.size(own) as f64 * voxel_mm3;
     let diameter_mm = equivalent_diameter_mm(volume_mm3);
@@ -119,17 +134,35 @@ fn peak_near(scored: &Scored, voxel: [usize; 3]) -> Option<(usize, f32)> {
     best.filter(|&(_, v)| v > 0.0)
 }
 
-/// The components of `score ≥ threshold` inside the region, and the label of the one holding
-/// `seed` (whose score is the peak, so it is always in one).
-fn region_at(scored: &Scored, sweep: &SweepParams, seed: usize, threshold: f64) -> (Components, u32) {
-    let region = scored.region.as_deref();
-    let mask: Vec<bool> = scored
-        .score
-        .data
-        .iter()
-        .enumerate()
-        .map(|(i, &v)| f64::from(v) >= threshold && region.is_none_or(|r| r[i]))
-        .collect();
+/// Whether node `i` may belong to `seed`'s region: its score is at least `threshold`, it lies
+/// in the sweep's region, and within `reach_mm` of the seed when given.
+fn member(scored: &Scored, seed: usize, threshold: f64, reach_mm: Option<f64>) -> impl Fn(usize) -> bool + '_ {
+    let geometry = &scored.score.geometry;
+    let [nx, ny, _] = geometry.dims;
+    let at = move |i: usize| [i % nx, (i / nx) % ny, i / (nx * ny)];
+    let from = at(seed);
+    let reach_sq = reach_mm.map(|r| r * r);
+    move |i: usize| {
+        let to = at(i);
+        let near = || {
+            let d2: f64 = (0..3).map(|a| ((to[a] as f64 - from[a] as f64) * geometry.spacing_mm[a]).powi(2)).sum();
+            reach_sq.is_none_or(|r2| d2 <= r2)
+        };
+        f64::from(scored.score.data[i]) >= threshold && scored.region.as_ref().is_none_or(|r| r[i]) && near()
+    }
+}
+
+/// The components of the nodes that may belong to `seed`'s region ([`member`]), and the label
+/// of the one holding `seed` (whose score is the peak, so it is always in one).
+fn region_at(
+    scored: &Scored,
+    sweep: &SweepParams,
+    seed: usize,
+    threshold: f64,
+    reach_mm: Option<f64>,
+) -> (Components, u32) {
+    let is_member = member(scored, seed, threshold, reach_mm);
+    let mask: Vec<bool> = (0..scored.score.data.len()).map(is_member).collect();
     let components = label(&mask, scored.score.geometry.dims, sweep.connectivity);
     let own = components.labels[seed];
     (components, own)
@@ -192,7 +225,7 @@ mod tests {
         let sweep = SweepParams { diameter_mm: [1.0, 80.0], ..SweepParams::default() };
         // The centre a node off the peak: the peak is found beside it.
         let (selection, mask) =
-            half_max_selection(&scored, &sweep, &centre([15, 16, 16]), 0.5, None, Rule::Guided).unwrap();
+            half_max_selection(&scored, &sweep, &centre([15, 16, 16]), Cut::at(0.5), None, Rule::Guided).unwrap();
         // Nodes within the half-maximum radius w·√(2 ln 2) of the peak, counted directly.
         let r = w * (2.0 * 2f64.ln()).sqrt();
         let expected = (0..32usize.pow(3))
@@ -215,11 +248,11 @@ mod tests {
     fn a_region_outside_the_diameter_range_or_no_peak_selects_nothing() {
         let scored = bump([16.0, 16.0, 16.0], 4.0);
         let small = SweepParams { diameter_mm: [1.0, 5.0], ..SweepParams::default() };
-        assert!(half_max_selection(&scored, &small, &centre([16, 16, 16]), 0.5, None, Rule::Guided).is_none());
+        assert!(half_max_selection(&scored, &small, &centre([16, 16, 16]), Cut::at(0.5), None, Rule::Guided).is_none());
         let flat =
             Scored { score: Volume { geometry: geometry([32; 3]), data: vec![0.0; 32 * 32 * 32] }, region: None };
         let any = SweepParams::default();
-        assert!(half_max_selection(&flat, &any, &centre([16, 16, 16]), 0.5, None, Rule::Guided).is_none());
+        assert!(half_max_selection(&flat, &any, &centre([16, 16, 16]), Cut::at(0.5), None, Rule::Guided).is_none());
     }
 
     #[test]
@@ -228,7 +261,8 @@ mod tests {
         // Only the half-space x ≤ 16 is region.
         scored.region = Some((0..32usize.pow(3)).map(|i| i % 32 <= 16).collect());
         let sweep = SweepParams { diameter_mm: [1.0, 80.0], ..SweepParams::default() };
-        let (_, mask) = half_max_selection(&scored, &sweep, &centre([16, 16, 16]), 0.5, None, Rule::Guided).unwrap();
+        let (_, mask) =
+            half_max_selection(&scored, &sweep, &centre([16, 16, 16]), Cut::at(0.5), None, Rule::Guided).unwrap();
         assert!(mask.iter().enumerate().all(|(i, &b)| !b || i % 32 <= 16));
         assert!(mask[15 + 32 * (16 + 32 * 16)]);
     }
@@ -239,19 +273,41 @@ mod tests {
         let sweep = SweepParams { diameter_mm: [1.0, 80.0], ..SweepParams::default() };
         let at = centre([16, 16, 16]);
         // The FWHM ball's equivalent diameter is ≈ 2 · 4 · √(2 ln 2) ≈ 9.4 nodes.
-        assert!(plausible(&scored, &sweep, &at, 0.5, None));
-        assert!(plausible(&scored, &sweep, &at, 0.5, Some([8.0, 11.0])));
-        assert!(!plausible(&scored, &sweep, &at, 0.5, Some([11.0, 30.0])), "smaller than the range");
-        assert!(!plausible(&scored, &sweep, &at, 0.5, Some([2.0, 8.0])), "larger than the range");
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), None));
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([8.0, 11.0])));
+        assert!(!plausible(&scored, &sweep, &at, Cut::at(0.5), Some([11.0, 30.0])), "smaller than the range");
+        assert!(!plausible(&scored, &sweep, &at, Cut::at(0.5), Some([2.0, 8.0])), "larger than the range");
         let narrow = SweepParams { diameter_mm: [1.0, 8.0], ..SweepParams::default() };
-        assert!(!plausible(&scored, &narrow, &at, 0.5, None), "larger than any nodule");
+        assert!(!plausible(&scored, &narrow, &at, Cut::at(0.5), None), "larger than any nodule");
         // Only the part inside the sweep's region counts: a cap of the ball (x ≤ 13) is small.
         scored.region = Some((0..32usize.pow(3)).map(|i| i % 32 <= 13).collect());
-        assert!(!plausible(&scored, &sweep, &centre([13, 16, 16]), 0.5, Some([8.0, 11.0])));
-        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), 0.5, Some([3.0, 8.0])));
+        assert!(!plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([8.0, 11.0])));
+        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([3.0, 8.0])));
         // No positive peak: nothing to size.
         let flat =
             Scored { score: Volume { geometry: geometry([32; 3]), data: vec![0.0; 32 * 32 * 32] }, region: None };
-        assert!(!plausible(&flat, &sweep, &at, 0.5, None));
+        assert!(!plausible(&flat, &sweep, &at, Cut::at(0.5), None));
+    }
+
+    #[test]
+    fn a_reach_cuts_off_a_strand_beyond_it() {
+        // A bump with a strand at its full height along +x from the peak to the lattice's edge.
+        let mut scored = bump([10.0, 16.0, 16.0], 3.0);
+        for x in 10..32 {
+            scored.score.data[x + 32 * (16 + 32 * 16)] = 1.0;
+        }
+        let sweep = SweepParams { diameter_mm: [1.0, 80.0], ..SweepParams::default() };
+        let at = centre([10, 16, 16]);
+        let strand_tip = 31 + 32 * (16 + 32 * 16);
+        let (free, free_mask) = half_max_selection(&scored, &sweep, &at, Cut::at(0.5), None, Rule::Guided).unwrap();
+        assert!(free_mask[strand_tip], "without a reach the region follows the strand");
+        let cut = Cut { fraction: 0.5, reach_mm: Some(8.0) };
+        let (held, mask) = half_max_selection(&scored, &sweep, &at, cut, None, Rule::Guided).unwrap();
+        assert!(!mask[strand_tip] && mask[18 + 32 * (16 + 32 * 16)] && !mask[19 + 32 * (16 + 32 * 16)]);
+        assert_eq!(free.candidate.voxels - held.candidate.voxels, 13, "the strand's nodes x = 19..31 go");
+        // The search's check measures the same region.
+        let d = held.candidate.diameter_mm;
+        assert!(plausible(&scored, &sweep, &at, cut, Some([d - 1e-9, d + 1e-9])));
+        assert!(!plausible(&scored, &sweep, &at, Cut::at(0.5), Some([d - 1e-9, d + 1e-9])));
     }
 }

@@ -31,6 +31,7 @@ use crate::stage::ingest::truth::GroundTruth;
 use crate::stage::sweep::{levels_of, scored, Candidate, Region, SweepFile, LUNG_FIELD};
 use crate::volume::Volume;
 use anyhow::{bail, Context as _};
+use half_max::Cut;
 use serde::{Deserialize, Serialize};
 
 mod half_max;
@@ -41,7 +42,7 @@ mod rules;
 pub use localize::{centres, Centre, Centres, Localize, Search};
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 9;
+pub const VERSION: u32 = 10;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -67,6 +68,9 @@ pub struct Params {
     /// `sizing = "half_max"` with `localize = "blob"`: the guided rule passes over a blob whose
     /// region's equivalent diameter lies outside [lo, hi] × the annotated diameter.
     pub guided_diameter_ratio: [f64; 2],
+    /// `sizing = "half_max"`: the guided rule's region holds no node farther from its peak than
+    /// this many annotated diameters (what lies farther is attached to the nodule, not of it).
+    pub guided_reach_diameters: f64,
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
@@ -93,6 +97,7 @@ impl Default for Params {
             sizing: Sizing::default(),
             half_max_fraction: 0.5,
             guided_diameter_ratio: [0.5, 2.0],
+            guided_reach_diameters: 1.0,
         }
     }
 }
@@ -111,6 +116,9 @@ impl Params {
         let [lo, hi] = self.guided_diameter_ratio;
         if !(lo.is_finite() && hi.is_finite() && 0.0 <= lo && lo < hi) {
             bail!("[select] guided_diameter_ratio must be [lo, hi] with 0 ≤ lo < hi (got [{lo}, {hi}])");
+        }
+        if !(self.guided_reach_diameters.is_finite() && self.guided_reach_diameters > 0.0) {
+            bail!("[select] guided_reach_diameters must be a number > 0 (got {})", self.guided_reach_diameters);
         }
         if self.sizing == Sizing::HalfMax && self.localize == Localize::None {
             bail!(
@@ -246,14 +254,18 @@ impl Stage for Select {
         let annotated = target.map(|t| t.annotated_diameter_mm);
         let p = &self.params;
         // With half-maximum sizing a search passes over blobs whose region cannot be the nodule.
+        // The guided rule's region reaches no farther than the annotated diameter allows.
+        let guided_cut =
+            Cut { fraction: p.half_max_fraction, reach_mm: annotated.map(|d| p.guided_reach_diameters * d) };
+        let blind_cut = Cut::at(p.half_max_fraction);
         let accept = |search: Search, centre: &Centre| match p.sizing {
             Sizing::Candidates => true,
             Sizing::HalfMax => {
-                let range = match search {
-                    Search::Guided => annotated.map(|d| p.guided_diameter_ratio.map(|r| r * d)),
-                    Search::Blind => None,
+                let (cut, range) = match search {
+                    Search::Guided => (guided_cut, annotated.map(|d| p.guided_diameter_ratio.map(|r| r * d))),
+                    Search::Blind => (blind_cut, None),
                 };
-                half_max::plausible(&scored, &sweep.params, centre, p.half_max_fraction, range)
+                half_max::plausible(&scored, &sweep.params, centre, cut, range)
             }
         };
         let centres = localize::centres(
@@ -283,15 +295,15 @@ impl Stage for Select {
                     .map(|at| (analysis.describe(rule, at), levels[at.0].components.mask_of(at.1)))
             }),
             Sizing::HalfMax => {
-                let at = |rule, centre: &Option<Centre>| {
-                    centre.as_ref().and_then(|c| {
-                        half_max::half_max_selection(&scored, &sweep.params, c, p.half_max_fraction, gt.as_ref(), rule)
-                    })
+                let at = |rule, centre: &Option<Centre>, cut| {
+                    centre
+                        .as_ref()
+                        .and_then(|c| half_max::half_max_selection(&scored, &sweep.params, c, cut, gt.as_ref(), rule))
                 };
                 // Both blind rules size the blind centre: one region, reported under each name.
-                let blind = at(Rule::BlindLargest, &centres.blind);
+                let blind = at(Rule::BlindLargest, &centres.blind, blind_cut);
                 let persistent = blind.clone().map(|(s, m)| (Selection { rule: Rule::BlindPersistent, ..s }, m));
-                [at(Rule::Guided, &centres.guided), blind, persistent]
+                [at(Rule::Guided, &centres.guided, guided_cut), blind, persistent]
             }
         };
         let primary_index = match self.params.primary {
