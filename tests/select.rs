@@ -117,7 +117,7 @@ fn chest() -> (Volume<f32>, [usize; 3]) {
 
 #[test]
 fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
-    use aret_pipe::kernels::lung_mask::{blob_sites, lung_field, strongest_blob, BlobFilter};
+    use aret_pipe::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobFilter};
     let (density, nodule) = chest();
     let (dims, spacing) = (density.geometry.dims, density.geometry.spacing_mm);
     let at = |v: [usize; 3]| v[0] + dims[0] * (v[1] + dims[1] * v[2]);
@@ -127,8 +127,10 @@ fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
     assert!(!lungs.field[at([40, 42, 20])] && !lungs.field[at([55, 44, 33])], "outside air is not lung");
     assert!(lungs.field[at([50, 10, 5])], "parenchyma touching the box faces is lung");
     let sites = blob_sites(&lungs.field, dims, spacing, 8.0);
-    let find =
-        |filter| strongest_blob(&density.data, dims, spacing, filter, &[6.0, 9.0, 13.0], &sites).expect("a blob");
+    let find = |filter| {
+        let ranked = ranked_blobs(&density.data, dims, spacing, filter, &[6.0, 9.0, 13.0], &sites);
+        *ranked.first().expect("a blob")
+    };
     let peak = find(BlobFilter::Laplacian);
     for (filter, found) in [(BlobFilter::Laplacian, peak), (BlobFilter::Hessian, find(BlobFilter::Hessian))] {
         let off: usize = (0..3).map(|a| found.voxel[a].abs_diff(nodule[a])).sum();
@@ -178,7 +180,7 @@ fn blob_sites_keep_away_from_the_region_edges_and_the_lattice_faces() {
 
 #[test]
 fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
-    use aret_pipe::kernels::lung_mask::{ranked_blobs, strongest_blob, BlobFilter};
+    use aret_pipe::kernels::lung_mask::{ranked_blobs, BlobFilter};
     use aret_pipe::stage::select::{centres, Search};
     // Two balls of radius 9 mm on 2 mm cells, the brighter at `strong`, in uniform parenchyma.
     let g = Geometry { dims: [48, 40, 36], ..geometry([1; 3], 2.0, 0.0) };
@@ -198,7 +200,8 @@ fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
     let sites = vec![true; g.len()];
     let ranked = ranked_blobs(&density.data, dims, spacing, BlobFilter::Hessian, &[5.0], &sites);
     assert!(ranked.windows(2).all(|w| w[0].response >= w[1].response), "strongest first");
-    assert_eq!(Some(ranked[0]), strongest_blob(&density.data, dims, spacing, BlobFilter::Hessian, &[5.0], &sites));
+    let response = BlobFilter::Hessian.response(&density.data, dims, spacing, 5.0);
+    assert_eq!(ranked[0].response, response.iter().copied().fold(f32::MIN, f32::max), "the first is the maximum");
     let off = |v: [usize; 3], c: [usize; 3]| (0..3).map(|a| v[a].abs_diff(c[a])).max().unwrap();
     assert!(off(ranked[0].voxel, strong) <= 1, "{:?}", ranked[0]);
     assert!(off(ranked[1].voxel, weak) <= 1, "{:?}", ranked[1]);

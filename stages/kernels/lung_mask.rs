@@ -118,23 +118,10 @@ impl BlobFilter {
     }
 }
 
-/// The strongest bright-blob response of `filter` (max over `scales_mm`) at one of the
-/// `sites` ([`blob_sites`]). `None` when no site has a positive response.
-pub fn strongest_blob(
-    density: &[f32],
-    dims: [usize; 3],
-    spacing_mm: [f64; 3],
-    filter: BlobFilter,
-    scales_mm: &[f64],
-    sites: &[bool],
-) -> Option<BlobPeak> {
-    ranked_blobs(density, dims, spacing_mm, filter, scales_mm, sites).into_iter().next()
-}
-
 /// Every blob the search could answer with, strongest first: the `sites` whose response
 /// (the max over `scales_mm`, each node keeping its first strongest scale) is positive and at
-/// least that of every neighbouring site (26-connected). The first is [`strongest_blob`]'s;
-/// ties keep linear order.
+/// least that of every neighbouring site (26-connected). The first is the strongest response
+/// at any site; ties keep linear order. Empty when no site has a positive response.
 pub fn ranked_blobs(
     density: &[f32],
     dims: [usize; 3],
