@@ -61,8 +61,12 @@ pub fn plausible(
         return false; // larger than any nodule
     };
     let diameter_mm = equivalent_diameter_mm(voxels as f64 * voxel_mm3);
-    let within = |[lo, hi]: [f64; 2]| diameter_mm >= lo && diameter_mm <= hi;
-    within(sweep.diameter_mm) && diameter_range_mm.is_none_or(within)
+    within(diameter_mm, sweep.diameter_mm) && diameter_range_mm.is_none_or(|range| within(diameter_mm, range))
+}
+
+/// Whether `diameter_mm` lies in `[lo, hi]`.
+fn within(diameter_mm: f64, [lo, hi]: [f64; 2]) -> bool {
+    lo <= diameter_mm && diameter_mm <= hi
 }
 
 /// The half-maximum region around `centre`, cut as `cut` says, reported as `rule`'s selection
@@ -87,7 +91,7 @@ pub fn half_max_selection(
     let voxel_mm3: f64 = geometry.spacing_mm.iter().product();
     let volume_mm3 = components.size(own) as f64 * voxel_mm3;
     let diameter_mm = equivalent_diameter_mm(volume_mm3);
-    if diameter_mm < sweep.diameter_mm[0] || diameter_mm > sweep.diameter_mm[1] {
+    if !within(diameter_mm, sweep.diameter_mm) {
         return None;
     }
     let candidate = Candidate {
@@ -143,8 +147,9 @@ fn member(scored: &Scored, seed: usize, threshold: f64, reach_mm: Option<f64>) -
     let from = at(seed);
     let reach_sq = reach_mm.map(|r| r * r);
     move |i: usize| {
-        let to = at(i);
+        // Checked last: most nodes fail the threshold first.
         let near = || {
+            let to = at(i);
             let d2: f64 = (0..3).map(|a| ((to[a] as f64 - from[a] as f64) * geometry.spacing_mm[a]).powi(2)).sum();
             reach_sq.is_none_or(|r2| d2 <= r2)
         };
