@@ -6,8 +6,8 @@ use aret_pipe::formats::dicom::{read_ct_series, DEFAULT_GAP_TOLERANCE};
 use aret_pipe::formats::dicom_writer::{write_ct_series, SeriesMeta};
 use aret_pipe::formats::png::{axial_slice, coronal_projection, encode_gray8, image_png, LUNG_WINDOW};
 use aret_pipe::phantom::{
-    add_scanner_noise, ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_mask, phantom_ct,
-    thorax_hu, NoduleInsert, PhantomParams, Thorax, Tissue,
+    add_scanner_noise, ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_fraction,
+    occupancy_from_mask, phantom_ct, thorax_hu, NoduleInsert, PhantomParams, Thorax, Tissue,
 };
 use aret_pipe::volume::{Geometry, Volume};
 use std::collections::HashMap;
@@ -279,6 +279,50 @@ fn occupancy_from_a_mask_keeps_its_volume_and_softens_its_edge() {
     assert!(occ.origin[0] < mask.origin[0] && occ.dims[0] > mask.dims[0]);
     // Thick slices: no smearing across slabs (the z extent stays the mask's).
     assert_eq!((occ.origin[2], occ.dims[2]), (mask.origin[2], mask.dims[2]));
+}
+
+#[test]
+fn occupancy_from_a_graded_shape_keeps_its_sum_and_its_half_level() {
+    // Two readers: an inner ellipsoid both drew (fraction 1), a rim only one drew (0.5).
+    let (spacing, outer) = ellipsoid_case([9.0, 7.0, 6.0]);
+    let inner = ellipsoid_mask([40.3, 35.6, 12.2], [6.0, 5.0, 4.0], spacing);
+    let at = |m: &aret_pipe::phantom::BoxGrid<bool>, i: usize, j: usize, k: usize| {
+        let g = [
+            i as i64 + outer.origin[0] - m.origin[0],
+            j as i64 + outer.origin[1] - m.origin[1],
+            k as i64 + outer.origin[2] - m.origin[2],
+        ];
+        (0..3).all(|a| g[a] >= 0 && (g[a] as usize) < m.dims[a])
+            && m.data[m.index(g[0] as usize, g[1] as usize, g[2] as usize)]
+    };
+    let mut data = Vec::with_capacity(outer.data.len());
+    for k in 0..outer.dims[2] {
+        for j in 0..outer.dims[1] {
+            for i in 0..outer.dims[0] {
+                data.push(0.5 * (f32::from(u8::from(at(&outer, i, j, k))) + f32::from(u8::from(at(&inner, i, j, k)))));
+            }
+        }
+    }
+    let fraction = aret_pipe::phantom::BoxGrid { origin: outer.origin, dims: outer.dims, data };
+    let occ = occupancy_from_fraction(&fraction, spacing);
+    let want: f64 = fraction.data.iter().map(|&f| f64::from(f)).sum();
+    let got: f64 = occ.data.iter().map(|&o| f64::from(o)).sum();
+    assert!((got - want).abs() < 1e-3 * want, "{got} vs {want}");
+    // Full inside what both drew, half on the rim one drew, nothing outside (slab 12 is the
+    // ellipsoids' middle; 9 mm × 0.7 mm pixels out along x the outer one ends).
+    let value = |x: usize| {
+        occ.data[occ.index(x - occ.origin[0] as usize, 36 - occ.origin[1] as usize, 12 - occ.origin[2] as usize)]
+    };
+    assert!(value(40) > 0.999, "{}", value(40));
+    assert!((value(40 + 11) - 0.5).abs() < 0.01, "{}", value(51));
+    assert!(value(40 + 16) < 1e-3, "{}", value(56));
+    // A binary shape as fractions is the mask's occupancy, bit for bit.
+    let binary = aret_pipe::phantom::BoxGrid {
+        origin: outer.origin,
+        dims: outer.dims,
+        data: outer.data.iter().map(|&on| f32::from(u8::from(on))).collect(),
+    };
+    assert_eq!(occupancy_from_fraction(&binary, spacing), occupancy_from_mask(&outer, spacing));
 }
 
 #[test]

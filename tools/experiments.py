@@ -73,6 +73,9 @@ ROWS = [
      "the default fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
     ("drr-256", "presets/drr256.toml", "B", "C*",
      "the default fitted to views of 256 × 256 pixels instead of 128 × 128"),
+    ("phantom-readers", "presets/phantom_readers.toml", "B", "C*",
+     "the default on a phantom whose nodules hold tissue in the fraction of readers who drew each voxel"
+     " (the default phantom draws the union of the contours)"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),

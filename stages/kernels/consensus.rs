@@ -109,6 +109,9 @@ pub struct NoduleTruth {
     pub consensus: BoxMask,
     /// Voxels inside any of the nodule's annotations (any reader): the nodule's full drawn shape.
     pub union_mask: BoxMask,
+    /// Over `bbox`, the fraction of the nodule's annotations whose mask holds each voxel: the
+    /// union is where it is above 0, the consensus where it is at least `clevel`.
+    pub reader_fraction: Vec<f32>,
     /// Each annotation's mask voxel count, in `annotation_indices` order.
     pub annotation_mask_voxels: Vec<usize>,
     pub consensus_voxels: usize,
@@ -157,6 +160,7 @@ pub fn nodule_truth(
         clevel,
         bbox,
         union_mask: union_of(&masks, bbox),
+        reader_fraction: reader_fraction_of(&masks, bbox),
         annotation_mask_voxels: masks.iter().map(BoxMask::count).collect(),
         consensus: mask,
         consensus_voxels,
@@ -179,6 +183,11 @@ fn centroid_of(mask: &BoxMask) -> Option<[f64; 3]> {
         n += 1;
     }
     (n > 0).then(|| sum.map(|s| s / n as f64))
+}
+
+fn reader_fraction_of(masks: &[BoxMask], bbox: BBox) -> Vec<f32> {
+    let n = masks.len() as f64;
+    (0..bbox.len()).map(|v| (masks.iter().filter(|m| m.data[v]).count() as f64 / n) as f32).collect()
 }
 
 fn union_of(masks: &[BoxMask], bbox: BBox) -> BoxMask {
@@ -266,6 +275,30 @@ mod tests {
         assert!(both.mask.count() < union);
         assert_eq!(c.bbox, BBox { min_ijk: [2, 2, 1], max_ijk: [8, 8, 2] });
         assert!(consensus(&[&a], 0.0).is_err());
+    }
+
+    #[test]
+    fn the_reader_fraction_holds_the_union_and_every_consensus() {
+        let g = geometry();
+        // Three readers: nested squares on slice 1, the third also on slice 2.
+        let anns = vec![
+            square_annotation(&[1], 2, 2, 6),
+            square_annotation(&[1], 3, 3, 4),
+            square_annotation(&[1, 2], 4, 4, 2),
+        ];
+        let t = nodule_truth(&anns, &[0, 1, 2], &g, 0.5).unwrap();
+        assert_eq!(t.reader_fraction.len(), t.bbox.len());
+        let union: Vec<bool> = t.reader_fraction.iter().map(|&f| f > 0.0).collect();
+        assert_eq!(union, t.union_mask.data);
+        for clevel in [0.3, 0.5, 0.7, 1.0] {
+            let at = nodule_truth(&anns, &[0, 1, 2], &g, clevel).unwrap();
+            let level: Vec<bool> = t.reader_fraction.iter().map(|&f| f64::from(f) >= clevel - 1e-6).collect();
+            assert_eq!(level, at.consensus.data, "clevel {clevel}");
+        }
+        let mut values: Vec<f32> = t.reader_fraction.clone();
+        values.sort_by(f32::total_cmp);
+        values.dedup();
+        assert_eq!(values, [0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0]);
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! Nodules in the phantom. Owns the path from a radiologists' mask to HU: a binary
-//! bounding-box mask ([`BoxGrid<bool>`]) becomes a soft partial-volume occupancy
-//! ([`occupancy_from_mask`]), which is blended into the CT with the nodule's HU
+//! bounding-box mask ([`BoxGrid<bool>`]), or a graded one such as the fraction of readers who
+//! drew each voxel, becomes a soft partial-volume occupancy ([`occupancy_from_mask`],
+//! [`occupancy_from_fraction`]), which is blended into the CT with the nodule's HU
 //! ([`insert_nodule`]), chosen from the LIDC texture rating ([`nodule_hu_for_texture`]).
 //!
 //! Index conventions are the volume's: `[column, row, slice]` for origins and sizes, data
@@ -51,22 +52,32 @@ pub const PARTIAL_VOLUME_SIGMA_PIXELS: f64 = 0.5;
 /// box grows by the kernel radius, so the occupancy sums to the mask's voxel count: the
 /// inserted nodule keeps the reference volume exactly.
 pub fn occupancy_from_mask(mask: &BoxGrid<bool>, spacing_mm: [f64; 3]) -> BoxGrid<f32> {
+    let fraction = BoxGrid {
+        origin: mask.origin,
+        dims: mask.dims,
+        data: mask.data.iter().map(|&on| if on { 1.0 } else { 0.0 }).collect(),
+    };
+    occupancy_from_fraction(&fraction, spacing_mm)
+}
+
+/// Soft occupancy of a graded shape, each voxel's `fraction` in [0, 1] filled with nodule
+/// tissue (e.g. the fraction of readers who drew it), blurred as [`occupancy_from_mask`]
+/// blurs a mask: it sums to the fractions' sum.
+pub fn occupancy_from_fraction(fraction: &BoxGrid<f32>, spacing_mm: [f64; 3]) -> BoxGrid<f32> {
     let sigma_mm = PARTIAL_VOLUME_SIGMA_PIXELS * spacing_mm[0].min(spacing_mm[1]);
     let kernels: [Vec<f32>; 3] = std::array::from_fn(|a| gaussian_kernel(sigma_mm / spacing_mm[a]));
     let radius: [usize; 3] = std::array::from_fn(|a| kernels[a].len() / 2);
-    let dims: [usize; 3] = std::array::from_fn(|a| mask.dims[a] + 2 * radius[a]);
+    let dims: [usize; 3] = std::array::from_fn(|a| fraction.dims[a] + 2 * radius[a]);
     let mut grid = BoxGrid {
-        origin: std::array::from_fn(|a| mask.origin[a] - radius[a] as i64),
+        origin: std::array::from_fn(|a| fraction.origin[a] - radius[a] as i64),
         dims,
         data: vec![0.0f32; dims.iter().product()],
     };
-    for k in 0..mask.dims[2] {
-        for j in 0..mask.dims[1] {
-            for i in 0..mask.dims[0] {
-                if mask.data[mask.index(i, j, k)] {
-                    let n = grid.index(i + radius[0], j + radius[1], k + radius[2]);
-                    grid.data[n] = 1.0;
-                }
+    for k in 0..fraction.dims[2] {
+        for j in 0..fraction.dims[1] {
+            for i in 0..fraction.dims[0] {
+                let n = grid.index(i + radius[0], j + radius[1], k + radius[2]);
+                grid.data[n] = fraction.data[fraction.index(i, j, k)].clamp(0.0, 1.0);
             }
         }
     }

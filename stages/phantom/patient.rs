@@ -5,7 +5,10 @@
 //! the original LIDC XML. The ground truth is *not* taken from here: ingest recomputes it from
 //! the XML, exactly as for a real LIDC scan.
 
-use super::{nodule_hu_for_texture, occupancy_from_mask, phantom_ct, BoxGrid, NoduleInsert, PhantomParams};
+use super::{
+    nodule_hu_for_texture, occupancy_from_fraction, occupancy_from_mask, phantom_ct, BoxGrid, NoduleExtent,
+    NoduleInsert, PhantomParams,
+};
 use crate::formats::dicom_writer::{write_ct_series, SeriesMeta};
 use crate::formats::lidc_xml::{self, ReadMessage};
 use crate::formats::png;
@@ -110,7 +113,7 @@ pub fn generate(
                 let r = &truth.sources[a];
                 annotations.sessions[r.session].reads[r.read].characteristics.texture
             });
-            nodule_insert(n, median_rating(textures.collect()), &geometry)
+            nodule_insert(n, median_rating(textures.collect()), params.nodule_extent, &geometry)
         })
         .collect();
     let ct = phantom_ct(&geometry, &params, &inserts);
@@ -128,18 +131,25 @@ pub fn generate(
     Ok(PatientPhantom { ct, series, annotations: xml, previews })
 }
 
-/// The drawn shape of a nodule: the union of all its readers' masks, softened at the edges.
-fn nodule_insert(nodule: &NoduleTruth, texture: Option<u8>, geometry: &Geometry) -> NoduleInsert {
+/// The drawn shape of a nodule, softened at the edges: the union of all its readers' masks, or
+/// each voxel at the fraction of readers who drew it (`extent`).
+fn nodule_insert(nodule: &NoduleTruth, texture: Option<u8>, extent: NoduleExtent, geometry: &Geometry) -> NoduleInsert {
     let mask = &nodule.union_mask;
     let [i0, j0, k0] = mask.bbox.min_ijk;
     let [i1, j1, k1] = mask.bbox.max_ijk;
     // BoxMask is [k][i][j] (slice, row, column), as BoxGrid: only the axis names differ.
-    let grid = BoxGrid {
-        origin: [j0 as i64, i0 as i64, k0 as i64],
-        dims: [j1 - j0 + 1, i1 - i0 + 1, k1 - k0 + 1],
-        data: mask.data.clone(),
+    let origin = [j0 as i64, i0 as i64, k0 as i64];
+    let dims = [j1 - j0 + 1, i1 - i0 + 1, k1 - k0 + 1];
+    let occupancy = match extent {
+        NoduleExtent::Union => {
+            occupancy_from_mask(&BoxGrid { origin, dims, data: mask.data.clone() }, geometry.spacing_mm)
+        }
+        NoduleExtent::Readers => occupancy_from_fraction(
+            &BoxGrid { origin, dims, data: nodule.reader_fraction.clone() },
+            geometry.spacing_mm,
+        ),
     };
-    NoduleInsert { occupancy: occupancy_from_mask(&grid, geometry.spacing_mm), hu: nodule_hu_for_texture(texture) }
+    NoduleInsert { occupancy, hu: nodule_hu_for_texture(texture) }
 }
 
 /// The median of the readers' ratings (the lower middle one for an even count).
