@@ -76,6 +76,8 @@ ROWS = [
     ("phantom-readers", "presets/phantom_readers.toml", "B", "C*",
      "the default on a phantom whose nodules hold tissue in the fraction of readers who drew each voxel"
      " (the default phantom draws the union of the contours)"),
+    ("phantom-readers-256", "presets/phantom_readers_256.toml", "B", "C*",
+     "the same phantom with views of 256 × 256 pixels"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),
