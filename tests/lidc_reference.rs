@@ -148,6 +148,12 @@ fn mismatches(p: &Patient) -> Vec<String> {
         check(eq(&what("annotation mask voxels"), nodule.annotation_mask_voxels.clone(), masks_want));
         let volume = c["consensus_volume_mm3"].as_f64().unwrap();
         check(close(&what("volume"), nodule.volume_mm3, volume, 1e-4, 1e-5));
+        // Each reader's own volume at the consensus's voxel volume (pylidc's volume convention).
+        let voxel_mm3 = volume / c["consensus_voxels"].as_u64().unwrap() as f64;
+        for (k, (&got, &voxels)) in nodule.annotation_volumes_mm3.iter().zip(&nodule.annotation_mask_voxels).enumerate()
+        {
+            check(close(&what(&format!("annotation {k} volume")), got, voxels as f64 * voxel_mm3, 1e-4, 1e-5));
+        }
         check(close(
             &what("equivalent diameter"),
             nodule.equivalent_diameter_mm,

@@ -114,6 +114,9 @@ pub struct NoduleTruth {
     pub reader_fraction: Vec<f32>,
     /// Each annotation's mask voxel count, in `annotation_indices` order.
     pub annotation_mask_voxels: Vec<usize>,
+    /// Each annotation's own volume, `annotation_mask_voxels` × the consensus's voxel volume:
+    /// how far the readers lie from their consensus.
+    pub annotation_volumes_mm3: Vec<f64>,
     pub consensus_voxels: usize,
     /// `consensus_voxels × pixel_spacing² × slice_spacing` (median z gap, not SliceThickness).
     pub volume_mm3: f64,
@@ -150,7 +153,8 @@ pub fn nodule_truth(
     let Consensus { bbox, mask, masks } = consensus(&chosen, clevel)?;
     let consensus_voxels = mask.count();
     let ps = geometry.pixel_spacing_mm;
-    let volume_mm3 = consensus_voxels as f64 * ps * ps * geometry.slice_spacing_mm();
+    let voxel_mm3 = ps * ps * geometry.slice_spacing_mm();
+    let volume_mm3 = consensus_voxels as f64 * voxel_mm3;
     let annotation_diameters_mm: Vec<f64> = chosen.iter().map(|a| a.diameter_mm(ps)).collect();
     let annotated_diameter_mm = annotation_diameters_mm.iter().sum::<f64>() / annotation_diameters_mm.len() as f64;
     let centroid_ijk = centroid_of(&mask);
@@ -162,6 +166,7 @@ pub fn nodule_truth(
         union_mask: union_of(&masks, bbox),
         reader_fraction: reader_fraction_of(&masks, bbox),
         annotation_mask_voxels: masks.iter().map(BoxMask::count).collect(),
+        annotation_volumes_mm3: masks.iter().map(|m| m.count() as f64 * voxel_mm3).collect(),
         consensus: mask,
         consensus_voxels,
         volume_mm3,

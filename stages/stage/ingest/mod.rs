@@ -13,7 +13,8 @@ use crate::formats::{dicom, mhd};
 use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
-pub const VERSION: u32 = 1;
+/// 2: `ground_truth.json` gives each annotation's own volume.
+pub const VERSION: u32 = 2;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]

@@ -41,6 +41,8 @@ pub struct Nodule {
     /// Mean over the annotations of pylidc's `Annotation.diameter` (the guided rule's target).
     pub annotated_diameter_mm: f64,
     pub annotation_diameters_mm: Vec<f64>,
+    /// Each annotation's own volume (its mask's voxels × the voxel volume), in `reads` order.
+    pub annotation_volumes_mm3: Vec<f64>,
     /// Inclusive voxel box `[[col min, row min, slice min], [col max, row max, slice max]]`.
     pub bbox_voxels: [[usize; 3]; 2],
     /// Consensus centroid in patient LPS mm (`None` if the consensus is empty).
@@ -161,6 +163,7 @@ fn nodule(n: &NoduleTruth, g: &Geometry, reads: Vec<(usize, String)>, texture_me
         equivalent_diameter_mm: n.equivalent_diameter_mm,
         annotated_diameter_mm: n.annotated_diameter_mm,
         annotation_diameters_mm: n.annotation_diameters_mm.clone(),
+        annotation_volumes_mm3: n.annotation_volumes_mm3.clone(),
         bbox_voxels: [[j0, i0, k0], [j1, i1, k1]],
         centroid_mm: n.centroid_ijk.map(|[i, j, k]| g.voxel_to_patient_mm([j, i, k])),
         texture_mean,

@@ -19,7 +19,7 @@ pub mod summary;
 
 pub use rows::{PatientRow, SizeClass};
 
-pub const VERSION: u32 = 6;
+pub const VERSION: u32 = 7;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]

@@ -58,6 +58,9 @@ pub struct PatientRow {
     pub blind: Option<Measured>,
     pub sphere_volume_mm3: f64,
     pub sphere_ape_pct: f64,
+    /// The median over the target's readers of each one's APE against their consensus; `None`
+    /// with fewer than two readers (one reader's consensus is his own contour).
+    pub reader_ape_pct: Option<f64>,
     pub oracle_hit: bool,
     /// Whether the guided and the blind rules' centres (`localize`) lie on the nodule: `None`
     /// where the rule found none. A hit through a centre elsewhere is a large candidate that
@@ -76,6 +79,12 @@ pub struct CentreOnNodule {
 /// Absolute percentage error of `predicted` against `truth`.
 pub fn ape_pct(predicted: f64, truth: f64) -> f64 {
     (predicted - truth).abs() / truth * 100.0
+}
+
+/// The median APE of `reader_volumes_mm3` against their consensus `gt`, with two readers or more.
+pub fn reader_ape_pct(reader_volumes_mm3: &[f64], gt: f64) -> Option<f64> {
+    let apes: Vec<f64> = reader_volumes_mm3.iter().map(|&v| ape_pct(v, gt)).collect();
+    (apes.len() >= 2).then(|| crate::kernels::stats::median(&apes))
 }
 
 impl PatientRow {
@@ -105,6 +114,7 @@ impl PatientRow {
             blind: result.selection(result.blind_rule).map(measured),
             sphere_volume_mm3: sphere,
             sphere_ape_pct: ape_pct(sphere, gt),
+            reader_ape_pct: reader_ape_pct(&result.reader_volumes_mm3, gt),
             oracle_hit: result.oracle.as_ref().is_some_and(|o| o.any_hit),
             centre_on_nodule: CentreOnNodule {
                 guided: result.centres.guided.as_ref().and_then(|c| c.on_nodule),
@@ -164,6 +174,14 @@ pub fn train_seconds(log_csv: &str) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_readers_error_is_their_median_and_needs_two_of_them() {
+        assert_eq!(reader_ape_pct(&[], 100.0), None);
+        assert_eq!(reader_ape_pct(&[150.0], 100.0), None, "one reader's consensus is his own contour");
+        assert_eq!(reader_ape_pct(&[90.0, 130.0], 100.0), Some(20.0));
+        assert_eq!(reader_ape_pct(&[100.0, 80.0, 150.0, 60.0], 100.0), Some(30.0));
+    }
 
     #[test]
     fn size_classes_follow_the_spec() {

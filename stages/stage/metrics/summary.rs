@@ -35,6 +35,9 @@ pub struct Group {
     pub blind: Volumes,
     /// The sphere baseline V = π/6·d³ from the annotated diameter (no localization).
     pub sphere: Ape,
+    /// A single radiologist: each patient's median reader APE against the consensus, over the
+    /// patients with two readers or more. The spread the ground truth itself carries.
+    pub readers: Ape,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -212,6 +215,14 @@ fn group(rows: &[&PatientRow], params: &Params) -> Group {
             let apes: Vec<f64> = rows.iter().map(|r| r.sphere_ape_pct).collect();
             Ape { n, mean_pct: estimate(&apes, mean_of, params), median_pct: estimate(&apes, median_of, params) }
         },
+        readers: {
+            let apes: Vec<f64> = rows.iter().filter_map(|r| r.reader_ape_pct).collect();
+            Ape {
+                n: apes.len(),
+                mean_pct: estimate(&apes, mean_of, params),
+                median_pct: estimate(&apes, median_of, params),
+            }
+        },
     }
 }
 
@@ -323,6 +334,11 @@ mod tests {
             blind: None,
             sphere_volume_mm3: sphere,
             sphere_ape_pct: super::super::rows::ape_pct(sphere, gt),
+            // Two readers at 0.9× and 1.3× the consensus, three at 1.0×, 0.8× and 1.5×: 20 % and 20 %.
+            reader_ape_pct: super::super::rows::reader_ape_pct(
+                &if hit { vec![0.9 * gt, 1.3 * gt] } else { vec![gt, 0.8 * gt, 1.5 * gt] },
+                gt,
+            ),
             oracle_hit: hit,
             centre_on_nodule: CentreOnNodule { guided: Some(hit), blind: None },
             train_seconds: 1.0,
@@ -355,6 +371,9 @@ mod tests {
         // The blind rule chose nothing anywhere: zero hits, Dice 0, statistics undefined.
         assert_eq!(all.localization.hit_rate_blind, Some(0.0));
         assert!(all.blind.all.mean_ape_pct.value().is_none());
+        // One radiologist against the consensus: 20 % for every patient here.
+        assert_eq!(all.readers.n, 3);
+        assert!((all.readers.median_pct.value().unwrap().value - 20.0).abs() < 1e-9);
         // An empty class is reported, not dropped.
         assert_eq!(s.groups["large"].n, 0);
         assert_eq!(s.groups["large"].localization.hit_rate_ours, None);

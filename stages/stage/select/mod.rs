@@ -42,7 +42,7 @@ mod rules;
 pub use localize::{centres, Centre, Centres, Localize, Search};
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 10;
+pub const VERSION: u32 = 11;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -169,6 +169,10 @@ pub struct SelectResult {
     pub blind_rule: Rule,
     pub gt_volume_mm3: Option<f64>,
     pub annotated_diameter_mm: Option<f64>,
+    /// Each reader's own volume of the target (the consensus is their vote): how far the
+    /// radiologists themselves lie from the ground truth. Empty without a target.
+    #[serde(default)]
+    pub reader_volumes_mm3: Vec<f64>,
     pub guided: Option<Selection>,
     pub blind_largest: Option<Selection>,
     pub blind_persistent: Option<Selection>,
@@ -323,6 +327,7 @@ impl Stage for Select {
             blind_rule: self.params.blind,
             gt_volume_mm3: target.map(|t| t.volume_mm3),
             annotated_diameter_mm: target.map(|t| t.annotated_diameter_mm),
+            reader_volumes_mm3: target.map(|t| t.annotation_volumes_mm3.clone()).unwrap_or_default(),
             oracle: analysis.oracle(),
             guided,
             blind_largest,
