@@ -151,6 +151,7 @@ pub fn nodule_truth(
         .map(|&m| annotations.get(m).ok_or(GroundTruthError::AnnotationIndex { index: m, count: annotations.len() }))
         .collect::<Result<Vec<&Annotation>, _>>()?;
     let Consensus { bbox, mask, masks } = consensus(&chosen, clevel)?;
+    let reader_fraction = reader_fraction_of(&masks, bbox);
     let consensus_voxels = mask.count();
     let ps = geometry.pixel_spacing_mm;
     let voxel_mm3 = ps * ps * geometry.slice_spacing_mm();
@@ -163,8 +164,8 @@ pub fn nodule_truth(
         annotation_indices: members.to_vec(),
         clevel,
         bbox,
-        union_mask: union_of(&masks, bbox),
-        reader_fraction: reader_fraction_of(&masks, bbox),
+        union_mask: BoxMask { bbox, data: reader_fraction.iter().map(|&f| f > 0.0).collect() },
+        reader_fraction,
         annotation_mask_voxels: masks.iter().map(BoxMask::count).collect(),
         annotation_volumes_mm3: masks.iter().map(|m| m.count() as f64 * voxel_mm3).collect(),
         consensus: mask,
@@ -193,11 +194,6 @@ fn centroid_of(mask: &BoxMask) -> Option<[f64; 3]> {
 fn reader_fraction_of(masks: &[BoxMask], bbox: BBox) -> Vec<f32> {
     let n = masks.len() as f64;
     (0..bbox.len()).map(|v| (masks.iter().filter(|m| m.data[v]).count() as f64 / n) as f32).collect()
-}
-
-fn union_of(masks: &[BoxMask], bbox: BBox) -> BoxMask {
-    let data = (0..bbox.len()).map(|v| masks.iter().any(|m| m.data[v])).collect();
-    BoxMask { bbox, data }
 }
 
 /// The `[ingest]` knobs of the ground truth, pylidc's defaults by [`Default`].

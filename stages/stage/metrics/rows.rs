@@ -59,7 +59,7 @@ pub struct PatientRow {
     pub sphere_volume_mm3: f64,
     pub sphere_ape_pct: f64,
     /// The median over the target's readers of each one's APE against their consensus; `None`
-    /// with fewer than two readers (one reader's consensus is his own contour).
+    /// with fewer than two readers (one reader's consensus is that reader's own contour).
     pub reader_ape_pct: Option<f64>,
     pub oracle_hit: bool,
     /// Whether the guided and the blind rules' centres (`localize`) lie on the nodule: `None`
@@ -178,7 +178,7 @@ mod tests {
     #[test]
     fn a_readers_error_is_their_median_and_needs_two_of_them() {
         assert_eq!(reader_ape_pct(&[], 100.0), None);
-        assert_eq!(reader_ape_pct(&[150.0], 100.0), None, "one reader's consensus is his own contour");
+        assert_eq!(reader_ape_pct(&[150.0], 100.0), None, "one reader's consensus is that reader's contour");
         assert_eq!(reader_ape_pct(&[90.0, 130.0], 100.0), Some(20.0));
         assert_eq!(reader_ape_pct(&[100.0, 80.0, 150.0, 60.0], 100.0), Some(30.0));
     }
