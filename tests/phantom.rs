@@ -7,7 +7,7 @@ use aret_pipe::formats::dicom_writer::{write_ct_series, SeriesMeta};
 use aret_pipe::formats::png::{axial_slice, coronal_projection, encode_gray8, image_png, LUNG_WINDOW};
 use aret_pipe::phantom::{
     add_scanner_noise, ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_fraction,
-    occupancy_from_mask, phantom_ct, thorax_hu, NoduleInsert, PhantomParams, Thorax, Tissue,
+    occupancy_from_mask, phantom_ct, thorax_hu, BoxGrid, NoduleInsert, PhantomParams, Thorax, Tissue,
 };
 use aret_pipe::volume::{Geometry, Volume};
 use std::collections::HashMap;
@@ -245,7 +245,7 @@ fn the_paper_patients_nodules_lie_in_the_lungs() {
 }
 
 /// The binary mask of an ellipsoid of semi-axes `semi_mm` centred in a 0.7 × 0.7 × 2.5 mm grid.
-fn ellipsoid_case(semi_mm: [f64; 3]) -> ([f64; 3], aret_pipe::phantom::BoxGrid<bool>) {
+fn ellipsoid_case(semi_mm: [f64; 3]) -> ([f64; 3], BoxGrid<bool>) {
     let spacing = [0.7, 0.7, 2.5];
     let mask = ellipsoid_mask([40.3, 35.6, 12.2], semi_mm, spacing);
     (spacing, mask)
@@ -286,7 +286,7 @@ fn occupancy_from_a_graded_shape_keeps_its_sum_and_its_half_level() {
     // Two readers: an inner ellipsoid both drew (fraction 1), a rim only one drew (0.5).
     let (spacing, outer) = ellipsoid_case([9.0, 7.0, 6.0]);
     let inner = ellipsoid_mask([40.3, 35.6, 12.2], [6.0, 5.0, 4.0], spacing);
-    let at = |m: &aret_pipe::phantom::BoxGrid<bool>, i: usize, j: usize, k: usize| {
+    let at = |m: &BoxGrid<bool>, i: usize, j: usize, k: usize| {
         let g = [
             i as i64 + outer.origin[0] - m.origin[0],
             j as i64 + outer.origin[1] - m.origin[1],
@@ -303,13 +303,13 @@ fn occupancy_from_a_graded_shape_keeps_its_sum_and_its_half_level() {
             }
         }
     }
-    let fraction = aret_pipe::phantom::BoxGrid { origin: outer.origin, dims: outer.dims, data };
+    let fraction = BoxGrid { origin: outer.origin, dims: outer.dims, data };
     let occ = occupancy_from_fraction(&fraction, spacing);
     let want: f64 = fraction.data.iter().map(|&f| f64::from(f)).sum();
     let got: f64 = occ.data.iter().map(|&o| f64::from(o)).sum();
     assert!((got - want).abs() < 1e-3 * want, "{got} vs {want}");
-    // Full inside what both drew, half on the rim one drew, nothing outside (slab 12 is the
-    // ellipsoids' middle; 9 mm × 0.7 mm pixels out along x the outer one ends).
+    // Along x through the centre (slab 12, row 36), 0.7 mm pixels: full inside what both drew
+    // (6 mm), half on the rim only one drew (11 px = 7.7 mm), nothing past the outer 9 mm.
     let value = |x: usize| {
         occ.data[occ.index(x - occ.origin[0] as usize, 36 - occ.origin[1] as usize, 12 - occ.origin[2] as usize)]
     };
@@ -317,7 +317,7 @@ fn occupancy_from_a_graded_shape_keeps_its_sum_and_its_half_level() {
     assert!((value(40 + 11) - 0.5).abs() < 0.01, "{}", value(51));
     assert!(value(40 + 16) < 1e-3, "{}", value(56));
     // A binary shape as fractions is the mask's occupancy, bit for bit.
-    let binary = aret_pipe::phantom::BoxGrid {
+    let binary = BoxGrid {
         origin: outer.origin,
         dims: outer.dims,
         data: outer.data.iter().map(|&on| f32::from(u8::from(on))).collect(),

@@ -211,19 +211,14 @@ fn group(rows: &[&PatientRow], params: &Params) -> Group {
         },
         ours: volumes(rows, ours, params),
         blind: volumes(rows, blind, params),
-        sphere: {
-            let apes: Vec<f64> = rows.iter().map(|r| r.sphere_ape_pct).collect();
-            Ape { n, mean_pct: estimate(&apes, mean_of, params), median_pct: estimate(&apes, median_of, params) }
-        },
-        readers: {
-            let apes: Vec<f64> = rows.iter().filter_map(|r| r.reader_ape_pct).collect();
-            Ape {
-                n: apes.len(),
-                mean_pct: estimate(&apes, mean_of, params),
-                median_pct: estimate(&apes, median_of, params),
-            }
-        },
+        sphere: ape(&rows.iter().map(|r| r.sphere_ape_pct).collect::<Vec<f64>>(), params),
+        readers: ape(&rows.iter().filter_map(|r| r.reader_ape_pct).collect::<Vec<f64>>(), params),
     }
+}
+
+/// The mean and median of `apes` with their intervals.
+fn ape(apes: &[f64], params: &Params) -> Ape {
+    Ape { n: apes.len(), mean_pct: estimate(apes, mean_of, params), median_pct: estimate(apes, median_of, params) }
 }
 
 fn volumes(rows: &[&PatientRow], pick: fn(&PatientRow) -> Option<&Measured>, params: &Params) -> Volumes {
