@@ -74,6 +74,10 @@ pub enum NoduleExtent {
     /// Each voxel filled by the fraction of readers who drew it: where they disagree the edge
     /// is graded, and the object's half-attenuation surface is the 50 % consensus.
     Readers,
+    /// The 50 % consensus itself (pylidc's default `clevel`, the metrics' default), at full
+    /// attenuation: the object is the ground truth the metrics score against, with the same
+    /// partial-volume edge as the union.
+    Consensus,
 }
 
 impl NoduleExtent {
@@ -161,8 +165,10 @@ mod tests {
         assert_eq!(p, PhantomParams { seed: 7, noise_hu: 0.0, ..PhantomParams::default() });
         let err = toml::from_str::<PhantomParams>("sede = 7").unwrap_err();
         assert!(err.to_string().contains("sede"), "{err}");
-        let err = toml::from_str::<PhantomParams>("nodule_extent = \"consensus\"").unwrap_err();
-        assert!(err.to_string().contains("union") && err.to_string().contains("readers"), "{err}");
+        let err = toml::from_str::<PhantomParams>("nodule_extent = \"consensos\"").unwrap_err();
+        for accepted in ["union", "readers", "consensus"] {
+            assert!(err.to_string().contains(accepted), "{err}");
+        }
     }
 
     #[test]

@@ -13,6 +13,7 @@ use crate::formats::dicom_writer::{write_ct_series, SeriesMeta};
 use crate::formats::lidc_xml::{self, ReadMessage};
 use crate::formats::png;
 use crate::kernels::consensus::{scan_truth, GroundTruthParams, NoduleTruth, ScanGeometry};
+use crate::kernels::mask::BoxMask;
 use crate::kernels::stats::median_gap;
 use crate::volume::{Geometry, Volume};
 use anyhow::{anyhow, bail, Context as _};
@@ -131,19 +132,22 @@ pub fn generate(
     Ok(PatientPhantom { ct, series, annotations: xml, previews })
 }
 
-/// The drawn shape of a nodule, softened at the edges: the union of all its readers' masks, or
-/// each voxel at the fraction of readers who drew it (`extent`).
+/// The drawn shape of a nodule, softened at the edges: the union of all its readers' masks,
+/// each voxel at the fraction of readers who drew it, or their 50 % consensus (`extent`).
 fn nodule_insert(nodule: &NoduleTruth, texture: Option<u8>, extent: NoduleExtent, geometry: &Geometry) -> NoduleInsert {
-    let mask = &nodule.union_mask;
-    let [i0, j0, k0] = mask.bbox.min_ijk;
-    let [i1, j1, k1] = mask.bbox.max_ijk;
+    // Every mask of a nodule covers its consensus box, so one origin serves them all.
+    let [i0, j0, k0] = nodule.bbox.min_ijk;
+    let [i1, j1, k1] = nodule.bbox.max_ijk;
     // BoxMask is [k][i][j] (slice, row, column), as BoxGrid: only the axis names differ.
     let origin = [j0 as i64, i0 as i64, k0 as i64];
     let dims = [j1 - j0 + 1, i1 - i0 + 1, k1 - k0 + 1];
+    let binary = |mask: &BoxMask| {
+        debug_assert_eq!(mask.bbox, nodule.bbox);
+        occupancy_from_mask(&BoxGrid { origin, dims, data: mask.data.clone() }, geometry.spacing_mm)
+    };
     let occupancy = match extent {
-        NoduleExtent::Union => {
-            occupancy_from_mask(&BoxGrid { origin, dims, data: mask.data.clone() }, geometry.spacing_mm)
-        }
+        NoduleExtent::Union => binary(&nodule.union_mask),
+        NoduleExtent::Consensus => binary(&nodule.consensus),
         NoduleExtent::Readers => occupancy_from_fraction(
             &BoxGrid { origin, dims, data: nodule.reader_fraction.clone() },
             geometry.spacing_mm,
@@ -176,4 +180,41 @@ fn previews(ct: &Volume<f32>, centre_ijk: Option<[f64; 3]>) -> Vec<(String, Vec<
         ("phantom_coronal.png".into(), png::image_png(&coronal, png::LUNG_WINDOW)),
         ("phantom_projection.png".into(), png::image_png(&projection, png::Window::spanning(&projection))),
     ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::annotation::tests::{geometry, square_annotation};
+    use crate::kernels::consensus::nodule_truth;
+
+    #[test]
+    fn each_extent_draws_the_tissue_it_names() {
+        // Three nested readers; only the smallest also drew the next slice.
+        let anns = vec![
+            square_annotation(&[1], 2, 2, 6),
+            square_annotation(&[1], 3, 3, 4),
+            square_annotation(&[1, 2], 4, 4, 2),
+        ];
+        let truth = nodule_truth(&anns, &[0, 1, 2], &geometry(), 0.5).unwrap();
+        let ct = Geometry {
+            dims: [32, 32, 5],
+            spacing_mm: [0.5, 0.5, 2.5],
+            origin_mm: [0.0; 3],
+            direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        };
+        let tissue = |extent| {
+            nodule_insert(&truth, Some(5), extent, &ct).occupancy.data.iter().map(|&v| f64::from(v)).sum::<f64>()
+        };
+        // The blur keeps the sum, so each extent's tissue is its own shape's voxel count.
+        let union = truth.union_mask.count() as f64;
+        let consensus = truth.consensus.count() as f64;
+        let readers: f64 = truth.reader_fraction.iter().map(|&f| f64::from(f)).sum();
+        assert!(consensus < readers && readers < union, "{consensus} {readers} {union}");
+        for (extent, voxels) in
+            [(NoduleExtent::Union, union), (NoduleExtent::Consensus, consensus), (NoduleExtent::Readers, readers)]
+        {
+            assert!((tissue(extent) - voxels).abs() < 1e-3 * voxels, "{extent:?}: {} against {voxels}", tissue(extent));
+        }
+    }
 }
