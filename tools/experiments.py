@@ -66,18 +66,23 @@ ROWS = [
      "the dense model on a 128³ lattice (same box, views and λ), sized by the paper's rules among the"
      " sweep's candidates"),
     ("default", "pipeline.toml", "B", "C*",
-     "the same field, each rule sizing its centre at half maximum (sizing = \"half_max\"): the default"),
+     "the same field fitted to views of 256 × 256 pixels instead of 128 × 128, each rule sizing its centre at"
+     " half maximum (sizing = \"half_max\"): the default"),
     ("default-A", "presets/default_origin.toml", "A", "A",
      "the default centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
     ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
      "the default fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
-    ("drr-256", "presets/drr256.toml", "B", "C*",
-     "the default fitted to views of 256 × 256 pixels instead of 128 × 128"),
+    ("drr-128", "presets/drr128.toml", "B", "C*",
+     "the default fitted to SPEC §3's views of 128 × 128 pixels (the default until the evening of 2026-11-26)"),
     ("phantom-readers", "presets/phantom_readers.toml", "B", "C*",
-     "the default on a phantom whose nodules hold tissue in the fraction of readers who drew each voxel"
-     " (the default phantom draws the union of the contours)"),
+     "the default's method at 128² views on a phantom whose nodules hold tissue in the fraction of readers"
+     " who drew each voxel (the default phantom draws the union of the contours)"),
     ("phantom-readers-256", "presets/phantom_readers_256.toml", "B", "C*",
-     "the same phantom with views of 256 × 256 pixels"),
+     "the same phantom with the default's views of 256 × 256 pixels"),
+    ("phantom-consensus", "presets/phantom_consensus.toml", "B", "C*",
+     "the default's method at 128² views on a phantom whose nodules are their 50 % consensus at full attenuation"),
+    ("phantom-consensus-256", "presets/phantom_consensus_256.toml", "B", "C*",
+     "the same phantom with the default's views of 256 × 256 pixels"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),
