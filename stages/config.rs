@@ -147,12 +147,30 @@ impl Config {
             }
         }
         self.dataset.check()?;
+        self.check_phantom_consensus_level()?;
         self.hu.check()?;
         self.drr.check()?;
         self.train.check()?;
         self.ingest.check()?;
         self.sweep.check()?;
         self.select.check()?;
+        Ok(())
+    }
+
+    /// A phantom drawn as its consensus is the ground truth only when `ingest` scores against
+    /// the same level.
+    fn check_phantom_consensus_level(&self) -> anyhow::Result<()> {
+        use crate::kernels::consensus::DEFAULT_CLEVEL;
+        let extent = self.dataset.phantom.as_ref().map(|p| p.nodule_extent);
+        if extent == Some(crate::phantom::NoduleExtent::Consensus) && self.ingest.clevel != DEFAULT_CLEVEL {
+            bail!(
+                "[dataset.phantom] nodule_extent = \"consensus\" draws each nodule as its {} % consensus, but \
+                 [ingest] clevel = {} scores it against another level: set clevel = {DEFAULT_CLEVEL}, or draw \
+                 nodule_extent = \"readers\" (graded by the fraction of readers) or \"union\"",
+                100.0 * DEFAULT_CLEVEL,
+                self.ingest.clevel
+            );
+        }
         Ok(())
     }
 
@@ -235,6 +253,18 @@ mod tests {
         assert!(e.contains("needs `cohort`"), "{e}");
         let e = Config::parse(&MINIMAL.replace("\"dicom\"", "\"nifti\"")).unwrap_err().to_string();
         assert!(e.contains("nifti") && e.contains("line 4"), "{e}");
+    }
+
+    #[test]
+    fn a_consensus_phantom_is_scored_at_its_own_level() {
+        let phantom = MINIMAL.replace("kind = \"dicom\"\nroot = \"data\"", "kind = \"phantom\"\ncohort = \"c\"");
+        let consensus = format!("{phantom}\n[dataset.phantom]\nnodule_extent = \"consensus\"\n");
+        assert!(Config::parse(&consensus).is_ok());
+        assert!(Config::parse(&format!("{consensus}[ingest]\nclevel = 0.5\n")).is_ok());
+        let e = Config::parse(&format!("{consensus}[ingest]\nclevel = 0.3\n")).unwrap_err().to_string();
+        assert!(e.contains("nodule_extent") && e.contains("clevel = 0.3") && e.contains("clevel = 0.5"), "{e}");
+        let readers = consensus.replace("\"consensus\"", "\"readers\"");
+        assert!(Config::parse(&format!("{readers}[ingest]\nclevel = 0.3\n")).is_ok());
     }
 
     #[test]
