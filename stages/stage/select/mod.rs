@@ -42,7 +42,13 @@ mod rules;
 pub use localize::{centres, Centre, Centres, Localize, Search};
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 11;
+pub const VERSION: u32 = 12;
+
+/// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
+/// full width at half maximum. `half_max_fraction` then only sets where the nodule is cut (its
+/// volume), not which blob is the nodule: a lower fraction grows every region, and judged at
+/// that fraction it passed over nodules (docs/experiments.md, "Sizing calibrated on spheres").
+const BLOB_WIDTH_FRACTION: f64 = 0.5;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -66,7 +72,7 @@ pub struct Params {
     /// `sizing = "half_max"`: the fraction of the peak the region is cut at.
     pub half_max_fraction: f64,
     /// `sizing = "half_max"` with `localize = "blob"`: the guided rule passes over a blob whose
-    /// region's equivalent diameter lies outside [lo, hi] × the annotated diameter.
+    /// region at half its peak has an equivalent diameter outside [lo, hi] × the annotated diameter.
     pub guided_diameter_ratio: [f64; 2],
     /// `sizing = "half_max"`: the guided rule's region holds no node farther from its peak than
     /// this many annotated diameters (what lies farther is attached to the nodule, not of it).
@@ -257,17 +263,21 @@ impl Stage for Select {
         let analysis = Analysis::new(&levels, gt.as_ref(), &density.geometry);
         let annotated = target.map(|t| t.annotated_diameter_mm);
         let p = &self.params;
-        // With half-maximum sizing a search passes over blobs whose region cannot be the nodule.
-        // The guided rule's region reaches no farther than the annotated diameter allows.
-        let guided_cut =
-            Cut { fraction: p.half_max_fraction, reach_mm: annotated.map(|d| p.guided_reach_diameters * d) };
+        // With half-maximum sizing a search passes over blobs whose region cannot be the nodule,
+        // judged at the blob's full width at half maximum whatever fraction the nodule is then
+        // cut at. The guided rule's region reaches no farther than the annotated diameter allows.
+        let guided_reach_mm = annotated.map(|d| p.guided_reach_diameters * d);
+        let guided_cut = Cut { fraction: p.half_max_fraction, reach_mm: guided_reach_mm };
         let blind_cut = Cut::at(p.half_max_fraction);
         let accept = |search: Search, centre: &Centre| match p.sizing {
             Sizing::Candidates => true,
             Sizing::HalfMax => {
                 let (cut, range) = match search {
-                    Search::Guided => (guided_cut, annotated.map(|d| p.guided_diameter_ratio.map(|r| r * d))),
-                    Search::Blind => (blind_cut, None),
+                    Search::Guided => (
+                        Cut { fraction: BLOB_WIDTH_FRACTION, reach_mm: guided_reach_mm },
+                        annotated.map(|d| p.guided_diameter_ratio.map(|r| r * d)),
+                    ),
+                    Search::Blind => (Cut::at(BLOB_WIDTH_FRACTION), None),
                 };
                 half_max::plausible(&scored, &sweep.params, centre, cut, range)
             }
