@@ -50,6 +50,19 @@ pub const VERSION: u32 = 12;
 /// that fraction it passed over nodules (docs/experiments.md, "Sizing calibrated on spheres").
 const BLOB_WIDTH_FRACTION: f64 = 0.5;
 
+/// How a search with half-maximum sizing judges a blob: the cut of its region (at
+/// [`BLOB_WIDTH_FRACTION`]; the guided region within its reach of the peak) and, for the guided
+/// search, the range its equivalent diameter must lie in (mm).
+fn blob_check(search: Search, p: &Params, annotated_mm: Option<f64>) -> (Cut, Option<[f64; 2]>) {
+    match search {
+        Search::Guided => (
+            Cut { fraction: BLOB_WIDTH_FRACTION, reach_mm: annotated_mm.map(|d| p.guided_reach_diameters * d) },
+            annotated_mm.map(|d| p.guided_diameter_ratio.map(|r| r * d)),
+        ),
+        Search::Blind => (Cut::at(BLOB_WIDTH_FRACTION), None),
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Params {
@@ -266,19 +279,13 @@ impl Stage for Select {
         // With half-maximum sizing a search passes over blobs whose region cannot be the nodule,
         // judged at the blob's full width at half maximum whatever fraction the nodule is then
         // cut at. The guided rule's region reaches no farther than the annotated diameter allows.
-        let guided_reach_mm = annotated.map(|d| p.guided_reach_diameters * d);
-        let guided_cut = Cut { fraction: p.half_max_fraction, reach_mm: guided_reach_mm };
+        let guided_cut =
+            Cut { fraction: p.half_max_fraction, reach_mm: annotated.map(|d| p.guided_reach_diameters * d) };
         let blind_cut = Cut::at(p.half_max_fraction);
         let accept = |search: Search, centre: &Centre| match p.sizing {
             Sizing::Candidates => true,
             Sizing::HalfMax => {
-                let (cut, range) = match search {
-                    Search::Guided => (
-                        Cut { fraction: BLOB_WIDTH_FRACTION, reach_mm: guided_reach_mm },
-                        annotated.map(|d| p.guided_diameter_ratio.map(|r| r * d)),
-                    ),
-                    Search::Blind => (Cut::at(BLOB_WIDTH_FRACTION), None),
-                };
+                let (cut, range) = blob_check(search, p, annotated);
                 half_max::plausible(&scored, &sweep.params, centre, cut, range)
             }
         };
@@ -419,5 +426,23 @@ pub fn verdict(
             ),
             None => "unverified".into(),
         },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_blob_is_judged_at_half_its_peak_whatever_fraction_sizes_the_nodule() {
+        for fraction in [0.3, 0.5, 0.7] {
+            let p = Params { half_max_fraction: fraction, ..Params::default() };
+            let (guided, range) = blob_check(Search::Guided, &p, Some(20.0));
+            assert_eq!(guided.fraction, 0.5);
+            assert_eq!(guided.reach_mm, Some(20.0));
+            assert_eq!(range, Some([10.0, 40.0]));
+            let (blind, range) = blob_check(Search::Blind, &p, Some(20.0));
+            assert_eq!((blind.fraction, blind.reach_mm, range), (0.5, None, None));
+        }
     }
 }
