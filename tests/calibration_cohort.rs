@@ -4,10 +4,10 @@
 //! reads, a consensus equal to their union, the stated diameter and centre — so a volume
 //! measured on it is scored against a sphere of known size.
 
-use aret_pipe::formats::lidc_xml;
-use aret_pipe::kernels::consensus::{scan_truth, GroundTruthParams, ScanGeometry};
-use serde_json::Value;
+mod support;
+
 use std::path::PathBuf;
+use support::cohort::{load_patient, CohortPatient};
 
 fn cohort_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tools/cohorts/spheres16")
@@ -21,20 +21,10 @@ fn each_calibration_patient_holds_the_sphere_it_states() {
         let Some(id) = path.file_name().unwrap().to_str().unwrap().strip_suffix(".scan.json") else {
             continue;
         };
-        let scan: Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
-        let xml = std::fs::read_to_string(cohort_dir().join(format!("{id}.xml"))).unwrap();
-        let message = lidc_xml::parse(&xml).unwrap_or_else(|e| panic!("{id}: {e}"));
+        let CohortPatient { scan, truth, .. } = load_patient(&cohort_dir(), id);
         let ps = scan["pixel_spacing_mm"].as_f64().unwrap();
         let cols = scan["cols"].as_u64().unwrap() as usize;
-        let geometry = ScanGeometry::new(
-            scan["zvals_mm"].as_array().unwrap().iter().map(|z| z.as_f64().unwrap()).collect(),
-            ps,
-            scan["rows"].as_u64().unwrap() as usize,
-            cols,
-        )
-        .unwrap();
         let thickness = scan["slice_thickness_mm"].as_f64().unwrap();
-        let truth = scan_truth(&message, &geometry, thickness, &GroundTruthParams::default()).unwrap();
 
         assert_eq!(truth.nodules.len(), 1, "{id}: one nodule");
         let nodule = &truth.nodules[0];

@@ -3,11 +3,13 @@
 //! counts at every listed clevel, bboxes, centroids, volumes and diameters, and every
 //! annotation's own mask, bbox and diameter.
 
-use aret_pipe::formats::lidc_xml;
-use aret_pipe::kernels::consensus::{nodule_truth, scan_truth, GroundTruthParams, ReadRef, ScanGeometry, ScanTruth};
+mod support;
+
+use aret_pipe::kernels::consensus::{nodule_truth, ReadRef, ScanGeometry, ScanTruth};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
+use support::cohort::{load_patient, CohortPatient};
 
 fn cohort_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tools/cohorts/paper19")
@@ -27,21 +29,7 @@ struct Patient {
 }
 
 fn load(name: &str) -> Patient {
-    let dir = cohort_dir();
-    let xml = std::fs::read_to_string(dir.join(format!("{name}.xml"))).unwrap();
-    let scan: Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join(format!("{name}.scan.json"))).unwrap()).unwrap();
-    let message = lidc_xml::parse(&xml).unwrap_or_else(|e| panic!("{name}: {e}"));
-    let geometry = ScanGeometry::new(
-        scan["zvals_mm"].as_array().unwrap().iter().map(|z| z.as_f64().unwrap()).collect(),
-        scan["pixel_spacing_mm"].as_f64().unwrap(),
-        scan["rows"].as_u64().unwrap() as usize,
-        scan["cols"].as_u64().unwrap() as usize,
-    )
-    .unwrap();
-    let thickness = scan["slice_thickness_mm"].as_f64().unwrap();
-    let truth = scan_truth(&message, &geometry, thickness, &GroundTruthParams::default())
-        .unwrap_or_else(|e| panic!("{name}: {e}"));
+    let CohortPatient { scan, geometry, truth } = load_patient(&cohort_dir(), name);
     let mut index_of_id = BTreeMap::new();
     for a in scan["annotations"].as_array().unwrap() {
         let source = ReadRef {

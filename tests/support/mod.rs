@@ -1,2 +1,3 @@
 pub mod chest;
+pub mod cohort;
 pub mod dicom_writer;

@@ -56,7 +56,7 @@ const BLOB_WIDTH_FRACTION: f64 = 0.5;
 fn blob_check(search: Search, p: &Params, annotated_mm: Option<f64>) -> (Cut, Option<[f64; 2]>) {
     match search {
         Search::Guided => (
-            Cut { fraction: BLOB_WIDTH_FRACTION, reach_mm: annotated_mm.map(|d| p.guided_reach_diameters * d) },
+            Cut { fraction: BLOB_WIDTH_FRACTION, reach_mm: p.guided_reach_mm(annotated_mm) },
             annotated_mm.map(|d| p.guided_diameter_ratio.map(|r| r * d)),
         ),
         Search::Blind => (Cut::at(BLOB_WIDTH_FRACTION), None),
@@ -122,6 +122,12 @@ impl Default for Params {
 }
 
 impl Params {
+    /// How far from its peak the guided region reaches, mm: `guided_reach_diameters` × the
+    /// annotated diameter (none without an annotation).
+    fn guided_reach_mm(&self, annotated_mm: Option<f64>) -> Option<f64> {
+        annotated_mm.map(|d| self.guided_reach_diameters * d)
+    }
+
     pub fn check(&self) -> anyhow::Result<()> {
         if self.blob_scales_mm.is_empty() || self.blob_scales_mm.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
             bail!("[select] blob_scales_mm must be a non-empty list of positive numbers");
@@ -279,8 +285,7 @@ impl Stage for Select {
         // With half-maximum sizing a search passes over blobs whose region cannot be the nodule,
         // judged at the blob's full width at half maximum whatever fraction the nodule is then
         // cut at. The guided rule's region reaches no farther than the annotated diameter allows.
-        let guided_cut =
-            Cut { fraction: p.half_max_fraction, reach_mm: annotated.map(|d| p.guided_reach_diameters * d) };
+        let guided_cut = Cut { fraction: p.half_max_fraction, reach_mm: p.guided_reach_mm(annotated) };
         let blind_cut = Cut::at(p.half_max_fraction);
         let accept = |search: Search, centre: &Centre| match p.sizing {
             Sizing::Candidates => true,
