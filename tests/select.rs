@@ -219,4 +219,16 @@ fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
     let second = passed_over.guided.expect("the weaker ball");
     assert!(second.rank >= 1 && off(second.voxel, weak) <= 1, "{second:?}");
     assert!(find(&|_, _| false).note.expect("a note").contains("could be sized"));
+    // `guided_scale_ratios` sets the guided search's scales around the matched one; over
+    // several it keeps each blob's strongest, and a ball of radius 9 mm answers most at 5.2 mm.
+    let matched_mm = 18.0 / (2.0 * 3f64.sqrt());
+    let guided_scale = |ratios: Vec<f64>| {
+        let params = SelectParams { guided_scale_ratios: ratios, ..params.clone() };
+        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|_, _| true);
+        let centre = found.guided.expect("a guided centre");
+        assert!(off(centre.voxel, strong) <= 1, "{centre:?}");
+        centre.blob.expect("a blob").scale_mm
+    };
+    assert!((guided_scale(vec![1.0, 1.5]) - matched_mm).abs() < 1e-9);
+    assert!((guided_scale(vec![1.5]) - 1.5 * matched_mm).abs() < 1e-9);
 }

@@ -67,29 +67,35 @@ ROWS = [
      " sweep's candidates"),
     ("default", "pipeline.toml", "B", "C*",
      "the same field fitted to views of 256 × 256 pixels instead of 128 × 128, each rule sizing its centre at"
-     " half maximum (sizing = \"half_max\"): the default"),
+     " half maximum (sizing = \"half_max\"), on the phantom whose nodules are their 50 % consensus: the default"),
     ("default-A", "presets/default_origin.toml", "A", "A",
      "the default centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
     ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
      "the default fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
     ("drr-128", "presets/drr128.toml", "B", "C*",
-     "the default fitted to SPEC §3's views of 128 × 128 pixels (the default until the evening of 2026-11-26)"),
+     "the default fitted to SPEC §3's views of 128 × 128 pixels (the default's views until the evening of 2026-11-26)"),
     ("phantom-readers", "presets/phantom_readers.toml", "B", "C*",
      "the default's method at 128² views on a phantom whose nodules hold tissue in the fraction of readers"
-     " who drew each voxel (the default phantom draws the union of the contours)"),
+     " who drew each voxel (the default phantom draws their 50 % consensus)"),
     ("phantom-readers-256", "presets/phantom_readers_256.toml", "B", "C*",
      "the same phantom with the default's views of 256 × 256 pixels"),
-    ("phantom-consensus", "presets/phantom_consensus.toml", "B", "C*",
-     "the default's method at 128² views on a phantom whose nodules are their 50 % consensus at full attenuation"),
-    ("phantom-consensus-256", "presets/phantom_consensus_256.toml", "B", "C*",
-     "the same phantom with the default's views of 256 × 256 pixels"),
+    ("phantom-union", "presets/phantom_union.toml", "B", "C*",
+     "the default's method at 128² views on the phantom as first built, whose nodules are the union of their"
+     " readers' contours (every row above the default was measured on it)"),
+    ("phantom-union-256", "presets/phantom_union_256.toml", "B", "C*",
+     "the same phantom with the default's views of 256 × 256 pixels (the default until 2026-11-27)"),
+    ("guided-scales", "presets/guided_scales.toml", "B", "C*",
+     "the default with the guided blob search at the matched scale and at 1/√2 of it"
+     " (guided_scale_ratios = [0.71, 1.0])"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"
      " rules through the origin"),
 ]
 MEASURED = "experiment.json"
 # Columns of the table, the row's name included.
-COLUMNS = 12
+COLUMNS = 13
+# The phantom's nodule where a config does not name one (`[dataset.phantom] nodule_extent`).
+DEFAULT_EXTENT = "union"
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
 LEVELS = {
     "A": "location and diameter known",
@@ -104,6 +110,13 @@ def out_dir(config_path):
         cfg = tomllib.load(f)
     out = cfg.get("pipeline", {}).get("out_dir", "out")
     return os.path.normpath(os.path.join(os.path.dirname(config_path), out))
+
+
+def nodule_extent(config_path):
+    """How the config's phantom draws each nodule: "union", "readers" or "consensus"."""
+    with open(config_path, "rb") as f:
+        cfg = tomllib.load(f)
+    return cfg.get("dataset", {}).get("phantom", {}).get("nodule_extent", DEFAULT_EXTENT)
 
 
 def run(binary, config_path):
@@ -194,7 +207,7 @@ def rows_in(doc):
 
 def table(results, kept):
     lines = [
-        "| row | config | level (primary / blind) | ≥10 mm hit: primary / blind / oracle"
+        "| row | config | phantom nodule | level (primary / blind) | ≥10 mm hit: primary / blind / oracle"
         " | ≥10 mm centre on the nodule: guided / blind | ≥10 mm median Dice"
         " | median APE: all / ≥10 mm / ≥10 mm over hits | blind APE over hits (≥10 mm) | all 19: hit / blind"
         " | hits beating the sphere | train s (median) | measured at |",
@@ -202,12 +215,17 @@ def table(results, kept):
     ]
     for name, config, level, blind_level, _ in ROWS:
         r = results.get(name)
+        extent = nodule_extent(os.path.join(ROOT, config))
         if r is None:
-            lines.append(kept.get(name, f"| {name} | `{config}` | {level} / {blind_level} | not run |" + " |" * (COLUMNS - 4)))
+            line = kept.get(name, f"| {name} | `{config}` | {extent} | {level} / {blind_level} | not run |" + " |" * (COLUMNS - 5))
+            cells = line.split("|")
+            if len(cells) == COLUMNS + 1:  # a line written before the phantom column
+                line = "|".join(cells[:3] + [f" {extent} "] + cells[3:])
+            lines.append(line)
             continue
         g, a = r["ge10"], r["all"]
         lines.append(
-            f"| {name} | `{config}` | {level} / {blind_level} | {pct(g['hit'])} / {pct(g['blind'])} / {pct(g['oracle'])}"
+            f"| {name} | `{config}` | {extent} | {level} / {blind_level} | {pct(g['hit'])} / {pct(g['blind'])} / {pct(g['oracle'])}"
             f" | {count(g['centre_guided'], g['n'])} / {count(g['centre_blind'], g['n'])} | {num(g['dice'], '{:.2f}')} | {num(a['ape_all'])}% / {num(g['ape_all'])}% / {num(g['ape_hits'])}%"
             f" | {num(g['blind_ape_hits'])}% | {pct(a['hit'])} / {pct(a['blind'])} | {r['hits_beating_sphere']}"
             f" | {num(r['train_s'])} | {r['at'] or '–'} |"

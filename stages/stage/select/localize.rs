@@ -8,8 +8,9 @@
 //! - `blob` (assistance B for the guided rule, C for the blind ones): the strongest bright-blob
 //!   response of σ (`blob_filter`: the Laplacian or the Hessian of Gaussian) more than
 //!   `inside_mm` inside the lung field found in σ. The guided rule
-//!   uses the one scale matched to the annotated diameter (s = d / (2√3): a ball of radius
-//!   √3·s answers most at s); the blind rules the maximum over `blob_scales_mm`.
+//!   uses the scale matched to the annotated diameter (s = d / (2√3): a ball of radius √3·s
+//!   answers most at s), times each of `guided_scale_ratios` (default: 1 alone); the blind
+//!   rules the maximum over `blob_scales_mm`.
 //!
 //! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
 //! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
@@ -32,8 +33,8 @@ pub enum Localize {
 /// far beyond the ranks at which a nodule still stands out.
 pub const MAX_WEIGHED: usize = 16;
 
-/// Which search a centre is for: the guided rule's (one scale, matched to the annotated
-/// diameter) or the blind rules' (`blob_scales_mm`).
+/// Which search a centre is for: the guided rule's (the scale matched to the annotated
+/// diameter, times `guided_scale_ratios`) or the blind rules' (`blob_scales_mm`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Search {
     Guided,
@@ -128,10 +129,11 @@ pub fn centres(
                     .find(|c| accept(which, c));
                 (ranked.len(), taken)
             };
-            let matched = annotated_diameter_mm.map(|d| [0.5 * d / 3f64.sqrt()]);
+            let matched: Option<Vec<f64>> = annotated_diameter_mm
+                .map(|d| params.guided_scale_ratios.iter().map(|r| r * 0.5 * d / 3f64.sqrt()).collect());
             // Independent searches: on two cores, side by side beats each one's own parallelism.
             let ((guided_found, guided), (blind_found, blind)) = rayon::join(
-                || matched.map_or((0, None), |s| search(&s, Search::Guided)),
+                || matched.as_deref().map_or((0, None), |s| search(s, Search::Guided)),
                 || search(blob_scales_mm, Search::Blind),
             );
             let note = match (guided.is_none() && blind.is_none(), guided_found.max(blind_found)) {

@@ -90,6 +90,9 @@ pub struct Params {
     /// `sizing = "half_max"`: the guided rule's region holds no node farther from its peak than
     /// this many annotated diameters (what lies farther is attached to the nodule, not of it).
     pub guided_reach_diameters: f64,
+    /// `localize = "blob"`: the guided search's scales, as multiples of the scale matched to the
+    /// annotated diameter (d / (2√3)); it takes the strongest response over them.
+    pub guided_scale_ratios: Vec<f64>,
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
@@ -117,6 +120,7 @@ impl Default for Params {
             half_max_fraction: 0.5,
             guided_diameter_ratio: [0.5, 2.0],
             guided_reach_diameters: 1.0,
+            guided_scale_ratios: vec![1.0],
         }
     }
 }
@@ -144,6 +148,10 @@ impl Params {
         }
         if !(self.guided_reach_diameters.is_finite() && self.guided_reach_diameters > 0.0) {
             bail!("[select] guided_reach_diameters must be a number > 0 (got {})", self.guided_reach_diameters);
+        }
+        if self.guided_scale_ratios.is_empty() || self.guided_scale_ratios.iter().any(|r| !(r.is_finite() && *r > 0.0))
+        {
+            bail!("[select] guided_scale_ratios must be a non-empty list of positive numbers");
         }
         if self.sizing == Sizing::HalfMax && self.localize == Localize::None {
             bail!(
@@ -449,5 +457,14 @@ mod tests {
             let (blind, range) = blob_check(Search::Blind, &p, Some(20.0));
             assert_eq!((blind.fraction, blind.reach_mm, range), (0.5, None, None));
         }
+    }
+
+    #[test]
+    fn guided_scale_ratios_must_be_positive_and_present() {
+        for bad in [vec![], vec![0.0], vec![1.0, f64::NAN]] {
+            let p = Params { guided_scale_ratios: bad, ..Params::default() };
+            assert!(p.check().unwrap_err().to_string().contains("guided_scale_ratios"));
+        }
+        assert!(Params { guided_scale_ratios: vec![0.71, 1.0], ..Params::default() }.check().is_ok());
     }
 }
