@@ -83,7 +83,7 @@ ROWS = [
      "the default's method at 128² views on the phantom as first built, whose nodules are the union of their"
      " readers' contours (every row above the default was measured on it)"),
     ("phantom-union-256", "presets/phantom_union_256.toml", "B", "C*",
-     "the same phantom with the default's views of 256 × 256 pixels (the default until 2026-11-27)"),
+     "the same phantom with the default's views of 256 × 256 pixels (the default until the night of 2026-11-26)"),
     ("guided-scales", "presets/guided_scales.toml", "B", "C*",
      "the default with the guided blob search at the matched scale and at 1/√2 of it"
      " (guided_scale_ratios = [0.71, 1.0])"),
