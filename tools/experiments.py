@@ -81,7 +81,7 @@ ROWS = [
      "the same phantom with the default's views of 256 × 256 pixels"),
     ("phantom-union", "presets/phantom_union.toml", "B", "C*",
      "the default's method at 128² views on the phantom as first built, whose nodules are the union of their"
-     " readers' contours (every row above the default was measured on it)"),
+     " readers' contours (most rows above the default were measured on it)"),
     ("phantom-union-256", "presets/phantom_union_256.toml", "B", "C*",
      "the same phantom with the default's views of 256 × 256 pixels (the default until the night of 2026-11-26)"),
     ("guided-scales", "presets/guided_scales.toml", "B", "C*",
@@ -105,18 +105,19 @@ LEVELS = {
 }
 
 
-def out_dir(config_path):
+def load(config_path):
     with open(config_path, "rb") as f:
-        cfg = tomllib.load(f)
-    out = cfg.get("pipeline", {}).get("out_dir", "out")
+        return tomllib.load(f)
+
+
+def out_dir(config_path):
+    out = load(config_path).get("pipeline", {}).get("out_dir", "out")
     return os.path.normpath(os.path.join(os.path.dirname(config_path), out))
 
 
 def nodule_extent(config_path):
     """How the config's phantom draws each nodule: "union", "readers" or "consensus"."""
-    with open(config_path, "rb") as f:
-        cfg = tomllib.load(f)
-    return cfg.get("dataset", {}).get("phantom", {}).get("nodule_extent", DEFAULT_EXTENT)
+    return load(config_path).get("dataset", {}).get("phantom", {}).get("nodule_extent", DEFAULT_EXTENT)
 
 
 def run(binary, config_path):
