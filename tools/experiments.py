@@ -218,11 +218,7 @@ def table(results, kept):
         r = results.get(name)
         extent = nodule_extent(os.path.join(ROOT, config))
         if r is None:
-            line = kept.get(name, f"| {name} | `{config}` | {extent} | {level} / {blind_level} | not run |" + " |" * (COLUMNS - 5))
-            cells = line.split("|")
-            if len(cells) == COLUMNS + 1:  # a line written before the phantom column
-                line = "|".join(cells[:3] + [f" {extent} "] + cells[3:])
-            lines.append(line)
+            lines.append(kept.get(name, f"| {name} | `{config}` | {extent} | {level} / {blind_level} | not run |" + " |" * (COLUMNS - 5)))
             continue
         g, a = r["ge10"], r["all"]
         lines.append(
