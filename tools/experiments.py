@@ -65,9 +65,13 @@ ROWS = [
     ("dense-tv-128", "presets/dense_tv_128.toml", "B", "C*",
      "the dense model on a 128³ lattice (same box, views and λ), sized by the paper's rules among the"
      " sweep's candidates"),
-    ("default", "pipeline.toml", "B", "C*",
+    ("half-max", "presets/half_max.toml", "B", "C*",
      "the same field fitted to views of 256 × 256 pixels instead of 128 × 128, each rule sizing its centre at"
-     " half maximum (sizing = \"half_max\"), on the phantom whose nodules are their 50 % consensus: the default"),
+     " half maximum (sizing = \"half_max\"), on the phantom whose nodules are their 50 % consensus: the default"
+     " until 2026-11-27"),
+    ("default", "pipeline.toml", "B", "C*",
+     "the same, each rule's half-maximum region then sized by the ellipsoid that best explains its shadows in"
+     " the three views (sizing = \"shadows\"): the default"),
     ("default-A", "presets/default_origin.toml", "A", "A",
      "the default centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
     ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
@@ -75,17 +79,17 @@ ROWS = [
     ("drr-128", "presets/drr128.toml", "B", "C*",
      "the default fitted to SPEC §3's views of 128 × 128 pixels (the default's views until the evening of 2026-11-26)"),
     ("phantom-readers", "presets/phantom_readers.toml", "B", "C*",
-     "the default's method at 128² views on a phantom whose nodules hold tissue in the fraction of readers"
+     "half-max's method at 128² views on a phantom whose nodules hold tissue in the fraction of readers"
      " who drew each voxel (the default phantom draws their 50 % consensus)"),
     ("phantom-readers-256", "presets/phantom_readers_256.toml", "B", "C*",
      "the same phantom with the default's views of 256 × 256 pixels"),
     ("phantom-union", "presets/phantom_union.toml", "B", "C*",
-     "the default's method at 128² views on the phantom as first built, whose nodules are the union of their"
+     "half-max's method at 128² views on the phantom as first built, whose nodules are the union of their"
      " readers' contours (most rows above the default were measured on it)"),
     ("phantom-union-256", "presets/phantom_union_256.toml", "B", "C*",
      "the same phantom with the default's views of 256 × 256 pixels (the default until the night of 2026-11-26)"),
     ("guided-scales", "presets/guided_scales.toml", "B", "C*",
-     "the default with the guided blob search at the matched scale and at 1/√2 of it"
+     "half-max with the guided blob search at the matched scale and at 1/√2 of it"
      " (guided_scale_ratios = [0.71, 1.0])"),
     ("fine-box-A", "presets/fine_box.toml", "A", "A",
      "the fine half of coarse-to-fine, given the location: a 64 mm box (1 mm cells) centred on the nodule,"

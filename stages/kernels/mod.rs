@@ -7,7 +7,8 @@
 //! described, with what each equals, in `docs/kernels.md`, as are the cohort metrics'
 //! [`statistics`] (correlations, Wilcoxon, bootstrap CIs, Bland–Altman, as scipy computes them)
 //! and the 3-D image [`filters`] (Gaussian, blob response, distance transform, Otsu, per-slice
-//! hole filling, each equal to its scipy / scikit-image counterpart).
+//! hole filling, each equal to its scipy / scikit-image counterpart). [`robust_fit`] is the bounded
+//! soft-L1 least squares (scipy's `least_squares(loss="soft_l1")`) that sizes a nodule in the views.
 pub mod annotation;
 pub mod cluster;
 pub mod components;
@@ -22,6 +23,7 @@ pub mod mesh;
 pub mod morphology;
 pub mod polygon;
 pub mod raymarch;
+pub mod robust_fit;
 pub mod statistics;
 pub mod stats;
 pub mod trilinear;

@@ -116,6 +116,46 @@ pub fn half_max_selection(
     Some((selection, components.mask_of(own)))
 }
 
+/// The region around `centre` (cut as [`half_max_selection`] cuts it, within `reach_mm` of the
+/// peak) whose volume is closest to `volume_mm3`, with its centroid (patient mm): the score's
+/// own shape at the size something else measured. The fraction of the peak is found by
+/// bisection, as the region shrinks when it rises. `None` when the score has no positive peak
+/// at the centre.
+pub fn region_of_volume(
+    scored: &Scored,
+    sweep: &SweepParams,
+    centre: &Centre,
+    reach_mm: Option<f64>,
+    volume_mm3: f64,
+) -> Option<(Vec<bool>, [f64; 3])> {
+    let geometry = &scored.score.geometry;
+    let voxel_mm3: f64 = geometry.spacing_mm.iter().product();
+    let (seed, peak) = peak_near(scored, centre.voxel)?;
+    let at = |fraction: f64| region_at(scored, sweep, seed, fraction * f64::from(peak), reach_mm);
+    let (mut lo, mut hi) = (0.0, 1.0);
+    let mut best: Option<(f64, (Components, u32))> = None;
+    for _ in 0..BISECTION_STEPS {
+        let fraction = 0.5 * (lo + hi);
+        let (components, own) = at(fraction);
+        let volume = components.size(own) as f64 * voxel_mm3;
+        let miss = (volume - volume_mm3).abs();
+        if volume > volume_mm3 {
+            lo = fraction;
+        } else {
+            hi = fraction;
+        }
+        if best.as_ref().is_none_or(|(m, _)| miss < *m) {
+            best = Some((miss, (components, own)));
+        }
+    }
+    let (_, (components, own)) = best?;
+    let centroid_mm = summarize(&components, geometry)[own as usize - 1];
+    Some((components.mask_of(own), centroid_mm))
+}
+
+/// Steps of [`region_of_volume`]'s bisection: the fraction to 1/4096 of the peak.
+const BISECTION_STEPS: usize = 12;
+
 /// The largest score in the region among `voxel` and its 26 neighbours (the blob centre is a
 /// filtered maximum, the score's own may sit a node away), and where it is; `None` when it is
 /// not positive.

@@ -3,7 +3,8 @@
 //! Inputs: `grid/density` (the lattice), `sweep/sweep.json` (candidates and the parameters to
 //! regenerate their masks), `ingest/ground_truth.json` (the annotated diameter the guided rule
 //! uses), `ingest/gt_mask` (localization only: never used to choose) and `drr/cameras.json`
-//! (the scene origin, for `localize = "origin"`).
+//! (the scene origin, for `localize = "origin"`); with `sizing = "shadows"` also the three
+//! `drr/drr_<view>.exr` ([`shadows`]).
 //!
 //! With `localize` ([`localize`]), each rule first finds the nodule's centre and then chooses
 //! only among the candidates holding it.
@@ -38,6 +39,7 @@ mod half_max;
 mod localize;
 mod preview;
 mod rules;
+mod shadows;
 
 pub use localize::{centres, Centre, Centres, Localize, Search};
 pub use rules::Analysis;
@@ -80,7 +82,8 @@ pub struct Params {
     /// A blob centre lies more than this (mm) inside the lung field.
     pub inside_mm: f64,
     /// How a rule sizes the nodule at its centre: "candidates" (the sweep's, chosen by the
-    /// rule) or "half_max" (the region at half the score's peak, from the image alone).
+    /// rule), "half_max" (the region at half the score's peak, from the image alone) or
+    /// "shadows" (the ellipsoid that best explains that region's shadows in the three views).
     pub sizing: Sizing,
     /// `sizing = "half_max"`: the fraction of the peak the region is cut at.
     pub half_max_fraction: f64,
@@ -105,6 +108,17 @@ pub enum Sizing {
     /// The connected region of the sweep's score at `half_max_fraction` of its peak at the
     /// rule's centre ([`half_max`]): both blind rules then size the blind centre alike.
     HalfMax,
+    /// The half-maximum region finds the nodule; the ellipsoid fitted to its shadows in the
+    /// three DRRs sizes it ([`shadows`]).
+    Shadows,
+}
+
+impl Sizing {
+    /// Whether the rules cut a half-maximum region around their centres (to keep it, or to
+    /// size it by its shadows).
+    fn cuts_half_max(self) -> bool {
+        matches!(self, Sizing::HalfMax | Sizing::Shadows)
+    }
 }
 
 impl Default for Params {
@@ -153,10 +167,11 @@ impl Params {
         {
             bail!("[select] guided_scale_ratios must be a non-empty list of positive numbers");
         }
-        if self.sizing == Sizing::HalfMax && self.localize == Localize::None {
+        if self.sizing.cuts_half_max() && self.localize == Localize::None {
             bail!(
-                "[select] sizing = \"half_max\" sizes around a centre, and localize = \"none\" finds none: \
-                 set localize to \"blob\" or \"origin\""
+                "[select] sizing = \"{}\" sizes around a centre, and localize = \"none\" finds none: \
+                 set localize to \"blob\" or \"origin\"",
+                if self.sizing == Sizing::Shadows { "shadows" } else { "half_max" }
             );
         }
         Ok(())
@@ -256,7 +271,10 @@ impl Stage for Select {
             "ingest" => output == "ground_truth.json" || output.starts_with("gt_mask."),
             "grid" => output == "density.mhd" || output == "density.raw",
             "sweep" => output == "sweep.json" || output.starts_with(&format!("{LUNG_FIELD}.")),
-            "drr" => output == "cameras.json",
+            "drr" => {
+                output == "cameras.json"
+                    || (self.params.sizing == Sizing::Shadows && output.starts_with("drr_") && output.ends_with(".exr"))
+            }
             _ => false,
         }
     }
@@ -297,7 +315,7 @@ impl Stage for Select {
         let blind_cut = Cut::at(p.half_max_fraction);
         let accept = |search: Search, centre: &Centre| match p.sizing {
             Sizing::Candidates => true,
-            Sizing::HalfMax => {
+            Sizing::HalfMax | Sizing::Shadows => {
                 let (cut, range) = blob_check(search, p, annotated);
                 half_max::plausible(&scored, &sweep.params, centre, cut, range)
             }
@@ -328,11 +346,26 @@ impl Stage for Select {
                     .and_then(|cell| analysis.choose(rule, annotated, cell))
                     .map(|at| (analysis.describe(rule, at), levels[at.0].components.mask_of(at.1)))
             }),
-            Sizing::HalfMax => {
-                let at = |rule, centre: &Option<Centre>, cut| {
-                    centre
-                        .as_ref()
-                        .and_then(|c| half_max::half_max_selection(&scored, &sweep.params, c, cut, gt.as_ref(), rule))
+            Sizing::HalfMax | Sizing::Shadows => {
+                let views = match p.sizing {
+                    Sizing::Shadows => Some(read_views(ctx, &cameras)?),
+                    _ => None,
+                };
+                let at = |rule, centre: &Option<Centre>, cut: Cut| {
+                    let centre = centre.as_ref()?;
+                    let region = half_max::half_max_selection(&scored, &sweep.params, centre, cut, gt.as_ref(), rule)?;
+                    match &views {
+                        // The shadows say how much; σ's own shape at that volume says where.
+                        Some(views) => shadows::shadow_selection(
+                            views,
+                            (&region.0, &region.1),
+                            &density,
+                            scored.region.as_deref(),
+                            gt.as_ref(),
+                            |v| half_max::region_of_volume(&scored, &sweep.params, centre, cut.reach_mm, v),
+                        ),
+                        None => Some(region),
+                    }
                 };
                 // Both blind rules size the blind centre: one region, reported under each name.
                 let blind = at(Rule::BlindLargest, &centres.blind, blind_cut);
@@ -408,6 +441,19 @@ impl Stage for Select {
     }
 }
 
+/// The three DRRs with their nominal cameras (the ones training fitted), for sizing by shadows.
+fn read_views(ctx: &Context, cameras: &CameraSet) -> anyhow::Result<shadows::Views> {
+    let images = cameras
+        .cameras
+        .iter()
+        .map(|camera| {
+            let name = format!("drr_{}.exr", camera.view.name());
+            crate::formats::exr_image::decode(&ctx.read("drr", &name)?).with_context(|| format!("drr/{name}"))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    shadows::Views::new(&cameras.cameras, &images, cameras.frame, cameras.aabb)
+}
+
 /// One line saying whether `primary` can be trusted: "hit", or why not ("MISS: …").
 pub fn verdict(
     rule: Rule,
@@ -421,7 +467,7 @@ pub fn verdict(
             "unverified: no annotated diameter, so the guided rule cannot choose (set [select] primary to a blind rule)"
                 .into()
         }
-        (None, _) if params.sizing == Sizing::HalfMax => "MISS: no nodule centre was found whose half-maximum \
+        (None, _) if params.sizing.cuts_half_max() => "MISS: no nodule centre was found whose half-maximum \
              region is of a nodule's size ([sweep] diameter_mm; for the guided rule also \
              [select] guided_diameter_ratio × the annotated diameter)"
             .into(),
