@@ -44,7 +44,7 @@ mod shadows;
 pub use localize::{centres, Centre, Centres, Localize, Search};
 pub use rules::Analysis;
 
-pub const VERSION: u32 = 12;
+pub const VERSION: u32 = 13;
 
 /// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
 /// full width at half maximum. `half_max_fraction` then only sets where the nodule is cut (its
