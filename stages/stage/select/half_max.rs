@@ -112,7 +112,7 @@ pub fn half_max_selection(
     }
     let localization =
         gt.map(|gt| gt.compare_labels(&components.labels, components.count(), geometry)[own as usize - 1]);
-    let selection = Selection { rule, candidate, volume_interval_mm3: interval, localization };
+    let selection = Selection { rule, candidate, volume_interval_mm3: interval, localization, shadows: None };
     Some((selection, components.mask_of(own)))
 }
 

@@ -43,6 +43,7 @@ mod shadows;
 
 pub use localize::{centres, Centre, Centres, Localize, Search};
 pub use rules::Analysis;
+pub use shadows::ShadowFit;
 
 pub const VERSION: u32 = 13;
 
@@ -196,6 +197,9 @@ pub struct Selection {
     pub volume_interval_mm3: [f64; 2],
     /// Against the ground truth, when there is one.
     pub localization: Option<Localization>,
+    /// With `sizing = "shadows"`: the ellipsoid fitted to the nodule's shadows.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shadows: Option<ShadowFit>,
 }
 
 /// The oracle diagnostic: could any candidate at any threshold have been right?

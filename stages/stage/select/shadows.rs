@@ -114,6 +114,16 @@ impl Ellipsoid {
     }
 }
 
+/// What `result.json` records of a shadow fit (patient mm).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ShadowFit {
+    pub centre_mm: [f64; 3],
+    /// Along the patient x, y and z axes.
+    pub semi_axes_mm: [f64; 3],
+    /// The nodule's attenuation over its background, in the density's units.
+    pub contrast: f64,
+}
+
 /// One window pixel: its ray (clipped to the box), optical depth less the field's background,
 /// and the basis of the quadratic.
 struct Pixel {
@@ -125,14 +135,15 @@ struct Pixel {
 
 /// The ellipsoid whose shadows, over `background(eye, dir)` (the line integral of what is not
 /// the nodule) plus a quadratic, best explain the three views in windows of `window_radii` ×
-/// `radius` (scene units) around `centre` (scene), or `None` when no view has a pixel there.
+/// `radius` (scene units) around `centre` (scene), with its contrast, or `None` when no view has
+/// a pixel there.
 pub fn fit_ellipsoid(
     views: &Views,
     background: &dyn Fn(DVec3, DVec3) -> f64,
     centre: DVec3,
     radius: f64,
     window_radii: f64,
-) -> Option<Ellipsoid> {
+) -> Option<(Ellipsoid, f64)> {
     let windows: Vec<(DVec3, Vec<Pixel>)> = views
         .views
         .iter()
@@ -142,10 +153,12 @@ pub fn fit_ellipsoid(
             let (u1, _) = camera.project(centre + radius * right)?;
             let radius_px = (u1 - u0).abs() * window_radii + WINDOW_MARGIN_PX;
             let eye = camera.eye();
-            let rows = (v0 - radius_px).floor().max(0.0) as usize..((v0 + radius_px).ceil() as usize).min(camera.height);
+            let rows =
+                (v0 - radius_px).floor().max(0.0) as usize..((v0 + radius_px).ceil() as usize).min(camera.height);
             let mut pixels = Vec::new();
             for j in rows {
-                for i in (u0 - radius_px).floor().max(0.0) as usize..((u0 + radius_px).ceil() as usize).min(camera.width)
+                for i in
+                    (u0 - radius_px).floor().max(0.0) as usize..((u0 + radius_px).ceil() as usize).min(camera.width)
                 {
                     let (u, v) = ((i as f64 + 0.5 - u0) / radius_px, (j as f64 + 0.5 - v0) / radius_px);
                     if u * u + v * v > 1.0 {
@@ -196,7 +209,8 @@ pub fn fit_ellipsoid(
     }
     let residual_count = windows.iter().map(|(_, p)| p.len()).sum();
     let problem = Problem { residuals: &residuals, residual_count, lower, upper, loss_scale: LOSS_SCALE };
-    Some(shape(&fit_soft_l1(&problem, &x0).x))
+    let x = fit_soft_l1(&problem, &x0).x;
+    Some((shape(&x), x[6]))
 }
 
 fn median(mut values: Vec<f64>) -> f64 {
@@ -230,10 +244,11 @@ pub fn shadow_selection(
     let field = VolumeField::new(&cleared, &views.frame);
     let background = |eye: DVec3, dir: DVec3| march_ray(&field, &views.aabb, eye, dir, f64::INFINITY);
     let volume_mm3 = |e: &Ellipsoid| e.volume() * mm_per_unit.powi(3);
-    let volume = volume_mm3(&fit_ellipsoid(views, &background, centre, radius, WINDOW_RADII)?);
+    let (ellipsoid, contrast) = fit_ellipsoid(views, &background, centre, radius, WINDOW_RADII)?;
+    let volume = volume_mm3(&ellipsoid);
     let mut interval = [volume; 2];
     for window in INTERVAL_WINDOW_RADII {
-        if let Some(e) = fit_ellipsoid(views, &background, centre, radius, window) {
+        if let Some((e, _)) = fit_ellipsoid(views, &background, centre, radius, window) {
             interval = [interval[0].min(volume_mm3(&e)), interval[1].max(volume_mm3(&e))];
         }
     }
@@ -246,7 +261,19 @@ pub fn shadow_selection(
         ..region.clone()
     };
     let localization = gt.map(|gt| gt.compare(&mask, &density.geometry));
-    Some((Selection { rule: half_max.rule, candidate, volume_interval_mm3: interval, localization }, mask))
+    let shadows = ShadowFit {
+        centre_mm: views.frame.to_patient_mm(ellipsoid.centre).to_array(),
+        semi_axes_mm: (ellipsoid.semi_axes * mm_per_unit).to_array(),
+        contrast,
+    };
+    let selection = Selection {
+        rule: half_max.rule,
+        candidate,
+        volume_interval_mm3: interval,
+        localization,
+        shadows: Some(shadows),
+    };
+    Some((selection, mask))
 }
 
 /// `density` with every node within `CLEARED_MM` of the nodule's `region` set to the median of
@@ -285,6 +312,40 @@ mod tests {
         assert!((e.chord(eye + 0.3 * DVec3::Y, DVec3::NEG_Z, (0.0, 100.0)) - 0.8).abs() < 1e-12);
     }
 
+    #[test]
+    fn clearing_the_nodule_sets_its_neighbourhood_to_the_lung_around_it() {
+        use crate::volume::Geometry;
+        let n = 24;
+        let geometry = Geometry {
+            dims: [n; 3],
+            spacing_mm: [1.0; 3],
+            origin_mm: [0.0; 3],
+            direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        };
+        let at = |i: usize| [i % n, (i / n) % n, i / (n * n)];
+        let from_centre = |i: usize| at(i).iter().map(|&c| (c as f64 - 12.0).powi(2)).sum::<f64>().sqrt();
+        // A 2 mm nodule, its 3 mm blur, lung of 0.1 and, beyond x = 20, wall of 0.9 outside the lungs.
+        let data: Vec<f32> = (0..n * n * n)
+            .map(|i| match (from_centre(i), at(i)[0]) {
+                (d, _) if d <= 2.0 => 1.0,
+                (d, _) if d <= 5.0 => 0.5,
+                (_, x) if x >= 20 => 0.9,
+                _ => 0.1,
+            })
+            .collect();
+        let region: Vec<bool> = (0..data.len()).map(|i| from_centre(i) <= 2.0).collect();
+        let lungs: Vec<bool> = (0..data.len()).map(|i| at(i)[0] < 20).collect();
+        let density = Volume { geometry, data };
+        let cleared = without_nodule(&density, &region, Some(&lungs));
+        for i in 0..cleared.data.len() {
+            // Within 4 mm of the region (which reaches 2 mm from the centre): the lung's 0.1.
+            let expected = if from_centre(i) <= 5.9 { 0.1 } else { density.data[i] };
+            if (from_centre(i) - 6.0).abs() > 0.2 {
+                assert_eq!(cleared.data[i], expected, "node {:?}", at(i));
+            }
+        }
+    }
+
     /// Renders an ellipsoid of contrast 0.6 over a tilted background into three 96² views of a
     /// 2-unit box, as the drr stage's cameras see it, and fits it back from a rough start.
     #[test]
@@ -300,7 +361,8 @@ mod tests {
                     .map(|p| {
                         let (i, j) = (p % size, p / size);
                         let dir = camera.ray_dir(i, j);
-                        let chord = aabb.intersect(camera.eye(), dir).map_or(0.0, |t| truth.chord(camera.eye(), dir, t));
+                        let chord =
+                            aabb.intersect(camera.eye(), dir).map_or(0.0, |t| truth.chord(camera.eye(), dir, t));
                         0.8 + 0.002 * i as f64 - 0.001 * j as f64 + 0.6 * chord
                     })
                     .collect();
@@ -309,7 +371,8 @@ mod tests {
             .collect();
         let views = Views { views, frame: SceneFrame { roi_center_mm: [0.0; 3], mm_per_unit: 40.0 }, aabb };
         let start = DVec3::new(0.0, 0.0, 0.0);
-        let fit = fit_ellipsoid(&views, &|_, _| 0.0, start, 0.2, WINDOW_RADII).unwrap();
+        let (fit, contrast) = fit_ellipsoid(&views, &|_, _| 0.0, start, 0.2, WINDOW_RADII).unwrap();
+        assert!((contrast - 0.6).abs() < 0.02, "{contrast}");
         assert!((fit.centre - truth.centre).length() < 0.01, "{fit:?}");
         assert!((fit.semi_axes - truth.semi_axes).abs().max_element() < 0.01, "{fit:?}");
     }
