@@ -38,8 +38,8 @@ pub fn fit_soft_l1(problem: &Problem, x0: &[f64]) -> Fit {
     let n = x0.len();
     assert!(problem.lower.len() == n && problem.upper.len() == n, "one bound per parameter");
     let clamp = |x: &mut [f64]| {
-        for j in 0..n {
-            x[j] = x[j].clamp(problem.lower[j], problem.upper[j]);
+        for ((v, lo), hi) in x.iter_mut().zip(&problem.lower).zip(&problem.upper) {
+            *v = v.clamp(*lo, *hi);
         }
     };
     let s2 = problem.loss_scale * problem.loss_scale;

@@ -19,7 +19,8 @@
 //! resampled to the grid; the oracle says whether any candidate was a hit. Outputs:
 //! `result.json`, the primary selection's `nodule_mask.mhd/.raw` (uint8) and `nodule.obj`
 //! (watertight marching-cubes surface, patient mm), and `nodule.png` (density slices through
-//! the selection, with the selection and the ground truth outlined).
+//! the selection, with the selection and the ground truth outlined); with `sizing = "shadows"`
+//! also `shadows.png` (the primary selection's fitted ellipsoid over its three shadows).
 
 use crate::engine::{Context, Output, Stage};
 use crate::formats::obj;
@@ -343,6 +344,10 @@ impl Stage for Select {
                 centre.as_ref().map(|c| Some(c.linear(dims)))
             }
         };
+        let views = match p.sizing {
+            Sizing::Shadows => Some(read_views(ctx, &cameras)?),
+            _ => None,
+        };
         // Each rule's selection and its mask, in `Rule` order: guided, blind_largest, blind_persistent.
         let mut chosen = match p.sizing {
             Sizing::Candidates => [Rule::Guided, Rule::BlindLargest, Rule::BlindPersistent].map(|rule| {
@@ -351,10 +356,6 @@ impl Stage for Select {
                     .map(|at| (analysis.describe(rule, at), levels[at.0].components.mask_of(at.1)))
             }),
             Sizing::HalfMax | Sizing::Shadows => {
-                let views = match p.sizing {
-                    Sizing::Shadows => Some(read_views(ctx, &cameras)?),
-                    _ => None,
-                };
                 let at = |rule, centre: &Option<Centre>, cut: Cut| {
                     let centre = centre.as_ref()?;
                     let region = half_max::half_max_selection(&scored, &sweep.params, centre, cut, gt.as_ref(), rule)?;
@@ -435,13 +436,17 @@ impl Stage for Select {
         let truth_cells: Option<Vec<bool>> = gt.as_ref().map(|gt| gt.coverage.iter().map(|&c| c >= 0.5).collect());
         let selected: Vec<bool> = mask_volume.data.iter().map(|&b| b != 0).collect();
         let preview = preview::nodule_png(&density, &selected, truth_cells.as_deref(), &centers);
-        Ok(vec![
+        let mut outputs = vec![
             Output::new("result.json", serde_json::to_vec_pretty(&result)?),
             Output::new("nodule.png", preview),
             Output::new("nodule_mask.mhd", header),
             Output::new("nodule_mask.raw", raw),
             Output::new("nodule.obj", obj_text),
-        ])
+        ];
+        if let (Some(views), Some(fit)) = (&views, primary_sel.as_ref().and_then(|s| s.shadows)) {
+            outputs.push(Output::new("shadows.png", shadows::shadows_png(views, &fit)));
+        }
+        Ok(outputs)
     }
 }
 

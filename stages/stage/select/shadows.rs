@@ -23,11 +23,13 @@
 
 use super::Selection;
 use crate::formats::exr_image::DrrImage;
+use crate::formats::png;
 use crate::geometry::{Aabb, Camera, SceneFrame};
 use crate::kernels::filters::distance_inside_mm;
 use crate::kernels::localization::GroundTruthOnGrid;
 use crate::kernels::raymarch::{march_ray, VolumeField};
 use crate::kernels::robust_fit::{fit_soft_l1, Problem};
+use crate::kernels::stats::percentile;
 use crate::stage::sweep::equivalent_diameter_mm;
 use crate::volume::Volume;
 use glam::DVec3;
@@ -294,6 +296,79 @@ fn without_nodule(density: &Volume<f32>, region: &[bool], lungs: Option<&[bool]>
     let lung = if shell.is_empty() { 0.0 } else { median(shell) as f32 };
     let data = density.data.iter().zip(&distance).map(|(&v, &d)| if d <= CLEARED_MM { lung } else { v }).collect();
     Volume { geometry: g.clone(), data }
+}
+
+/// Screen pixels per DRR pixel in `shadows.png`.
+const PREVIEW_ZOOM: usize = 4;
+
+/// `shadows.png`: each view's optical depth around the fitted ellipsoid (coronal, sagittal,
+/// axial, left to right; DRR pixels enlarged `PREVIEW_ZOOM`×, grey from the crop's 1st to 99th
+/// percentile), the ellipsoid's shadow outlined in red: what the volume was read from.
+pub fn shadows_png(views: &Views, fit: &ShadowFit) -> Vec<u8> {
+    let frame = &views.frame;
+    let ellipsoid = Ellipsoid {
+        centre: frame.to_scene(DVec3::from(fit.centre_mm)),
+        semi_axes: DVec3::from(fit.semi_axes_mm) / frame.mm_per_unit,
+    };
+    let reach = ellipsoid.semi_axes.max_element() * WINDOW_RADII;
+    let panels: Vec<(usize, Vec<u8>)> = views
+        .views
+        .iter()
+        .filter_map(|(camera, depths)| {
+            let (u0, v0) = camera.project(ellipsoid.centre)?;
+            let (u1, _) = camera.project(ellipsoid.centre + reach * camera.pose().x_axis.truncate())?;
+            let half = ((u1 - u0).abs() + WINDOW_MARGIN_PX).ceil() as i64;
+            let side = 2 * half as usize + 1;
+            let pixel = |c: usize, r: usize| {
+                let (i, j) = (u0.floor() as i64 - half + c as i64, v0.floor() as i64 - half + r as i64);
+                ((0..camera.width as i64).contains(&i) && (0..camera.height as i64).contains(&j))
+                    .then_some((i as usize, j as usize))
+            };
+            let depth = |c, r| pixel(c, r).map(|(i, j)| depths[i + camera.width * j]);
+            let inside = |c, r| {
+                pixel(c, r).is_some_and(|(i, j)| {
+                    let dir = camera.ray_dir(i, j);
+                    views.aabb.intersect(camera.eye(), dir).is_some_and(|t| ellipsoid.chord(camera.eye(), dir, t) > 0.0)
+                })
+            };
+            let crop: Vec<f64> = (0..side * side).filter_map(|k| depth(k % side, k / side)).collect();
+            let (lo, hi) = (percentile(&crop, 1.0).ok()?, percentile(&crop, 99.0).ok()?);
+            let shadow: Vec<bool> = (0..side * side).map(|k| inside(k % side, k / side)).collect();
+            let edge = |c: usize, r: usize| {
+                shadow[c + side * r]
+                    && (c == 0 || r == 0 || c + 1 == side || r + 1 == side || {
+                        !shadow[c - 1 + side * r]
+                            || !shadow[c + 1 + side * r]
+                            || !shadow[c + side * (r - 1)]
+                            || !shadow[c + side * (r + 1)]
+                    })
+            };
+            let zoomed = side * PREVIEW_ZOOM;
+            let mut rgb = vec![0u8; 3 * zoomed * zoomed];
+            for (k, px) in rgb.chunks_exact_mut(3).enumerate() {
+                let (c, r) = ((k % zoomed) / PREVIEW_ZOOM, (k / zoomed) / PREVIEW_ZOOM);
+                px.copy_from_slice(&match depth(c, r) {
+                    _ if edge(c, r) => [230, 40, 40],
+                    Some(t) => [((t - lo) / (hi - lo).max(1e-9) * 255.0).clamp(0.0, 255.0) as u8; 3],
+                    None => [0, 0, 64],
+                });
+            }
+            Some((zoomed, rgb))
+        })
+        .collect();
+    let gap = 6;
+    let height = panels.iter().map(|p| p.0).max().unwrap_or(1);
+    let width = (panels.iter().map(|p| p.0).sum::<usize>() + gap * panels.len().saturating_sub(1)).max(1);
+    let mut rgb = vec![0u8; 3 * width * height];
+    let mut left = 0;
+    for (side, panel) in &panels {
+        for r in 0..*side {
+            let at = 3 * (left + width * r);
+            rgb[at..at + 3 * side].copy_from_slice(&panel[3 * side * r..3 * side * (r + 1)]);
+        }
+        left += side + gap;
+    }
+    png::encode_rgb8(width, height, &rgb)
 }
 
 #[cfg(test)]
