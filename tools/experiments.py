@@ -68,7 +68,7 @@ ROWS = [
     ("half-max", "presets/half_max.toml", "B", "C*",
      "the same field fitted to views of 256 × 256 pixels instead of 128 × 128, each rule sizing its centre at"
      " half maximum (sizing = \"half_max\"), on the phantom whose nodules are their 50 % consensus: the default"
-     " until 2026-11-27"),
+     " until late on 2026-11-26"),
     ("default", "pipeline.toml", "B", "C*",
      "the same, each rule's half-maximum region then sized by the ellipsoid that best explains its shadows in"
      " the three views (sizing = \"shadows\"): the default"),
