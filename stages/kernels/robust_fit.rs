@@ -4,7 +4,7 @@
 //! pull the fit.
 //!
 //! Levenberg–Marquardt on the reweighted problem (each step solves the Gauss–Newton system with
-//! weights ρ'(rᵢ²) = 1/√(1 + (rᵢ/s)²)), a forward-difference Jacobian, and steps projected onto
+//! weights ρ'(rᵢ²) = 1/√(1 + (rᵢ/s)²)), a central-difference Jacobian, and steps projected onto
 //! the bounds. Deterministic: the same inputs give the same bits.
 
 /// The solution and how it was reached.
@@ -29,7 +29,7 @@ pub struct Problem<'a> {
 }
 
 const MAX_ITERATIONS: usize = 200;
-/// Relative forward-difference step (scaled by max(1, |xⱼ|)); large enough to step across a
+/// Relative finite-difference step (scaled by max(1, |xⱼ|)); large enough to step across a
 /// pixel's worth of a sharp-edged model, small against the parameters' own scale.
 const DIFF_STEP: f64 = 1e-3;
 
@@ -58,16 +58,21 @@ pub fn fit_soft_l1(problem: &Problem, x0: &[f64]) -> Fit {
     let mut jacobian = vec![vec![0.0; m]; n]; // column j: ∂r/∂xⱼ
     while iterations < MAX_ITERATIONS {
         for (j, column) in jacobian.iter_mut().enumerate() {
+            // Central differences where both sides lie inside the box, else one-sided inwards.
+            let h = DIFF_STEP * x[j].abs().max(1.0);
+            let (back, ahead) = (x[j] - h >= problem.lower[j], x[j] + h <= problem.upper[j]);
+            let (lo, hi) = match (back, ahead) {
+                (true, true) | (false, false) => (x[j] - h, x[j] + h),
+                (true, false) => (x[j] - h, x[j]),
+                (false, true) => (x[j], x[j] + h),
+            };
             trial.copy_from_slice(&x);
-            // Step inwards at an upper bound, so the difference is taken inside the box.
-            let mut h = DIFF_STEP * x[j].abs().max(1.0);
-            if x[j] + h > problem.upper[j] {
-                h = -h;
-            }
-            trial[j] += h;
+            trial[j] = hi;
             (problem.residuals)(&trial, column);
-            for (c, ri) in column.iter_mut().zip(&r) {
-                *c = (*c - ri) / h;
+            trial[j] = lo;
+            (problem.residuals)(&trial, &mut r_trial);
+            for (c, low) in column.iter_mut().zip(&r_trial) {
+                *c = (*c - low) / (hi - lo);
             }
         }
         let weights: Vec<f64> = r.iter().map(|ri| 1.0 / (1.0 + ri * ri / s2).sqrt()).collect();
