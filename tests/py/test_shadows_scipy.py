@@ -119,7 +119,8 @@ def test_shadow_fit_equals_scipy_least_squares_and_finds_the_sphere(runs):
         inside = (u * u + v * v <= 1) & (t_near < t_far)
         d, tn, tf = dirs[inside], t_near[inside], t_far[inside]
         y = depth[inside] - line_integrals(cleared, origin, spacing, frame, eye, d, tn, tf)
-        basis = np.stack([np.ones(inside.sum()), u[inside], v[inside], u[inside] ** 2, u[inside] * v[inside], v[inside] ** 2], -1)
+        ui, vi = u[inside], v[inside]
+        basis = np.stack([np.ones(ui.size), ui, vi, ui * ui, ui * vi, vi * vi], -1)
         windows.append((eye, d, tn, tf, y, basis))
 
     def residuals(x):
