@@ -74,6 +74,8 @@ ROWS = [
      " the three views (sizing = \"shadows\"): the default"),
     ("default-A", "presets/default_origin.toml", "A", "A",
      "the default centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
+    ("default-seed2", "presets/default_seed2.toml", "B", "C*",
+     "the default on a second anatomy of the same patients (phantom seed 2)"),
     ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
      "the default fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
     ("drr-128", "presets/drr128.toml", "B", "C*",
