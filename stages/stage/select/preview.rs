@@ -27,28 +27,48 @@ pub fn nodule_png(density: &Volume<f32>, selected: &[bool], truth: Option<&[bool
         .iter()
         .map(|&center| layouts.iter().map(|&l| Panel::cut(density, selected, truth, center, l, white)).collect())
         .collect();
-    let gap = 6;
-    let width = rows[0].iter().map(|p| p.width).sum::<usize>() + gap * (layouts.len() - 1);
-    let row_height = rows[0].iter().map(|p| p.height).max().unwrap_or(1);
-    let height = rows.len() * row_height + gap * (rows.len() - 1);
+    tile(&rows)
+}
+
+/// One picture of a preview: `width × height` RGB pixels, row-major from the top.
+pub(super) struct Panel {
+    pub width: usize,
+    pub height: usize,
+    pub rgb: Vec<u8>,
+}
+
+/// Pixels between panels.
+const GAP: usize = 6;
+
+/// PNG bytes of `rows` of panels, left to right and top to bottom, `GAP` pixels apart.
+pub(super) fn tile(rows: &[Vec<Panel>]) -> Vec<u8> {
+    let row_width = |row: &Vec<Panel>| row.iter().map(|p| p.width + GAP).sum::<usize>().saturating_sub(GAP);
+    let row_height = |row: &Vec<Panel>| row.iter().map(|p| p.height).max().unwrap_or(0);
+    let width = rows.iter().map(row_width).max().unwrap_or(0).max(1);
+    let height = (rows.iter().map(|row| row_height(row) + GAP).sum::<usize>().saturating_sub(GAP)).max(1);
     let mut rgb = vec![0u8; 3 * width * height];
-    for (k, row) in rows.iter().enumerate() {
-        let (mut left, top) = (0, k * (row_height + gap));
+    let mut top = 0;
+    for row in rows {
+        let mut left = 0;
         for p in row {
             for r in 0..p.height {
                 let at = left + width * (top + r);
                 rgb[3 * at..3 * (at + p.width)].copy_from_slice(&p.rgb[3 * p.width * r..3 * p.width * (r + 1)]);
             }
-            left += p.width + gap;
+            left += p.width + GAP;
         }
+        top += row_height(row) + GAP;
     }
     png::encode_rgb8(width, height, &rgb)
 }
 
-struct Panel {
-    width: usize,
-    height: usize,
-    rgb: Vec<u8>,
+/// Whether pixel (`c`, `r`) of a `width × height` picture lies on the edge of the set `inside`
+/// holds: in it, and on the picture's border or beside a pixel outside it.
+pub(super) fn on_edge(inside: impl Fn(usize, usize) -> bool, width: usize, height: usize, c: usize, r: usize) -> bool {
+    inside(c, r)
+        && (c == 0 || r == 0 || c + 1 == width || r + 1 == height || {
+            !inside(c - 1, r) || !inside(c + 1, r) || !inside(c, r - 1) || !inside(c, r + 1)
+        })
 }
 
 impl Panel {
@@ -83,14 +103,7 @@ impl Panel {
         let mut outline = |set: &[bool], colour: [u8; 3]| {
             for r in 0..height {
                 for c in 0..width {
-                    let inside = |c: usize, r: usize| set[cells[c + width * r]];
-                    if !inside(c, r) {
-                        continue;
-                    }
-                    let edge = c == 0 || r == 0 || c + 1 == width || r + 1 == height || {
-                        !inside(c - 1, r) || !inside(c + 1, r) || !inside(c, r - 1) || !inside(c, r + 1)
-                    };
-                    if edge {
+                    if on_edge(|c, r| set[cells[c + width * r]], width, height, c, r) {
                         rgb[3 * (c + width * r)..3 * (c + width * r) + 3].copy_from_slice(&colour);
                     }
                 }

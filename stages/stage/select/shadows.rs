@@ -21,15 +21,15 @@
 //! interval holds the volumes fitted in windows of 1.5 and 2.5 radii, how much the answer
 //! hangs on where the background is read.
 
+use super::preview::{on_edge, tile, Panel};
 use super::Selection;
 use crate::formats::exr_image::DrrImage;
-use crate::formats::png;
 use crate::geometry::{Aabb, Camera, SceneFrame};
 use crate::kernels::filters::distance_inside_mm;
 use crate::kernels::localization::GroundTruthOnGrid;
 use crate::kernels::raymarch::{march_ray, VolumeField};
 use crate::kernels::robust_fit::{fit_soft_l1, Problem};
-use crate::kernels::stats::percentile;
+use crate::kernels::stats::{median, percentile};
 use crate::stage::sweep::equivalent_diameter_mm;
 use crate::volume::Volume;
 use glam::DVec3;
@@ -135,6 +135,14 @@ struct Pixel {
     basis: [f64; BACKGROUND_TERMS],
 }
 
+/// Where a ball of `radius` (scene units) around `centre` projects in `camera`'s image: its
+/// centre's pixel coordinates and its radius in pixels; `None` behind the camera.
+fn projected_disc(camera: &Camera, centre: DVec3, radius: f64) -> Option<(f64, f64, f64)> {
+    let (u0, v0) = camera.project(centre)?;
+    let (u1, _) = camera.project(centre + radius * camera.pose().x_axis.truncate())?;
+    Some((u0, v0, (u1 - u0).abs()))
+}
+
 /// The ellipsoid whose shadows, over `background(eye, dir)` (the line integral of what is not
 /// the nodule) plus a quadratic, best explain the three views in windows of `window_radii` ×
 /// `radius` (scene units) around `centre` (scene), with its contrast, or `None` when no view has
@@ -150,10 +158,8 @@ pub fn fit_ellipsoid(
         .views
         .iter()
         .filter_map(|(camera, depths)| {
-            let (u0, v0) = camera.project(centre)?;
-            let right = camera.pose().x_axis.truncate();
-            let (u1, _) = camera.project(centre + radius * right)?;
-            let radius_px = (u1 - u0).abs() * window_radii + WINDOW_MARGIN_PX;
+            let (u0, v0, ball_px) = projected_disc(camera, centre, radius)?;
+            let radius_px = ball_px * window_radii + WINDOW_MARGIN_PX;
             let eye = camera.eye();
             let rows =
                 (v0 - radius_px).floor().max(0.0) as usize..((v0 + radius_px).ceil() as usize).min(camera.height);
@@ -207,22 +213,12 @@ pub fn fit_ellipsoid(
     // A nodule is denser than what surrounds it; half a solid nodule's contrast to start.
     (x0[6], lower[6]) = (0.5, 0.0);
     for (w, (_, pixels)) in windows.iter().enumerate() {
-        x0[SHAPE_PARAMS + BACKGROUND_TERMS * w] = median(pixels.iter().map(|p| p.depth).collect());
+        x0[SHAPE_PARAMS + BACKGROUND_TERMS * w] = median(&pixels.iter().map(|p| p.depth).collect::<Vec<_>>());
     }
     let residual_count = windows.iter().map(|(_, p)| p.len()).sum();
     let problem = Problem { residuals: &residuals, residual_count, lower, upper, loss_scale: LOSS_SCALE };
     let x = fit_soft_l1(&problem, &x0).x;
     Some((shape(&x), x[6]))
-}
-
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    let n = values.len();
-    if n % 2 == 1 {
-        values[n / 2]
-    } else {
-        0.5 * (values[n / 2 - 1] + values[n / 2])
-    }
 }
 
 /// `half_max` (a rule's half-maximum selection) sized by its shadows: the fitted ellipsoid's
@@ -293,7 +289,7 @@ fn without_nodule(density: &Volume<f32>, region: &[bool], lungs: Option<&[bool]>
     if shell.is_empty() {
         shell = (0..region.len()).filter(|&i| in_shell(i)).map(|i| f64::from(density.data[i])).collect();
     }
-    let lung = if shell.is_empty() { 0.0 } else { median(shell) as f32 };
+    let lung = if shell.is_empty() { 0.0 } else { median(&shell) as f32 };
     let data = density.data.iter().zip(&distance).map(|(&v, &d)| if d <= CLEARED_MM { lung } else { v }).collect();
     Volume { geometry: g.clone(), data }
 }
@@ -311,13 +307,12 @@ pub fn shadows_png(views: &Views, fit: &ShadowFit) -> Vec<u8> {
         semi_axes: DVec3::from(fit.semi_axes_mm) / frame.mm_per_unit,
     };
     let reach = ellipsoid.semi_axes.max_element() * WINDOW_RADII;
-    let panels: Vec<(usize, Vec<u8>)> = views
+    let panels: Vec<Panel> = views
         .views
         .iter()
         .filter_map(|(camera, depths)| {
-            let (u0, v0) = camera.project(ellipsoid.centre)?;
-            let (u1, _) = camera.project(ellipsoid.centre + reach * camera.pose().x_axis.truncate())?;
-            let half = ((u1 - u0).abs() + WINDOW_MARGIN_PX).ceil() as i64;
+            let (u0, v0, reach_px) = projected_disc(camera, ellipsoid.centre, reach)?;
+            let half = (reach_px + WINDOW_MARGIN_PX).ceil() as i64;
             let side = 2 * half as usize + 1;
             let pixel = |c: usize, r: usize| {
                 let (i, j) = (u0.floor() as i64 - half + c as i64, v0.floor() as i64 - half + r as i64);
@@ -334,15 +329,7 @@ pub fn shadows_png(views: &Views, fit: &ShadowFit) -> Vec<u8> {
             let crop: Vec<f64> = (0..side * side).filter_map(|k| depth(k % side, k / side)).collect();
             let (lo, hi) = (percentile(&crop, 1.0).ok()?, percentile(&crop, 99.0).ok()?);
             let shadow: Vec<bool> = (0..side * side).map(|k| inside(k % side, k / side)).collect();
-            let edge = |c: usize, r: usize| {
-                shadow[c + side * r]
-                    && (c == 0 || r == 0 || c + 1 == side || r + 1 == side || {
-                        !shadow[c - 1 + side * r]
-                            || !shadow[c + 1 + side * r]
-                            || !shadow[c + side * (r - 1)]
-                            || !shadow[c + side * (r + 1)]
-                    })
-            };
+            let edge = |c, r| on_edge(|c, r| shadow[c + side * r], side, side, c, r);
             let zoomed = side * PREVIEW_ZOOM;
             let mut rgb = vec![0u8; 3 * zoomed * zoomed];
             for (k, px) in rgb.chunks_exact_mut(3).enumerate() {
@@ -353,22 +340,10 @@ pub fn shadows_png(views: &Views, fit: &ShadowFit) -> Vec<u8> {
                     None => [0, 0, 64],
                 });
             }
-            Some((zoomed, rgb))
+            Some(Panel { width: zoomed, height: zoomed, rgb })
         })
         .collect();
-    let gap = 6;
-    let height = panels.iter().map(|p| p.0).max().unwrap_or(1);
-    let width = (panels.iter().map(|p| p.0).sum::<usize>() + gap * panels.len().saturating_sub(1)).max(1);
-    let mut rgb = vec![0u8; 3 * width * height];
-    let mut left = 0;
-    for (side, panel) in &panels {
-        for r in 0..*side {
-            let at = 3 * (left + width * r);
-            rgb[at..at + 3 * side].copy_from_slice(&panel[3 * side * r..3 * side * (r + 1)]);
-        }
-        left += side + gap;
-    }
-    png::encode_rgb8(width, height, &rgb)
+    tile(&[panels])
 }
 
 #[cfg(test)]
