@@ -178,11 +178,9 @@ fn blob_sites_keep_away_from_the_region_edges_and_the_lattice_faces() {
     assert!(sites[at(5, 8, 6)] && !sites[at(2, 8, 6)] && !sites[at(5, 8, 0)] && !sites[at(16, 8, 6)]);
 }
 
-#[test]
-fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
-    use aret_pipe::kernels::lung_mask::{ranked_blobs, BlobFilter};
-    use aret_pipe::stage::select::{centres, Search};
-    // Two balls of radius 9 mm on 2 mm cells, the brighter at `strong`, in uniform parenchyma.
+/// Two balls of radius 9 mm on 2 mm cells, 40 mm apart in uniform parenchyma (0.1): the
+/// brighter (0.8) at the first centre, the fainter (`weak_level`) at the second.
+fn two_balls(weak_level: f32) -> (Volume<f32>, [usize; 3], [usize; 3]) {
     let g = Geometry { dims: [48, 40, 36], ..geometry([1; 3], 2.0, 0.0) };
     let (strong, weak) = ([14usize, 20, 18], [34usize, 20, 18]);
     let mut data = vec![0.1f32; g.len()];
@@ -192,10 +190,18 @@ fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
         if dist_mm(strong) <= 9.0 {
             *v = 0.8;
         } else if dist_mm(weak) <= 9.0 {
-            *v = 0.5;
+            *v = weak_level;
         }
     }
-    let density = Volume { geometry: g.clone(), data };
+    (Volume { geometry: g, data }, strong, weak)
+}
+
+#[test]
+fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
+    use aret_pipe::kernels::lung_mask::{ranked_blobs, BlobFilter};
+    use aret_pipe::stage::select::{centres, Search};
+    let (density, strong, weak) = two_balls(0.5);
+    let g = density.geometry.clone();
     let (dims, spacing) = (g.dims, g.spacing_mm);
     let sites = vec![true; g.len()];
     let ranked = ranked_blobs(&density.data, dims, spacing, BlobFilter::Hessian, &[5.0], &sites);
@@ -231,4 +237,33 @@ fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
     };
     assert!((guided_scale(vec![1.0, 1.5]) - matched_mm).abs() < 1e-9);
     assert!((guided_scale(vec![1.5]) - 1.5 * matched_mm).abs() < 1e-9);
+}
+
+#[test]
+fn a_rival_blob_that_answers_nearly_as_strongly_makes_the_centre_ambiguous() {
+    use aret_pipe::stage::select::{centres, Centre, Search};
+    let lungs = vec![true; 48 * 40 * 36];
+    let off = |v: [f64; 3], c: [usize; 3]| (0..3).map(|a| (v[a] / 2.0 - c[a] as f64).abs()).fold(0.0, f64::max);
+    let search = |weak_level: f32, rival_ratio: f64, accept: &(dyn Fn(Search, &Centre) -> bool + Sync)| {
+        let (density, strong, weak) = two_balls(weak_level);
+        let params = SelectParams { inside_mm: 0.0, rival_ratio, ..SelectParams::default() };
+        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, accept);
+        let taken = found.guided.expect("a guided centre");
+        assert!(off(taken.position_mm, strong) <= 1.0, "{taken:?}");
+        (taken, weak)
+    };
+    // The fainter ball is the runner-up, 40 mm away: the strong ball's own off-centre peaks,
+    // within √3 × its scale, are not rivals. Its response ratio is the balls' contrast ratio.
+    for (weak_level, expected_ratio) in [(0.5f32, 0.4 / 0.7), (0.75, 0.65 / 0.7)] {
+        let (taken, weak) = search(weak_level, 0.7, &|_, _| true);
+        let rival = taken.runner_up.clone().expect("a runner-up");
+        assert!(off(rival.position_mm, weak) <= 1.0 && (rival.distance_mm - 40.0).abs() <= 2.0, "{rival:?}");
+        assert!((rival.ratio - expected_ratio).abs() < 0.05, "{rival:?} against {expected_ratio}");
+        assert_eq!(taken.ambiguous, expected_ratio >= 0.7, "{taken:?}");
+    }
+    // The rival must be one the search would accept; and `rival_ratio` sets the line.
+    let (taken, _) = search(0.75, 0.7, &|_, c| c.position_mm[0] < 50.0);
+    assert!(taken.runner_up.as_ref().is_none_or(|r| r.position_mm[0] < 50.0) && !taken.ambiguous, "{taken:?}");
+    let (taken, _) = search(0.5, 0.5, &|_, _| true);
+    assert!(taken.ambiguous, "{taken:?}");
 }

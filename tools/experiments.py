@@ -99,7 +99,10 @@ ROWS = [
 ]
 MEASURED = "experiment.json"
 # Columns of the table, the row's name included.
-COLUMNS = 13
+COLUMNS = 14
+# The column added last (0-based, after the row name's empty lead cell): rows kept from the doc
+# that predate it get – there.
+UNAMBIGUOUS_COLUMN = 7
 # The phantom's nodule where a config does not name one (`[dataset.phantom] nodule_extent`).
 DEFAULT_EXTENT = "union"
 START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
@@ -151,6 +154,11 @@ def pct(x):
     return "–" if x is None else f"{100 * x:.0f}%"
 
 
+def of(unambiguous):
+    """The hits among the selections not flagged ambiguous, as "hits of n"."""
+    return "–" if unambiguous is None else f"{unambiguous['hits']} of {unambiguous['n']}"
+
+
 def count(rate, n):
     """A rate of n patients as "k/n"."""
     return "–" if rate is None else f"{round(rate * n)}/{n}"
@@ -182,6 +190,8 @@ def row_numbers(out):
             # Absent from summaries written before metrics v4.
             centre_guided=loc.get("centre_rate_guided"),
             centre_blind=loc.get("centre_rate_blind"),
+            # Absent from summaries written before metrics v8 (select v14).
+            unambiguous=loc.get("unambiguous_ours"),
             ape_all=value(g["ours"]["all"]["median_ape_pct"]),
             ape_hits=value(g["ours"]["over_hits"]["median_ape_pct"]),
             blind_ape_hits=value(g["blind"]["over_hits"]["median_ape_pct"]),
@@ -208,6 +218,9 @@ def rows_in(doc):
     for line in doc.split(START, 1)[-1].split(END, 1)[0].splitlines():
         cells = [c.strip() for c in line.split("|")]
         if len(cells) > 2 and any(cells[1] == name for name, *_ in ROWS):
+            if len(cells) == COLUMNS + 1:  # written before the unambiguous column
+                cells.insert(UNAMBIGUOUS_COLUMN, "–")
+                line = " | ".join(cells).strip()
             kept[cells[1]] = line
     return kept
 
@@ -215,7 +228,7 @@ def rows_in(doc):
 def table(results, kept):
     lines = [
         "| row | config | phantom nodule | level (primary / blind) | ≥10 mm hit: primary / blind / oracle"
-        " | ≥10 mm centre on the nodule: guided / blind | ≥10 mm median Dice"
+        " | ≥10 mm centre on the nodule: guided / blind | ≥10 mm primary hits of those not ambiguous | ≥10 mm median Dice"
         " | median APE: all / ≥10 mm / ≥10 mm over hits | blind APE over hits (≥10 mm) | all 19: hit / blind"
         " | hits beating the sphere | train s (median) | measured at |",
         "|" + " --- |" * COLUMNS,
@@ -229,7 +242,7 @@ def table(results, kept):
         g, a = r["ge10"], r["all"]
         lines.append(
             f"| {name} | `{config}` | {extent} | {level} / {blind_level} | {pct(g['hit'])} / {pct(g['blind'])} / {pct(g['oracle'])}"
-            f" | {count(g['centre_guided'], g['n'])} / {count(g['centre_blind'], g['n'])} | {num(g['dice'], '{:.2f}')} | {num(a['ape_all'])}% / {num(g['ape_all'])}% / {num(g['ape_hits'])}%"
+            f" | {count(g['centre_guided'], g['n'])} / {count(g['centre_blind'], g['n'])} | {of(g['unambiguous'])} | {num(g['dice'], '{:.2f}')} | {num(a['ape_all'])}% / {num(g['ape_all'])}% / {num(g['ape_hits'])}%"
             f" | {num(g['blind_ape_hits'])}% | {pct(a['hit'])} / {pct(a['blind'])} | {r['hits_beating_sphere']}"
             f" | {num(r['train_s'])} | {r['at'] or '–'} |"
         )

@@ -19,7 +19,7 @@ pub mod summary;
 
 pub use rows::{PatientRow, SizeClass};
 
-pub const VERSION: u32 = 7;
+pub const VERSION: u32 = 8;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]

@@ -6,7 +6,7 @@
 //! green) as the thumbnail.
 
 use super::rows::{PatientRow, SizeClass};
-use super::summary::{Agreement, Group, Summary, PAPER};
+use super::summary::{Agreement, Group, Summary, Unambiguous, PAPER};
 use crate::formats::svg::{scatter_plot, PointSet, RefLine};
 use base64::Engine as _;
 use std::fmt::Write as _;
@@ -126,7 +126,7 @@ pub fn html(
         summary.unscored.len(),
         list(&summary.unscored)
     );
-    h.push_str("<h2>Cohort</h2>\n<table><tr><th class=l>group</th><th>n</th><th>hit rate (ours)</th><th>blind</th><th>oracle</th><th>centre on the nodule (guided / blind)</th><th>median Dice</th><th>median APE, all (95% CI)</th><th>median APE over hits</th><th>mean APE, all</th><th>Pearson r</th><th>Spearman ρ</th><th>Bland–Altman bias (mm³)</th><th>sphere median APE</th><th>Wilcoxon vs sphere (W, p)</th><th>one reader's median APE (n)</th></tr>\n");
+    h.push_str("<h2>Cohort</h2>\n<table><tr><th class=l>group</th><th>n</th><th>hit rate (ours)</th><th>blind</th><th>oracle</th><th>centre on the nodule (guided / blind)</th><th>hits of those not ambiguous (ours / blind)</th><th>median Dice</th><th>median APE, all (95% CI)</th><th>median APE over hits</th><th>mean APE, all</th><th>Pearson r</th><th>Spearman ρ</th><th>Bland–Altman bias (mm³)</th><th>sphere median APE</th><th>Wilcoxon vs sphere (W, p)</th><th>one reader's median APE (n)</th></tr>\n");
     for (name, g) in &summary.groups {
         cohort_row(&mut h, name, g);
     }
@@ -183,13 +183,15 @@ fn cohort_row(h: &mut String, name: &str, g: &Group) {
     };
     let _ = writeln!(
         h,
-        "<tr><td class=l>{name}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{} / {}</td><td>{}</td><td>{}</td><td>{} ({} hits)</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{} ({})</td></tr>",
+        "<tr><td class=l>{name}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{} / {}</td><td>{} / {}</td><td>{}</td><td>{}</td><td>{} ({} hits)</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{} ({})</td></tr>",
         g.n,
         pct(g.localization.hit_rate_ours),
         pct(g.localization.hit_rate_blind),
         pct(g.localization.hit_rate_oracle),
         pct(g.localization.centre_rate_guided),
         pct(g.localization.centre_rate_blind),
+        unambiguous(g.localization.unambiguous_ours),
+        unambiguous(g.localization.unambiguous_blind),
         num(g.localization.median_dice_ours, 2),
         estimate(&all.median_ape_pct),
         estimate(&g.ours.over_hits.median_ape_pct),
@@ -290,6 +292,11 @@ fn estimate(e: &super::summary::Stat<super::summary::Estimate>) -> String {
 
 fn pct(v: Option<f64>) -> String {
     v.map_or("–".into(), |x| format!("{:.0}%", 100.0 * x))
+}
+
+/// "hits of n", or – without blob centres.
+fn unambiguous(u: Option<Unambiguous>) -> String {
+    u.map_or("–".into(), |u| format!("{} of {}", u.hits, u.n))
 }
 
 fn num(v: Option<f64>, digits: usize) -> String {

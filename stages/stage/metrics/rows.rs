@@ -1,7 +1,7 @@
 //! One row per patient of `results.csv` (SPEC §4, columns in order), from its `result.json`
 //! and training log.
 
-use crate::stage::select::{SelectResult, Selection};
+use crate::stage::select::{Rule, SelectResult, Selection};
 use serde::Serialize;
 use std::fmt::Write as _;
 
@@ -42,6 +42,9 @@ pub struct Measured {
     pub hit: bool,
     pub dice: f64,
     pub centroid_dist_mm: f64,
+    /// Whether the rule's centre had a rival answering nearly as strongly (select's
+    /// `ambiguous`); `None` where the rule sized no blob centre.
+    pub ambiguous: Option<bool>,
 }
 
 /// One patient with a ground-truth target.
@@ -93,12 +96,14 @@ impl PatientRow {
         let (gt, d) = (result.gt_volume_mm3?, result.annotated_diameter_mm?);
         let measured = |s: &Selection| {
             let l = s.localization.expect("a patient with a target has localization");
+            let centre = if s.rule == Rule::Guided { &result.centres.guided } else { &result.centres.blind };
             Measured {
                 volume_mm3: s.candidate.volume_mm3,
                 ape_pct: ape_pct(s.candidate.volume_mm3, gt),
                 hit: l.hit,
                 dice: l.dice,
                 centroid_dist_mm: l.centroid_distance_mm,
+                ambiguous: centre.as_ref().filter(|c| c.blob.is_some()).map(|c| c.ambiguous),
             }
         };
         let sphere = std::f64::consts::PI / 6.0 * d.powi(3);

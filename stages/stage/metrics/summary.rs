@@ -51,6 +51,18 @@ pub struct HitRates {
     /// patient's rule had a centre: `localize = "none"`), and the same for the blind rule.
     pub centre_rate_guided: Option<f64>,
     pub centre_rate_blind: Option<f64>,
+    /// The primary and the blind rule's selections whose blob centre had no close rival
+    /// (select's `ambiguous`, `[select] rival_ratio`), and how many of those hit: how far a
+    /// user may trust a volume the tool does not flag. `None` without blob centres.
+    pub unambiguous_ours: Option<Unambiguous>,
+    pub unambiguous_blind: Option<Unambiguous>,
+}
+
+/// Selections not flagged ambiguous, and their hits.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Unambiguous {
+    pub n: usize,
+    pub hits: usize,
 }
 
 /// A selection's volume errors over all patients and over its hits only.
@@ -198,6 +210,14 @@ fn group(rows: &[&PatientRow], params: &Params) -> Group {
             rate(found.iter().filter(|&&on| on).count())
         }
     };
+    let unambiguous = |pick: fn(&PatientRow) -> Option<&Measured>| {
+        let flagged: Vec<(bool, bool)> =
+            rows.iter().filter_map(|r| pick(r).and_then(|m| m.ambiguous.map(|a| (a, m.hit)))).collect();
+        (!flagged.is_empty()).then(|| Unambiguous {
+            n: flagged.iter().filter(|(a, _)| !a).count(),
+            hits: flagged.iter().filter(|&&(a, hit)| !a && hit).count(),
+        })
+    };
     Group {
         n,
         localization: HitRates {
@@ -208,6 +228,8 @@ fn group(rows: &[&PatientRow], params: &Params) -> Group {
             median_dice_blind: median_dice(blind),
             centre_rate_guided: centre_rate(|c| c.guided),
             centre_rate_blind: centre_rate(|c| c.blind),
+            unambiguous_ours: unambiguous(ours),
+            unambiguous_blind: unambiguous(blind),
         },
         ours: volumes(rows, ours, params),
         blind: volumes(rows, blind, params),
@@ -288,13 +310,17 @@ pub fn headline(summary_json: &[u8]) -> anyhow::Result<String> {
         let g = &s["groups"][name];
         let (loc, all) = (&g["localization"], &g["ours"]["all"]);
         out += &format!(
-            "  {name:<6} n={:<3} hit {} (blind {}, oracle {}; centre on the nodule {} / {}) | median APE {} (over {} hits: {}) | Pearson r {} | bias {} mm³\n",
+            "  {name:<6} n={:<3} hit {} (blind {}, oracle {}; centre on the nodule {} / {}; {}) | median APE {} (over {} hits: {}) | Pearson r {} | bias {} mm³\n",
             g["n"],
             pct(&loc["hit_rate_ours"]),
             pct(&loc["hit_rate_blind"]),
             pct(&loc["hit_rate_oracle"]),
             pct(&loc["centre_rate_guided"]),
             pct(&loc["centre_rate_blind"]),
+            match (loc["unambiguous_ours"]["hits"].as_u64(), loc["unambiguous_ours"]["n"].as_u64()) {
+                (Some(hits), Some(n)) => format!("{hits} hits of {n} not ambiguous"),
+                _ => "no blob centres".into(),
+            },
             num(&all["median_ape_pct"]["value"], 1) + "%",
             g["ours"]["hits"],
             num(&g["ours"]["over_hits"]["median_ape_pct"]["value"], 1),
@@ -316,6 +342,8 @@ mod tests {
             hit,
             dice: if hit { 0.6 } else { 0.0 },
             centroid_dist_mm: 1.0,
+            // B's miss and C's hit had a close rival.
+            ambiguous: Some(patient != "A"),
         };
         let sphere = std::f64::consts::PI / 6.0 * d.powi(3);
         PatientRow {
@@ -356,6 +384,9 @@ mod tests {
         // Centres: the guided rule's on the nodule for the two hits; the blind rule found none.
         assert_eq!(all.localization.centre_rate_guided, Some(2.0 / 3.0));
         assert_eq!(all.localization.centre_rate_blind, None);
+        // Only A's centre had no close rival, and it hit; the blind rule sized no centre.
+        assert_eq!(all.localization.unambiguous_ours, Some(Unambiguous { n: 1, hits: 1 }));
+        assert_eq!(all.localization.unambiguous_blind, None);
         assert_eq!(all.ours.hits, 2);
         // Over hits only (A, C): APE 10% and 20%.
         assert_eq!(all.ours.over_hits.median_ape_pct.value().unwrap().value, 15.0);

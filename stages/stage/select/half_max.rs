@@ -260,7 +260,15 @@ mod tests {
     }
 
     fn centre(voxel: [usize; 3]) -> Centre {
-        Centre { voxel, position_mm: voxel.map(|v| v as f64), blob: None, rank: 0, on_nodule: None }
+        Centre {
+            voxel,
+            position_mm: voxel.map(|v| v as f64),
+            blob: None,
+            rank: 0,
+            on_nodule: None,
+            runner_up: None,
+            ambiguous: false,
+        }
     }
 
     #[test]

@@ -15,10 +15,16 @@
 //! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
 //! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
 //! left, among the [`MAX_WEIGHED`] strongest.
+//!
+//! A search also reports its runner-up: the strongest other blob it would have accepted, away
+//! from the one it took. A rival that answers nearly as strongly says the choice is a toss-up
+//! between two objects: at `rival_ratio` of the taken blob's response or more, the centre is
+//! `ambiguous`, and the verdict says so.
 
 use super::Params;
 use crate::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobPeak};
 use crate::volume::Volume;
+use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -61,12 +67,48 @@ pub struct Centre {
     #[serde(default)]
     pub rank: usize,
     pub on_nodule: Option<bool>,
+    /// The strongest other blob the search would have accepted, for `blob` (none: no rival
+    /// among the [`MAX_WEIGHED`] strongest).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub runner_up: Option<RunnerUp>,
+    /// The runner-up answers at `rival_ratio` of this blob's response or more: two objects
+    /// are nearly as likely, and the search's pick between them is a toss-up.
+    #[serde(default)]
+    pub ambiguous: bool,
+}
+
+/// A search's second choice: the strongest blob after the one it took that it would also have
+/// accepted, outside the ball the taken blob's scale is matched to (a ball of radius √3·s answers
+/// most at scale s), so that it is another object and not the same blob's second peak.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunnerUp {
+    pub position_mm: [f64; 3],
+    pub response: f32,
+    /// From the taken centre.
+    pub distance_mm: f64,
+    /// Its response over the taken blob's: near 1, two objects answer alike.
+    pub ratio: f64,
+    /// Its place among every blob the search ranked (0: the strongest).
+    pub rank: usize,
 }
 
 impl Centre {
     pub fn linear(&self, dims: [usize; 3]) -> usize {
         self.voxel[0] + dims[0] * (self.voxel[1] + dims[1] * self.voxel[2])
     }
+}
+
+/// `rival` as `taken`'s runner-up, if it lies outside the ball `taken`'s scale is matched to.
+fn runner_up(taken: &Centre, rival: &Centre) -> Option<RunnerUp> {
+    let (mine, theirs) = (taken.blob?, rival.blob?);
+    let distance_mm = DVec3::from(taken.position_mm).distance(DVec3::from(rival.position_mm));
+    (distance_mm > 3f64.sqrt() * mine.scale_mm).then(|| RunnerUp {
+        position_mm: rival.position_mm,
+        response: theirs.response,
+        distance_mm,
+        ratio: f64::from(theirs.response) / f64::from(mine.response),
+        rank: rival.rank,
+    })
 }
 
 /// Finds the centres `params.localize` asks for in `density`, whose lung field is `lungs` when
@@ -92,6 +134,8 @@ pub fn centres(
         blob,
         rank,
         on_nodule: coverage.map(|c| c[voxel[0] + dims[0] * (voxel[1] + dims[1] * voxel[2])] > 0.0),
+        runner_up: None,
+        ambiguous: false,
     };
     match localize {
         Localize::None => Centres::default(),
@@ -118,15 +162,20 @@ pub fn centres(
             };
             // Both rules search the same sites.
             let sites = blob_sites(lungs, dims, spacing, inside_mm);
-            // How many blobs each search found, and the first it accepted.
+            // How many blobs each search found, and the first it accepted, with its runner-up.
             let search = |scales: &[f64], which: Search| {
                 let ranked = ranked_blobs(&density.data, dims, spacing, blob_filter, scales, &sites);
-                let taken = ranked
+                let mut weighed = ranked
                     .iter()
                     .take(MAX_WEIGHED)
                     .enumerate()
                     .map(|(rank, p)| centre(p.voxel, Some(*p), rank))
-                    .find(|c| accept(which, c));
+                    .filter(|c| accept(which, c));
+                let taken = weighed.next().map(|mut taken| {
+                    taken.runner_up = weighed.find_map(|rival| runner_up(&taken, &rival));
+                    taken.ambiguous = taken.runner_up.as_ref().is_some_and(|r| r.ratio >= params.rival_ratio);
+                    taken
+                });
                 (ranked.len(), taken)
             };
             let matched: Option<Vec<f64>> = annotated_diameter_mm

@@ -42,11 +42,11 @@ mod preview;
 mod rules;
 mod shadows;
 
-pub use localize::{centres, Centre, Centres, Localize, Search};
+pub use localize::{centres, Centre, Centres, Localize, RunnerUp, Search};
 pub use rules::Analysis;
 pub use shadows::ShadowFit;
 
-pub const VERSION: u32 = 13;
+pub const VERSION: u32 = 14;
 
 /// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
 /// full width at half maximum. `half_max_fraction` then only sets where the nodule is cut (its
@@ -98,6 +98,10 @@ pub struct Params {
     /// `localize = "blob"`: the guided search's scales, as multiples of the scale matched to the
     /// annotated diameter (d / (2√3)); it takes the strongest response over them.
     pub guided_scale_ratios: Vec<f64>,
+    /// `localize = "blob"`: a centre whose runner-up (the strongest other blob the search would
+    /// have accepted) answers at this fraction of its response or more is ambiguous, and the
+    /// verdict says so (above 1: never).
+    pub rival_ratio: f64,
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
@@ -137,6 +141,7 @@ impl Default for Params {
             guided_diameter_ratio: [0.5, 2.0],
             guided_reach_diameters: 1.0,
             guided_scale_ratios: vec![1.0],
+            rival_ratio: 0.7,
         }
     }
 }
@@ -168,6 +173,9 @@ impl Params {
         if self.guided_scale_ratios.is_empty() || self.guided_scale_ratios.iter().any(|r| !(r.is_finite() && *r > 0.0))
         {
             bail!("[select] guided_scale_ratios must be a non-empty list of positive numbers");
+        }
+        if !(self.rival_ratio.is_finite() && self.rival_ratio > 0.0) {
+            bail!("[select] rival_ratio must be a number > 0 (got {})", self.rival_ratio);
         }
         if self.sizing.cuts_half_max() && self.localize == Localize::None {
             bail!(
@@ -390,7 +398,14 @@ impl Stage for Select {
         let mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
         let result = SelectResult {
             patient: ctx.patient().to_string(),
-            verdict: verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some(), p),
+            verdict: {
+                let line = verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some(), p);
+                let centre = if self.params.primary == Rule::Guided { &centres.guided } else { &centres.blind };
+                match centre.as_ref().and_then(rival_note) {
+                    Some(note) if primary_sel.is_some() => format!("{line}; {note}"),
+                    _ => line,
+                }
+            },
             primary: self.params.primary,
             blind_rule: self.params.blind,
             gt_volume_mm3: target.map(|t| t.volume_mm3),
@@ -461,6 +476,16 @@ fn read_views(ctx: &Context, cameras: &CameraSet) -> anyhow::Result<shadows::Vie
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
     shadows::Views::new(&cameras.cameras, &images, cameras.frame, cameras.aabb)
+}
+
+/// What the verdict adds when `centre` is ambiguous: where its rival lies and how strongly it
+/// answers.
+fn rival_note(centre: &Centre) -> Option<String> {
+    let rival = centre.runner_up.as_ref().filter(|_| centre.ambiguous)?;
+    Some(format!(
+        "ambiguous: another blob {:.0} mm away answers at {:.2} of this one's response ([select] rival_ratio)",
+        rival.distance_mm, rival.ratio
+    ))
 }
 
 /// One line saying whether `primary` can be trusted: "hit", or why not ("MISS: …").
