@@ -50,6 +50,17 @@ impl Geometry {
         })
     }
 
+    /// One flag per voxel: whether its centre lies within `radius_mm` of patient point `centre_mm`.
+    pub fn ball_mask(&self, centre_mm: [f64; 3], radius_mm: f64) -> Vec<bool> {
+        let [nx, ny, _] = self.dims;
+        (0..self.len())
+            .map(|i| {
+                let p = self.voxel_to_patient_mm([(i % nx) as f64, ((i / nx) % ny) as f64, (i / (nx * ny)) as f64]);
+                (0..3).map(|a| (p[a] - centre_mm[a]).powi(2)).sum::<f64>() <= radius_mm * radius_mm
+            })
+            .collect()
+    }
+
     /// Linear index of voxel `(i, j, k)` in the `[slice][row][col]` layout.
     pub fn index(&self, i: usize, j: usize, k: usize) -> usize {
         i + self.dims[0] * (j + self.dims[1] * k)
@@ -67,5 +78,28 @@ impl<T: Copy> Volume<T> {
     /// A volume whose values are `f(value)` of this one, on the same geometry.
     pub fn map<U>(&self, f: impl Fn(T) -> U) -> Volume<U> {
         Volume { geometry: self.geometry.clone(), data: self.data.iter().map(|&v| f(v)).collect() }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_ball_mask_holds_the_voxel_centres_within_its_radius() {
+        let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let g = Geometry {
+            dims: [9, 7, 5],
+            spacing_mm: [1.0, 2.0, 3.0],
+            origin_mm: [-4.0, 10.0, 0.0],
+            direction: identity,
+        };
+        let centre = g.voxel_to_patient_mm([4.0, 3.0, 2.0]);
+        let count = |r: f64| g.ball_mask(centre, r).iter().filter(|&&b| b).count();
+        // x² + (2y)² + (3z)² ≤ r² over integer offsets: r = 2 holds x ∈ −2..2 and (0, ±1, 0);
+        // r = 3 holds x ∈ −3..3, x ∈ −2..2 at y = ±1, and (0, 0, ±1).
+        assert_eq!((count(0.5), count(2.0), count(3.0)), (1, 7, 19));
+        // Clipped by the lattice: a ball around a corner keeps only the octant inside.
+        assert_eq!(g.ball_mask(g.voxel_to_patient_mm([0.0; 3]), 2.0).iter().filter(|&&b| b).count(), 4);
     }
 }

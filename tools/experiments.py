@@ -190,7 +190,7 @@ def row_numbers(out):
             # Absent from summaries written before metrics v4.
             centre_guided=loc.get("centre_rate_guided"),
             centre_blind=loc.get("centre_rate_blind"),
-            # Absent from summaries written before metrics v8 (select v14).
+            # Absent from summaries written before metrics v8 (select v15).
             unambiguous=loc.get("unambiguous_ours"),
             ape_all=value(g["ours"]["all"]["median_ape_pct"]),
             ape_hits=value(g["ours"]["over_hits"]["median_ape_pct"]),

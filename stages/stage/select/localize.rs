@@ -84,6 +84,8 @@ pub struct Centre {
 pub struct RunnerUp {
     pub position_mm: [f64; 3],
     pub response: f32,
+    /// The scale (mm) it answered at: a ball of radius √3 × this is the object it stands for.
+    pub scale_mm: f64,
     /// From the taken centre.
     pub distance_mm: f64,
     /// Its response over the taken blob's: near 1, two objects answer alike.
@@ -105,6 +107,7 @@ fn runner_up(taken: &Centre, rival: &Centre) -> Option<RunnerUp> {
     (distance_mm > 3f64.sqrt() * mine.scale_mm).then(|| RunnerUp {
         position_mm: rival.position_mm,
         response: theirs.response,
+        scale_mm: theirs.scale_mm,
         distance_mm,
         ratio: f64::from(theirs.response) / f64::from(mine.response),
         rank: rival.rank,

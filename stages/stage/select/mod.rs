@@ -19,7 +19,7 @@
 //! resampled to the grid; the oracle says whether any candidate was a hit. Outputs:
 //! `result.json`, the primary selection's `nodule_mask.mhd/.raw` (uint8) and `nodule.obj`
 //! (watertight marching-cubes surface, patient mm), and `nodule.png` (density slices through
-//! the selection, with the selection and the ground truth outlined); with `sizing = "shadows"`
+//! the selection, the nodule and an ambiguous search's rival, each outlined); with `sizing = "shadows"`
 //! also `shadows.png` (the primary selection's fitted ellipsoid over its three shadows).
 
 use crate::engine::{Context, Output, Stage};
@@ -46,7 +46,7 @@ pub use localize::{centres, Centre, Centres, Localize, RunnerUp, Search};
 pub use rules::Analysis;
 pub use shadows::ShadowFit;
 
-pub const VERSION: u32 = 14;
+pub const VERSION: u32 = 15;
 
 /// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
 /// full width at half maximum. `half_max_fraction` then only sets where the nodule is cut (its
@@ -439,18 +439,28 @@ impl Stage for Select {
         ];
         let comment_refs: Vec<&str> = comments.iter().map(String::as_str).collect();
         let obj_text = obj::encode(&mesh.vertices, Some(&vertex_normals(&mesh)), &mesh.triangles, &comment_refs);
-        // The preview cuts through the selection, then through the nodule.
-        let cut_points: Vec<[usize; 3]> =
-            [primary_sel.as_ref().map(|s| s.candidate.centroid_mm), gt.as_ref().map(|gt| gt.centroid_mm)]
-                .into_iter()
-                .flatten()
-                .map(|c| density.geometry.nearest_voxel(c))
-                .collect();
+        // The preview cuts through the selection, then through the nodule, then through an
+        // ambiguous search's rival.
+        let primary_centre =
+            if self.params.primary == Rule::Guided { &result.centres.guided } else { &result.centres.blind };
+        let rival = primary_centre.as_ref().filter(|c| c.ambiguous).and_then(|c| c.runner_up.as_ref());
+        let cut_points: Vec<[usize; 3]> = [
+            primary_sel.as_ref().map(|s| s.candidate.centroid_mm),
+            gt.as_ref().map(|gt| gt.centroid_mm),
+            rival.map(|r| r.position_mm),
+        ]
+        .into_iter()
+        .flatten()
+        .map(|c| density.geometry.nearest_voxel(c))
+        .collect();
         let middle = density.geometry.dims.map(|d| d / 2);
         let centers = if cut_points.is_empty() { vec![middle] } else { cut_points };
         let truth_cells: Option<Vec<bool>> = gt.as_ref().map(|gt| gt.coverage.iter().map(|&c| c >= 0.5).collect());
         let selected: Vec<bool> = mask_volume.data.iter().map(|&b| b != 0).collect();
-        let preview = preview::nodule_png(&density, &selected, truth_cells.as_deref(), &centers);
+        let rival_ball = rival.map(|r| density.geometry.ball_mask(r.position_mm, 3f64.sqrt() * r.scale_mm));
+        let outlines =
+            preview::Outlines { selected: &selected, truth: truth_cells.as_deref(), rival: rival_ball.as_deref() };
+        let preview = preview::nodule_png(&density, &outlines, &centers);
         let mut outputs = vec![
             Output::new("result.json", serde_json::to_vec_pretty(&result)?),
             Output::new("nodule.png", preview),

@@ -2,6 +2,8 @@
 //! selection outlined in red and the ground truth (cells with coverage ≥ 0.5) in green — what a
 //! reader checks first: is the thing measured the nodule? One row cuts through the selection,
 //! a second through the ground truth's centroid, so a miss shows as two separate outlines.
+//! When the search's pick was ambiguous, a last row cuts through its rival, the ball its blob
+//! stands for outlined in yellow.
 //!
 //! Display as docs/conventions.md: axial seen from the feet (patient right on the left,
 //! anterior up), coronal from the front (superior up), sagittal from the patient's left
@@ -15,17 +17,26 @@ use crate::volume::Volume;
 const PIXEL_MM: f64 = 1.0;
 const RED: [u8; 3] = [230, 40, 40];
 const GREEN: [u8; 3] = [40, 210, 60];
+const YELLOW: [u8; 3] = [240, 210, 40];
+
+/// The sets a preview outlines: the selection (red), the ground truth (green) and the
+/// ambiguous search's rival blob (yellow), each one flag per lattice cell.
+pub struct Outlines<'a> {
+    pub selected: &'a [bool],
+    pub truth: Option<&'a [bool]>,
+    pub rival: Option<&'a [bool]>,
+}
 
 /// PNG bytes of one row of three panels per cut point in `centers` (e.g. through the
 /// selection, then through the ground truth), rows stacked top to bottom.
-pub fn nodule_png(density: &Volume<f32>, selected: &[bool], truth: Option<&[bool]>, centers: &[[usize; 3]]) -> Vec<u8> {
+pub fn nodule_png(density: &Volume<f32>, outlines: &Outlines, centers: &[[usize; 3]]) -> Vec<u8> {
     let values: Vec<f64> = density.data.iter().map(|&v| f64::from(v)).collect();
     let white = stats::percentile(&values, 99.5).unwrap_or(1.0).max(1e-6);
     // Each panel: (horizontal axis, vertical axis, flip vertical so that increasing is up).
     let layouts = [(0, 1, false), (0, 2, true), (1, 2, true)];
     let rows: Vec<Vec<Panel>> = centers
         .iter()
-        .map(|&center| layouts.iter().map(|&l| Panel::cut(density, selected, truth, center, l, white)).collect())
+        .map(|&center| layouts.iter().map(|&l| Panel::cut(density, outlines, center, l, white)).collect())
         .collect();
     tile(&rows)
 }
@@ -74,8 +85,7 @@ pub(super) fn on_edge(inside: impl Fn(usize, usize) -> bool, width: usize, heigh
 impl Panel {
     fn cut(
         density: &Volume<f32>,
-        selected: &[bool],
-        truth: Option<&[bool]>,
+        outlines: &Outlines,
         center: [usize; 3],
         (h, v, up): (usize, usize, bool),
         white: f64,
@@ -109,10 +119,13 @@ impl Panel {
                 }
             }
         };
-        if let Some(t) = truth {
+        if let Some(t) = outlines.truth {
             outline(t, GREEN);
         }
-        outline(selected, RED);
+        if let Some(rival) = outlines.rival {
+            outline(rival, YELLOW);
+        }
+        outline(outlines.selected, RED);
         Panel { width, height, rgb }
     }
 }
