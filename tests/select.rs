@@ -215,7 +215,7 @@ fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
     let params = SelectParams { inside_mm: 0.0, ..SelectParams::default() };
     let lungs = vec![true; g.len()];
     let find = |accept: &(dyn Fn(Search, &aret_pipe::stage::select::Centre) -> bool + Sync)| {
-        centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, accept)
+        centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|s, c| accept(s, c).into())
     };
     let all = find(&|_, _| true);
     let first = all.guided.expect("a guided centre");
@@ -230,7 +230,7 @@ fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
     let matched_mm = 18.0 / (2.0 * 3f64.sqrt());
     let guided_scale = |ratios: Vec<f64>| {
         let params = SelectParams { guided_scale_ratios: ratios, ..params.clone() };
-        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|_, _| true);
+        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|_, _| true.into());
         let centre = found.guided.expect("a guided centre");
         assert!(off(centre.voxel, strong) <= 1, "{centre:?}");
         centre.blob.expect("a blob").scale_mm
@@ -247,7 +247,7 @@ fn a_rival_blob_that_answers_nearly_as_strongly_makes_the_centre_ambiguous() {
     let search = |weak_level: f32, rival_ratio: f64, accept: &(dyn Fn(Search, &Centre) -> bool + Sync)| {
         let (density, strong, weak) = two_balls(weak_level);
         let params = SelectParams { inside_mm: 0.0, rival_ratio, ..SelectParams::default() };
-        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, accept);
+        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|s, c| accept(s, c).into());
         let taken = found.guided.expect("a guided centre");
         assert!(off(taken.position_mm, strong) <= 1.0, "{taken:?}");
         (taken, weak)
@@ -266,4 +266,32 @@ fn a_rival_blob_that_answers_nearly_as_strongly_makes_the_centre_ambiguous() {
     assert!(taken.runner_up.as_ref().is_none_or(|r| r.position_mm[0] < 50.0) && !taken.ambiguous, "{taken:?}");
     let (taken, _) = search(0.5, 0.5, &|_, _| true);
     assert!(taken.ambiguous, "{taken:?}");
+}
+
+#[test]
+fn the_roundness_tie_break_takes_the_roundest_of_the_blobs_that_answer_alike() {
+    use aret_pipe::stage::select::{centres, Centre, Search, TieBreak, Weighed};
+    let lungs = vec![true; 48 * 40 * 36];
+    let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
+    // The caller measures the strong ball's region as drawn out (0.3) and the weak one's as
+    // round (0.9); the search decides only from what it is told.
+    let taken = |weak_level: f32, tie_break: TieBreak| {
+        let (density, strong, weak) = two_balls(weak_level);
+        let params = SelectParams { inside_mm: 0.0, tie_break, ..SelectParams::default() };
+        let judge = |_: Search, c: &Centre| Weighed::Accepted {
+            roundness: Some(if near(c.position_mm, strong) { 0.3 } else { 0.9 }),
+        };
+        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &judge);
+        let taken = found.guided.expect("a guided centre");
+        (near(taken.position_mm, strong), near(taken.position_mm, weak), taken)
+    };
+    // At 0.65 / 0.7 of the strong ball's response the weak one contends, and is rounder.
+    let (on_strong, on_weak, centre) = taken(0.75, TieBreak::Roundness);
+    assert!(on_weak && !on_strong && centre.roundness == Some(0.9), "{centre:?}");
+    // Its runner-up is then the stronger ball, with a ratio above 1: still ambiguous.
+    let rival = centre.runner_up.clone().expect("the strong ball");
+    assert!(rival.ratio > 1.0 && rival.roundness == Some(0.3) && centre.ambiguous, "{centre:?}");
+    // The strongest response wins by default, and a blob below the line does not contend.
+    assert!(taken(0.75, TieBreak::Response).0);
+    assert!(taken(0.5, TieBreak::Roundness).0);
 }

@@ -66,7 +66,7 @@ fn main() -> anyhow::Result<()> {
             set.frame.roi_center_mm,
             annotated,
             Some(&gt.coverage),
-            &|_, _| true, // the built-in default sizes with the candidates: the strongest blob
+            &|_, _| true.into(), // the built-in default sizes with the candidates: the strongest blob
         );
         let through = |rule: Rule| {
             let centre = if rule == Rule::Guided { &centres.guided } else { &centres.blind };

@@ -69,9 +69,12 @@ ROWS = [
      "the same field fitted to views of 256 × 256 pixels instead of 128 × 128, each rule sizing its centre at"
      " half maximum (sizing = \"half_max\"), on the phantom whose nodules are their 50 % consensus: the default"
      " until late on 2026-11-26"),
-    ("default", "pipeline.toml", "B", "C*",
+    ("strongest-blob", "presets/strongest_blob.toml", "B", "C*",
      "the same, each rule's half-maximum region then sized by the ellipsoid that best explains its shadows in"
-     " the three views (sizing = \"shadows\"): the default"),
+     " the three views (sizing = \"shadows\"): the default from late on 2026-11-26 until 2026-11-27"),
+    ("default", "pipeline.toml", "B", "C*",
+     "the same, each search taking, among the blobs that answer alike (at 0.7 of the strongest or more), the one"
+     " whose half-maximum region is roundest (tie_break = \"roundness\"): the default"),
     ("default-A", "presets/default_origin.toml", "A", "A",
      "the default centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
     ("default-seed2", "presets/default_seed2.toml", "B", "C*",

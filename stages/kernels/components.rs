@@ -227,17 +227,17 @@ pub fn label(mask: &[bool], dims: [usize; 3], connectivity: Connectivity) -> Com
     Components { dims, labels, sizes }
 }
 
-/// The number of voxels in `seed`'s component of `inside` (the one [`label`] would give it),
+/// The voxels of `seed`'s component of `inside` (the one [`label`] would give it), ascending,
 /// grown outward from the seed: a few thousand voxels cost what they hold, not the volume.
 /// `None` when the component holds more than `max_voxels` (the fill stops there), or when
 /// `seed` itself is not inside.
-pub fn component_size_within(
+pub fn component_within(
     inside: impl Fn(usize) -> bool,
     dims: [usize; 3],
     connectivity: Connectivity,
     seed: usize,
     max_voxels: usize,
-) -> Option<usize> {
+) -> Option<Vec<usize>> {
     if !inside(seed) || max_voxels == 0 {
         return None;
     }
@@ -263,7 +263,10 @@ pub fn component_size_within(
             }
         }
     }
-    Some(seen.len())
+    let mut voxels: Vec<usize> = seen.into_iter().collect();
+    // The set's order is random; callers sum over the voxels, and sums must not depend on it.
+    voxels.sort_unstable();
+    Some(voxels)
 }
 
 /// The root of `i`'s set, halving the path on the way.
@@ -446,19 +449,22 @@ mod tests {
     }
 
     #[test]
-    fn component_size_within_equals_the_labels_size_and_stops_at_the_bound() {
+    fn component_within_equals_the_labels_component_and_stops_at_the_bound() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
         let dims = [14, 10, 12];
         for c in [Connectivity::Six, Connectivity::Eighteen, Connectivity::TwentySix] {
             let m: Vec<bool> = (0..14 * 10 * 12).map(|_| rng.gen_bool(0.3)).collect();
             let all = label(&m, dims, c);
             for seed in (0..m.len()).step_by(7) {
-                let grown = component_size_within(|i| m[i], dims, c, seed, usize::MAX);
-                let expected = (all.labels[seed] != 0).then(|| all.size(all.labels[seed]));
+                let grown = component_within(|i| m[i], dims, c, seed, usize::MAX);
+                let own = all.labels[seed];
+                let expected =
+                    (own != 0).then(|| (0..m.len()).filter(|&i| all.labels[i] == own).collect::<Vec<usize>>());
                 assert_eq!(grown, expected, "seed {seed}, connectivity {c}");
-                if let Some(size) = expected {
-                    assert_eq!(component_size_within(|i| m[i], dims, c, seed, size), Some(size));
-                    assert_eq!(component_size_within(|i| m[i], dims, c, seed, size - 1), None);
+                if let Some(voxels) = expected {
+                    let size = voxels.len();
+                    assert_eq!(component_within(|i| m[i], dims, c, seed, size), Some(voxels));
+                    assert_eq!(component_within(|i| m[i], dims, c, seed, size - 1), None);
                 }
             }
         }

@@ -18,6 +18,7 @@
 //! with rayon; each output voxel's sum has a fixed order, so the result does not depend on the
 //! number of threads.
 
+use super::eigen3::largest_eigenvalue;
 use super::wide::with_avx2;
 use rayon::prelude::*;
 
@@ -127,26 +128,6 @@ pub fn hessian_blob_response(values: &[f32], dims: [usize; 3], spacing_mm: [f64;
             (s2 * (-largest).max(0.0)) as f32
         })
         .collect()
-}
-
-/// The largest eigenvalue of the symmetric 3 × 3 matrix with diagonal `[a00, a11, a22]` and
-/// off-diagonal `[a01, a02, a12]`, in closed form (the trigonometric solution of the
-/// characteristic cubic; Smith, CACM 1961).
-fn largest_eigenvalue(diagonal: [f64; 3], off: [f64; 3]) -> f64 {
-    let [a00, a11, a22] = diagonal;
-    let [a01, a02, a12] = off;
-    let p1 = a01 * a01 + a02 * a02 + a12 * a12;
-    let q = (a00 + a11 + a22) / 3.0;
-    let p2 = (a00 - q).powi(2) + (a11 - q).powi(2) + (a22 - q).powi(2) + 2.0 * p1;
-    if p2 == 0.0 {
-        return q; // a multiple of the identity
-    }
-    let p = (p2 / 6.0).sqrt();
-    // B = (A − qI)/p; r = det(B)/2 ∈ [−1, 1] up to rounding.
-    let (b00, b11, b22, b01, b02, b12) = ((a00 - q) / p, (a11 - q) / p, (a22 - q) / p, a01 / p, a02 / p, a12 / p);
-    let det = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02);
-    let phi = (det / 2.0).clamp(-1.0, 1.0).acos() / 3.0;
-    q + 2.0 * p * phi.cos()
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
@@ -718,19 +699,6 @@ mod tests {
         let small = blob_response(&v, dims, spacing, s / 2.0)[at(dims, 20, 16, 18)];
         let large = blob_response(&v, dims, spacing, s * 2.0)[at(dims, 20, 16, 18)];
         assert!(c > small && c > large, "{small} {c} {large}");
-    }
-
-    #[test]
-    fn largest_eigenvalue_of_known_matrices() {
-        assert_eq!(largest_eigenvalue([-3.0, 2.0, -1.0], [0.0; 3]), 2.0);
-        assert_eq!(largest_eigenvalue([-4.0; 3], [0.0; 3]), -4.0);
-        // R·diag(−3, −1, 2)·Rᵀ for a rotation of 30° about z then 45° about x.
-        let (c1, s1, c2, s2) = (30f64.to_radians().cos(), 30f64.to_radians().sin(), 0.5f64.sqrt(), 0.5f64.sqrt());
-        let r = [[c1, -s1, 0.0], [c2 * s1, c2 * c1, -s2], [s2 * s1, s2 * c1, c2]];
-        let d = [-3.0, -1.0, 2.0];
-        let a = |i: usize, j: usize| (0..3).map(|k| r[i][k] * d[k] * r[j][k]).sum::<f64>();
-        let got = largest_eigenvalue([a(0, 0), a(1, 1), a(2, 2)], [a(0, 1), a(0, 2), a(1, 2)]);
-        assert!((got - 2.0).abs() < 1e-12, "{got}");
     }
 
     #[test]

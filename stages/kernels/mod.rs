@@ -13,6 +13,7 @@ pub mod annotation;
 pub mod cluster;
 pub mod components;
 pub mod consensus;
+pub mod eigen3;
 pub mod filters;
 pub mod localization;
 pub mod lung_field;

@@ -16,9 +16,11 @@
 use super::localize::Centre;
 use super::Rule;
 use super::Selection;
-use crate::kernels::components::{component_size_within, label, Components};
+use crate::kernels::components::{component_within, label, Components};
+use crate::kernels::eigen3::eigenvalues;
 use crate::kernels::localization::GroundTruthOnGrid;
 use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params as SweepParams, Scored};
+use crate::volume::Geometry;
 
 /// How far below and above the fraction the volume interval looks (absolute, in units of the peak).
 const INTERVAL_STEP: f64 = 0.1;
@@ -41,27 +43,59 @@ impl Cut {
 
 /// Whether the half-maximum region at `centre` can be the nodule: the score has a positive
 /// peak there, and the region ([`half_max_selection`]'s) has an equivalent diameter within the
-/// sweep's `diameter_mm` and within `diameter_range_mm` when given. Grows only the region,
-/// and stops past the largest nodule, so a search can weigh many centres.
+/// sweep's `diameter_mm` and within `diameter_range_mm` when given. If it can, how round the
+/// region is ([`roundness`]). Grows only the region, and stops past the largest nodule, so a
+/// search can weigh many centres.
 pub fn plausible(
     scored: &Scored,
     sweep: &SweepParams,
     centre: &Centre,
     cut: Cut,
     diameter_range_mm: Option<[f64; 2]>,
-) -> bool {
-    let Some((seed, peak)) = peak_near(scored, centre.voxel) else {
-        return false;
-    };
+) -> Option<f64> {
+    let (seed, peak) = peak_near(scored, centre.voxel)?;
     let geometry = &scored.score.geometry;
     let voxel_mm3: f64 = geometry.spacing_mm.iter().product();
     let largest_voxels = (std::f64::consts::PI / 6.0 * sweep.diameter_mm[1].powi(3) / voxel_mm3).floor() as usize;
     let inside = member(scored, seed, cut.fraction * f64::from(peak), cut.reach_mm);
-    let Some(voxels) = component_size_within(inside, geometry.dims, sweep.connectivity, seed, largest_voxels) else {
-        return false; // larger than any nodule
+    // None: larger than any nodule.
+    let voxels = component_within(inside, geometry.dims, sweep.connectivity, seed, largest_voxels)?;
+    let diameter_mm = equivalent_diameter_mm(voxels.len() as f64 * voxel_mm3);
+    let fits =
+        within(diameter_mm, sweep.diameter_mm) && diameter_range_mm.is_none_or(|range| within(diameter_mm, range));
+    fits.then(|| roundness(&voxels, geometry))
+}
+
+/// How round a region is: √(λ₃/λ₁) of the covariance of its voxels' positions (mm), 1 for a
+/// ball, towards 0 for a rod or a plate. Nodules are compact; the blobs that rival them —
+/// vessel junctions, the hilum, a nodule's own strand — are drawn out.
+pub fn roundness(voxels: &[usize], geometry: &Geometry) -> f64 {
+    let [nx, ny, _] = geometry.dims;
+    let n = voxels.len() as f64;
+    let position = |i: usize| {
+        let ijk = [i % nx, (i / nx) % ny, i / (nx * ny)];
+        std::array::from_fn::<f64, 3, _>(|a| ijk[a] as f64 * geometry.spacing_mm[a])
     };
-    let diameter_mm = equivalent_diameter_mm(voxels as f64 * voxel_mm3);
-    within(diameter_mm, sweep.diameter_mm) && diameter_range_mm.is_none_or(|range| within(diameter_mm, range))
+    let mut mean = [0.0; 3];
+    for &i in voxels {
+        let p = position(i);
+        (0..3).for_each(|a| mean[a] += p[a] / n);
+    }
+    // Second moments: xx, yy, zz, then xy, xz, yz.
+    let mut m = [0.0; 6];
+    for &i in voxels {
+        let p = position(i);
+        let d = [p[0] - mean[0], p[1] - mean[1], p[2] - mean[2]];
+        for (k, (a, b)) in [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)].into_iter().enumerate() {
+            m[k] += d[a] * d[b] / n;
+        }
+    }
+    let [largest, _, smallest] = eigenvalues([m[0], m[1], m[2]], [m[3], m[4], m[5]]);
+    if largest > 0.0 {
+        (smallest.max(0.0) / largest).sqrt()
+    } else {
+        1.0 // a single voxel
+    }
 }
 
 /// Whether `diameter_mm` lies in `[lo, hi]`.
@@ -268,6 +302,7 @@ mod tests {
             on_nodule: None,
             runner_up: None,
             ambiguous: false,
+            roundness: None,
         }
     }
 
@@ -326,20 +361,20 @@ mod tests {
         let sweep = SweepParams { diameter_mm: [1.0, 80.0], ..SweepParams::default() };
         let at = centre([16, 16, 16]);
         // The FWHM ball's equivalent diameter is ≈ 2 · 4 · √(2 ln 2) ≈ 9.4 nodes.
-        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), None));
-        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([8.0, 11.0])));
-        assert!(!plausible(&scored, &sweep, &at, Cut::at(0.5), Some([11.0, 30.0])), "smaller than the range");
-        assert!(!plausible(&scored, &sweep, &at, Cut::at(0.5), Some([2.0, 8.0])), "larger than the range");
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), None).is_some());
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([8.0, 11.0])).is_some());
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([11.0, 30.0])).is_none(), "smaller than the range");
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([2.0, 8.0])).is_none(), "larger than the range");
         let narrow = SweepParams { diameter_mm: [1.0, 8.0], ..SweepParams::default() };
-        assert!(!plausible(&scored, &narrow, &at, Cut::at(0.5), None), "larger than any nodule");
+        assert!(plausible(&scored, &narrow, &at, Cut::at(0.5), None).is_none(), "larger than any nodule");
         // Only the part inside the sweep's region counts: a cap of the ball (x ≤ 13) is small.
         scored.region = Some((0..32usize.pow(3)).map(|i| i % 32 <= 13).collect());
-        assert!(!plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([8.0, 11.0])));
-        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([3.0, 8.0])));
+        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([8.0, 11.0])).is_none());
+        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([3.0, 8.0])).is_some());
         // No positive peak: nothing to size.
         let flat =
             Scored { score: Volume { geometry: geometry([32; 3]), data: vec![0.0; 32 * 32 * 32] }, region: None };
-        assert!(!plausible(&flat, &sweep, &at, Cut::at(0.5), None));
+        assert!(plausible(&flat, &sweep, &at, Cut::at(0.5), None).is_none());
     }
 
     #[test]
@@ -360,7 +395,31 @@ mod tests {
         assert_eq!(free.candidate.voxels - held.candidate.voxels, 13, "the strand's nodes x = 19..31 go");
         // The search's check measures the same region.
         let d = held.candidate.diameter_mm;
-        assert!(plausible(&scored, &sweep, &at, cut, Some([d - 1e-9, d + 1e-9])));
-        assert!(!plausible(&scored, &sweep, &at, Cut::at(0.5), Some([d - 1e-9, d + 1e-9])));
+        assert!(plausible(&scored, &sweep, &at, cut, Some([d - 1e-9, d + 1e-9])).is_some());
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([d - 1e-9, d + 1e-9])).is_none());
+    }
+
+    #[test]
+    fn roundness_is_one_for_a_ball_and_the_axis_ratio_for_an_ellipsoid() {
+        // Solid ellipsoids on 0.5 mm cells: their covariance is diag(a², b², c²)/5, so the
+        // roundness is the smallest semi-axis over the largest.
+        let g = Geometry { spacing_mm: [0.5; 3], ..geometry([64; 3]) };
+        let solid = |axes_mm: [f64; 3]| -> Vec<usize> {
+            (0..g.len())
+                .filter(|&i| {
+                    let ijk = [i % 64, (i / 64) % 64, i / 4096];
+                    (0..3).map(|a| ((ijk[a] as f64 - 32.0) * 0.5 / axes_mm[a]).powi(2)).sum::<f64>() <= 1.0
+                })
+                .collect()
+        };
+        assert!((roundness(&solid([10.0; 3]), &g) - 1.0).abs() < 0.01);
+        for (axes, expected) in [([12.0, 6.0, 4.0], 4.0 / 12.0), ([5.0, 10.0, 8.0], 0.5)] {
+            let got = roundness(&solid(axes), &g);
+            assert!((got - expected).abs() < 0.02 * expected, "{axes:?}: {got} against {expected}");
+        }
+        // A rod of voxels has no spread across it; a single voxel counts as round.
+        let rod: Vec<usize> = (10..40).map(|x| x + 64 * (32 + 64 * 32)).collect();
+        assert!(roundness(&rod, &g) < 1e-6);
+        assert_eq!(roundness(&[5], &g), 1.0);
     }
 }

@@ -75,6 +75,43 @@ pub struct Centre {
     /// are nearly as likely, and the search's pick between them is a toss-up.
     #[serde(default)]
     pub ambiguous: bool,
+    /// How round the region the search judged the blob by is (`half_max::roundness`: 1 for a
+    /// ball), when the search measured one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub roundness: Option<f64>,
+}
+
+/// What a search's caller says of one blob.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Weighed {
+    /// It cannot be the nodule (e.g. its region is not of a nodule's size).
+    PassedOver,
+    /// It may be, and this is how round its region is (`None`: no region measured).
+    Accepted { roundness: Option<f64> },
+}
+
+impl From<bool> for Weighed {
+    /// Accepted without a region measured, or passed over.
+    fn from(accepted: bool) -> Weighed {
+        if accepted {
+            Weighed::Accepted { roundness: None }
+        } else {
+            Weighed::PassedOver
+        }
+    }
+}
+
+/// Among blobs that answer alike, which a search takes.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TieBreak {
+    /// The strongest response, however close the next comes.
+    #[default]
+    Response,
+    /// Among the strongest accepted blob and every other object answering at `rival_ratio` of
+    /// it or more, the one whose region is roundest: a nodule is compact, the blobs that rival it
+    /// (vessel junctions, the hilum) are drawn out. Needs a sizing that cuts regions.
+    Roundness,
 }
 
 /// A search's second choice: the strongest blob after the one it took that it would also have
@@ -92,6 +129,9 @@ pub struct RunnerUp {
     pub ratio: f64,
     /// Its place among every blob the search ranked (0: the strongest).
     pub rank: usize,
+    /// How round its region is, as the taken centre's `roundness`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub roundness: Option<f64>,
 }
 
 impl Centre {
@@ -111,7 +151,39 @@ fn runner_up(taken: &Centre, rival: &Centre) -> Option<RunnerUp> {
         distance_mm,
         ratio: f64::from(theirs.response) / f64::from(mine.response),
         rank: rival.rank,
+        roundness: rival.roundness,
     })
+}
+
+/// The blob a search takes among those it `accepted` (strongest first), with its runner-up:
+/// the strongest by default, the roundest contender with `tie_break = "roundness"`.
+fn pick(mut accepted: Vec<Centre>, params: &Params) -> Option<Centre> {
+    let strongest = accepted.first()?.clone();
+    let taken_at = match params.tie_break {
+        TieBreak::Response => 0,
+        TieBreak::Roundness => {
+            let response = |c: &Centre| c.blob.map_or(0.0, |b| f64::from(b.response));
+            let line = params.rival_ratio * response(&strongest);
+            let contenders = accepted
+                .iter()
+                .enumerate()
+                .filter(|(i, c)| *i == 0 || (response(c) >= line && runner_up(&strongest, c).is_some()));
+            // The roundest; the stronger of two alike.
+            contenders
+                .fold(None::<(usize, f64)>, |best, (i, c)| {
+                    let r = c.roundness.unwrap_or(0.0);
+                    match best {
+                        Some((_, b)) if b >= r => best,
+                        _ => Some((i, r)),
+                    }
+                })
+                .map_or(0, |(i, _)| i)
+        }
+    };
+    let mut taken = accepted.remove(taken_at);
+    taken.runner_up = accepted.iter().find_map(|rival| runner_up(&taken, rival));
+    taken.ambiguous = taken.runner_up.as_ref().is_some_and(|r| r.ratio >= params.rival_ratio);
+    Some(taken)
 }
 
 /// Finds the centres `params.localize` asks for in `density`, whose lung field is `lungs` when
@@ -126,7 +198,7 @@ pub fn centres(
     origin_mm: [f64; 3],
     annotated_diameter_mm: Option<f64>,
     coverage: Option<&[f32]>,
-    accept: &(dyn Fn(Search, &Centre) -> bool + Sync),
+    accept: &(dyn Fn(Search, &Centre) -> Weighed + Sync),
 ) -> Centres {
     let Params { localize, blob_filter, ref blob_scales_mm, inside_mm, .. } = *params;
     let geometry = &density.geometry;
@@ -139,6 +211,7 @@ pub fn centres(
         on_nodule: coverage.map(|c| c[voxel[0] + dims[0] * (voxel[1] + dims[1] * voxel[2])] > 0.0),
         runner_up: None,
         ambiguous: false,
+        roundness: None,
     };
     match localize {
         Localize::None => Centres::default(),
@@ -165,21 +238,22 @@ pub fn centres(
             };
             // Both rules search the same sites.
             let sites = blob_sites(lungs, dims, spacing, inside_mm);
-            // How many blobs each search found, and the first it accepted, with its runner-up.
+            // How many blobs each search found, and the one it took, with its runner-up.
             let search = |scales: &[f64], which: Search| {
                 let ranked = ranked_blobs(&density.data, dims, spacing, blob_filter, scales, &sites);
-                let mut weighed = ranked
+                let accepted: Vec<Centre> = ranked
                     .iter()
                     .take(MAX_WEIGHED)
                     .enumerate()
-                    .map(|(rank, p)| centre(p.voxel, Some(*p), rank))
-                    .filter(|c| accept(which, c));
-                let taken = weighed.next().map(|mut taken| {
-                    taken.runner_up = weighed.find_map(|rival| runner_up(&taken, &rival));
-                    taken.ambiguous = taken.runner_up.as_ref().is_some_and(|r| r.ratio >= params.rival_ratio);
-                    taken
-                });
-                (ranked.len(), taken)
+                    .filter_map(|(rank, p)| {
+                        let c = centre(p.voxel, Some(*p), rank);
+                        match accept(which, &c) {
+                            Weighed::PassedOver => None,
+                            Weighed::Accepted { roundness } => Some(Centre { roundness, ..c }),
+                        }
+                    })
+                    .collect();
+                (ranked.len(), pick(accepted, params))
             };
             let matched: Option<Vec<f64>> = annotated_diameter_mm
                 .map(|d| params.guided_scale_ratios.iter().map(|r| r * 0.5 * d / 3f64.sqrt()).collect());

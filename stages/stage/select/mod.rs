@@ -42,11 +42,11 @@ mod preview;
 mod rules;
 mod shadows;
 
-pub use localize::{centres, Centre, Centres, Localize, RunnerUp, Search};
+pub use localize::{centres, Centre, Centres, Localize, RunnerUp, Search, TieBreak, Weighed};
 pub use rules::Analysis;
 pub use shadows::ShadowFit;
 
-pub const VERSION: u32 = 15;
+pub const VERSION: u32 = 16;
 
 /// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
 /// full width at half maximum. `half_max_fraction` then only sets where the nodule is cut (its
@@ -102,6 +102,10 @@ pub struct Params {
     /// have accepted) answers at this fraction of its response or more is ambiguous, and the
     /// verdict says so (above 1: never).
     pub rival_ratio: f64,
+    /// `localize = "blob"`: among blobs answering alike (at `rival_ratio` of the strongest or
+    /// more), which a search takes: "response" (the strongest) or "roundness" (the roundest
+    /// region; needs sizing = "half_max" or "shadows").
+    pub tie_break: TieBreak,
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
@@ -142,6 +146,7 @@ impl Default for Params {
             guided_reach_diameters: 1.0,
             guided_scale_ratios: vec![1.0],
             rival_ratio: 0.7,
+            tie_break: TieBreak::default(),
         }
     }
 }
@@ -176,6 +181,12 @@ impl Params {
         }
         if !(self.rival_ratio.is_finite() && self.rival_ratio > 0.0) {
             bail!("[select] rival_ratio must be a number > 0 (got {})", self.rival_ratio);
+        }
+        if self.tie_break == TieBreak::Roundness && !self.sizing.cuts_half_max() {
+            bail!(
+                "[select] tie_break = \"roundness\" judges the blobs' half-maximum regions: set sizing to \
+                 \"half_max\" or \"shadows\""
+            );
         }
         if self.sizing.cuts_half_max() && self.localize == Localize::None {
             bail!(
@@ -327,10 +338,13 @@ impl Stage for Select {
         let guided_cut = Cut { fraction: p.half_max_fraction, reach_mm: p.guided_reach_mm(annotated) };
         let blind_cut = Cut::at(p.half_max_fraction);
         let accept = |search: Search, centre: &Centre| match p.sizing {
-            Sizing::Candidates => true,
+            Sizing::Candidates => Weighed::Accepted { roundness: None },
             Sizing::HalfMax | Sizing::Shadows => {
                 let (cut, range) = blob_check(search, p, annotated);
-                half_max::plausible(&scored, &sweep.params, centre, cut, range)
+                match half_max::plausible(&scored, &sweep.params, centre, cut, range) {
+                    Some(roundness) => Weighed::Accepted { roundness: Some(roundness) },
+                    None => Weighed::PassedOver,
+                }
             }
         };
         let centres = localize::centres(
@@ -546,6 +560,17 @@ mod tests {
             assert_eq!(range, Some([10.0, 40.0]));
             let (blind, range) = blob_check(Search::Blind, &p, Some(20.0));
             assert_eq!((blind.fraction, blind.reach_mm, range), (0.5, None, None));
+        }
+    }
+
+    #[test]
+    fn the_roundness_tie_break_needs_regions_and_the_rival_ratio_a_positive_number() {
+        let p = Params { tie_break: TieBreak::Roundness, sizing: Sizing::Candidates, ..Params::default() };
+        assert!(p.check().unwrap_err().to_string().contains("tie_break"));
+        assert!(Params { sizing: Sizing::Shadows, ..p }.check().is_ok());
+        for bad in [0.0, -1.0, f64::NAN] {
+            let p = Params { rival_ratio: bad, ..Params::default() };
+            assert!(p.check().unwrap_err().to_string().contains("rival_ratio"));
         }
     }
 
