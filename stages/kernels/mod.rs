@@ -7,7 +7,8 @@
 //! described, with what each equals, in `docs/kernels.md`, as are the cohort metrics'
 //! [`statistics`] (correlations, Wilcoxon, bootstrap CIs, Bland–Altman, as scipy computes them)
 //! and the 3-D image [`filters`] (Gaussian, blob response, distance transform, Otsu, per-slice
-//! hole filling, each equal to its scipy / scikit-image counterpart). [`robust_fit`] is the bounded
+//! hole filling, each equal to its scipy / scikit-image counterpart), whose Hessian filter takes
+//! its eigenvalues from [`eigen3`]. [`robust_fit`] is the bounded
 //! soft-L1 least squares (scipy's `least_squares(loss="soft_l1")`) that sizes a nodule in the views.
 pub mod annotation;
 pub mod cluster;
