@@ -14,7 +14,8 @@
 //!
 //! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
 //! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
-//! left, among the [`MAX_WEIGHED`] strongest.
+//! left, among the [`MAX_WEIGHED`] strongest; with `tie_break = "roundness"`, the roundest of
+//! those that answer about as strongly as it ([`TieBreak`]).
 //!
 //! A search also reports its runner-up: the strongest other blob it would have accepted, away
 //! from the one it took. A rival that answers nearly as strongly says the choice is a toss-up
@@ -190,7 +191,8 @@ fn pick(mut accepted: Vec<Centre>, params: &Params) -> Option<Centre> {
 /// the caller has it (else it is found here, for `blob`). `origin_mm` is the scene origin,
 /// `annotated_diameter_mm` the guided rule's diameter, `coverage` the ground truth's
 /// per-cell coverage (only to report whether a centre is on the nodule). A blob search takes
-/// the strongest blob that `accept` accepts; the origin has no alternative and is taken as is.
+/// among the blobs that `accept` accepts as `tie_break` says; the origin has no alternative
+/// and is taken as is.
 pub fn centres(
     params: &Params,
     density: &Volume<f32>,
