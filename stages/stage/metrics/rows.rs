@@ -1,7 +1,7 @@
 //! One row per patient of `results.csv` (SPEC §4, columns in order), from its `result.json`
 //! and training log.
 
-use crate::stage::select::{Rule, SelectResult, Selection};
+use crate::stage::select::{SelectResult, Selection};
 use serde::Serialize;
 use std::fmt::Write as _;
 
@@ -96,14 +96,14 @@ impl PatientRow {
         let (gt, d) = (result.gt_volume_mm3?, result.annotated_diameter_mm?);
         let measured = |s: &Selection| {
             let l = s.localization.expect("a patient with a target has localization");
-            let centre = if s.rule == Rule::Guided { &result.centres.guided } else { &result.centres.blind };
+            let centre = result.centres.of(s.rule);
             Measured {
                 volume_mm3: s.candidate.volume_mm3,
                 ape_pct: ape_pct(s.candidate.volume_mm3, gt),
                 hit: l.hit,
                 dice: l.dice,
                 centroid_dist_mm: l.centroid_distance_mm,
-                ambiguous: centre.as_ref().filter(|c| c.blob.is_some()).map(|c| c.ambiguous),
+                ambiguous: centre.filter(|c| c.blob.is_some()).map(|c| c.ambiguous),
             }
         };
         let sphere = std::f64::consts::PI / 6.0 * d.powi(3);

@@ -22,7 +22,7 @@
 //! between two objects: at `rival_ratio` of the taken blob's response or more, the centre is
 //! `ambiguous`, and the verdict says so.
 
-use super::Params;
+use super::{Params, Rule};
 use crate::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobPeak};
 use crate::volume::Volume;
 use glam::DVec3;
@@ -133,6 +133,16 @@ pub struct RunnerUp {
     /// How round its region is, as the taken centre's `roundness`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub roundness: Option<f64>,
+}
+
+impl Centres {
+    /// The centre `rule` sized from: the guided one, or the blind one for both blind rules.
+    pub fn of(&self, rule: Rule) -> Option<&Centre> {
+        match rule {
+            Rule::Guided => self.guided.as_ref(),
+            Rule::BlindLargest | Rule::BlindPersistent => self.blind.as_ref(),
+        }
+    }
 }
 
 impl Centre {

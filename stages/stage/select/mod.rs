@@ -361,10 +361,7 @@ impl Stage for Select {
         // rule's centre was not found, so it cannot choose.
         let through = |rule: Rule| match p.localize {
             Localize::None => Some(None),
-            _ => {
-                let centre = if rule == Rule::Guided { &centres.guided } else { &centres.blind };
-                centre.as_ref().map(|c| Some(c.linear(dims)))
-            }
+            _ => centres.of(rule).map(|c| Some(c.linear(dims))),
         };
         let views = match p.sizing {
             Sizing::Shadows => Some(read_views(ctx, &cameras)?),
@@ -414,8 +411,7 @@ impl Stage for Select {
             patient: ctx.patient().to_string(),
             verdict: {
                 let line = verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some(), p);
-                let centre = if self.params.primary == Rule::Guided { &centres.guided } else { &centres.blind };
-                match centre.as_ref().and_then(rival_note) {
+                match centres.of(self.params.primary).and_then(rival_note) {
                     Some(note) if primary_sel.is_some() => format!("{line}; {note}"),
                     _ => line,
                 }
@@ -455,9 +451,7 @@ impl Stage for Select {
         let obj_text = obj::encode(&mesh.vertices, Some(&vertex_normals(&mesh)), &mesh.triangles, &comment_refs);
         // The preview cuts through the selection, then through the nodule, then through an
         // ambiguous search's rival.
-        let primary_centre =
-            if self.params.primary == Rule::Guided { &result.centres.guided } else { &result.centres.blind };
-        let rival = primary_centre.as_ref().filter(|c| c.ambiguous).and_then(|c| c.runner_up.as_ref());
+        let rival = result.centres.of(self.params.primary).filter(|c| c.ambiguous).and_then(|c| c.runner_up.as_ref());
         let cut_points: Vec<[usize; 3]> = [
             primary_sel.as_ref().map(|s| s.candidate.centroid_mm),
             gt.as_ref().map(|gt| gt.centroid_mm),
