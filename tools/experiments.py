@@ -81,6 +81,8 @@ ROWS = [
      "the default on a second anatomy of the same patients (phantom seed 2)"),
     ("default-seed3", "presets/default_seed3.toml", "B", "C*",
      "the default on a third anatomy (phantom seed 3), first trained after the roundness tie-break was fixed"),
+    ("default-seed4", "presets/default_seed4.toml", "B", "C*",
+     "the default on a fourth anatomy (phantom seed 4), first trained after the roundness tie-break was fixed"),
     ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
      "the default fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
     ("drr-128", "presets/drr128.toml", "B", "C*",
