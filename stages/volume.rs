@@ -52,13 +52,18 @@ impl Geometry {
 
     /// One flag per voxel: whether its centre lies within `radius_mm` of patient point `centre_mm`.
     pub fn ball_mask(&self, centre_mm: [f64; 3], radius_mm: f64) -> Vec<bool> {
-        let [nx, ny, _] = self.dims;
         (0..self.len())
             .map(|i| {
-                let p = self.voxel_to_patient_mm([(i % nx) as f64, ((i / nx) % ny) as f64, (i / (nx * ny)) as f64]);
+                let p = self.voxel_to_patient_mm(self.voxel_at(i).map(|v| v as f64));
                 (0..3).map(|a| (p[a] - centre_mm[a]).powi(2)).sum::<f64>() <= radius_mm * radius_mm
             })
             .collect()
+    }
+
+    /// Voxel `[i, j, k]` at linear index `linear`: the inverse of [`Geometry::index`].
+    pub fn voxel_at(&self, linear: usize) -> [usize; 3] {
+        let [nx, ny, _] = self.dims;
+        [linear % nx, (linear / nx) % ny, linear / (nx * ny)]
     }
 
     /// Linear index of voxel `(i, j, k)` in the `[slice][row][col]` layout.
@@ -86,7 +91,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_ball_mask_holds_the_voxel_centres_within_its_radius() {
+    fn voxel_at_inverts_index_and_a_ball_mask_holds_the_voxel_centres_within_its_radius() {
         let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
         let g = Geometry {
             dims: [9, 7, 5],
@@ -94,6 +99,10 @@ mod tests {
             origin_mm: [-4.0, 10.0, 0.0],
             direction: identity,
         };
+        assert!((0..g.len()).all(|i| {
+            let [x, y, z] = g.voxel_at(i);
+            g.index(x, y, z) == i
+        }));
         let centre = g.voxel_to_patient_mm([4.0, 3.0, 2.0]);
         let count = |r: f64| g.ball_mask(centre, r).iter().filter(|&&b| b).count();
         // x² + (2y)² + (3z)² ≤ r² over integer offsets: r = 2 holds x ∈ −2..2 and (0, ±1, 0);

@@ -70,10 +70,10 @@ pub fn plausible(
 /// ball, towards 0 for a rod or a plate. Nodules are compact; the blobs that rival them —
 /// vessel junctions, the hilum, a nodule's own strand — are drawn out.
 pub fn roundness(voxels: &[usize], geometry: &Geometry) -> f64 {
-    let [nx, ny, _] = geometry.dims;
     let n = voxels.len() as f64;
+    // Lattice offsets in mm: the covariance needs no origin, and the axes are orthonormal.
     let position = |i: usize| {
-        let ijk = [i % nx, (i / nx) % ny, i / (nx * ny)];
+        let ijk = geometry.voxel_at(i);
         std::array::from_fn::<f64, 3, _>(|a| ijk[a] as f64 * geometry.spacing_mm[a])
     };
     let mut mean = [0.0; 3];
@@ -216,8 +216,7 @@ fn peak_near(scored: &Scored, voxel: [usize; 3]) -> Option<(usize, f32)> {
 /// in the sweep's region, and within `reach_mm` of the seed when given.
 fn member(scored: &Scored, seed: usize, threshold: f64, reach_mm: Option<f64>) -> impl Fn(usize) -> bool + '_ {
     let geometry = &scored.score.geometry;
-    let [nx, ny, _] = geometry.dims;
-    let at = move |i: usize| [i % nx, (i / nx) % ny, i / (nx * ny)];
+    let at = |i: usize| geometry.voxel_at(i);
     let from = at(seed);
     let reach_sq = reach_mm.map(|r| r * r);
     move |i: usize| {

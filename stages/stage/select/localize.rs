@@ -151,11 +151,18 @@ impl Centre {
     }
 }
 
-/// `rival` as `taken`'s runner-up, if it lies outside the ball `taken`'s scale is matched to.
+/// How far `other` lies from `taken`, if outside the ball `taken`'s scale is matched to (a ball
+/// of radius √3·s answers most at scale s): another object, not a second peak of the same one.
+fn another_object_mm(taken: &Centre, other: &Centre) -> Option<f64> {
+    let distance_mm = DVec3::from(taken.position_mm).distance(DVec3::from(other.position_mm));
+    (distance_mm > 3f64.sqrt() * taken.blob?.scale_mm).then_some(distance_mm)
+}
+
+/// `rival` as `taken`'s runner-up, if it is another object ([`another_object_mm`]).
 fn runner_up(taken: &Centre, rival: &Centre) -> Option<RunnerUp> {
     let (mine, theirs) = (taken.blob?, rival.blob?);
-    let distance_mm = DVec3::from(taken.position_mm).distance(DVec3::from(rival.position_mm));
-    (distance_mm > 3f64.sqrt() * mine.scale_mm).then(|| RunnerUp {
+    let distance_mm = another_object_mm(taken, rival)?;
+    Some(RunnerUp {
         position_mm: rival.position_mm,
         response: theirs.response,
         scale_mm: theirs.scale_mm,
@@ -178,7 +185,7 @@ fn pick(mut accepted: Vec<Centre>, params: &Params) -> Option<Centre> {
             let contenders = accepted
                 .iter()
                 .enumerate()
-                .filter(|(i, c)| *i == 0 || (response(c) >= line && runner_up(&strongest, c).is_some()));
+                .filter(|(i, c)| *i == 0 || (response(c) >= line && another_object_mm(&strongest, c).is_some()));
             // The roundest; the stronger of two alike.
             contenders
                 .fold(None::<(usize, f64)>, |best, (i, c)| {
