@@ -1,0 +1,143 @@
+#!/usr/bin/env python3
+"""One [select] variant on every set of fits the experiments cached: hits ≥ 10 mm per set.
+
+    tools/select_study.py line-0.5 'rival_ratio = 0.5'          # run it on the nine sets
+    tools/select_study.py line-0.5 'rival_ratio = 0.5' --sets consensus-1,spheres-2
+    tools/select_study.py shipped ''                             # the shipped select itself
+    tools/select_study.py line-0.5 'rival_ratio = 0.5' --no-run  # summarise what is on disk
+
+Each set is a preset's phantom, views and fit, sized by the shipped select (`pipeline.toml`'s
+[select]) with the variant's keys on top. Only select and metrics recompute: with every fit in
+cache/ the nine sets take about five minutes on two cores (a set whose fits are not cached
+trains first: 15–20 minutes). docs/experiments.md's select-only tables over "the nine sets"
+were measured this way. Out dirs: out-study/NAME/SET/. Only the standard library is needed.
+"""
+import argparse
+import csv
+import os
+import statistics
+import subprocess
+import sys
+import tomllib
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# (set, preset, keys set on top of the preset, as {table: {key: value}})
+SETS = [
+    ("consensus-1", "pipeline.toml", {}),
+    ("consensus-2", "presets/default_seed2.toml", {}),
+    ("consensus-3", "presets/default_seed3.toml", {}),
+    ("consensus-4", "presets/default_seed4.toml", {}),
+    ("union-1", "presets/phantom_union_256.toml", {}),
+    ("union-2", "presets/phantom_union_256.toml", {"dataset.phantom": {"seed": 2}}),
+    ("readers", "presets/phantom_readers_256.toml", {}),
+    ("spheres-1", "presets/calibration_spheres.toml", {}),
+    ("spheres-2", "presets/calibration_spheres.toml", {"dataset.phantom": {"seed": 2}}),
+]
+
+# Keys holding paths, which a preset writes relative to its own folder.
+PATH_KEYS = {("pipeline", "cache_dir"), ("pipeline", "out_dir"), ("dataset", "cohort"), ("dataset", "root")}
+
+
+def load(path):
+    with open(path, "rb") as f:
+        return tomllib.load(f)
+
+
+def toml_value(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + "}"
+    raise ValueError(f"cannot write {v!r} as TOML")
+
+
+def toml_text(config):
+    """`config` (tables of scalars, lists and nested tables) as TOML."""
+    lines = []
+
+    def table(name, values):
+        nested = {k: v for k, v in values.items() if isinstance(v, dict) and v}
+        lines.append(f"[{name}]")
+        lines.extend(f"{k} = {toml_value(v)}" for k, v in values.items() if k not in nested)
+        for k, v in nested.items():
+            table(f"{name}.{k}", v)
+
+    for name, values in config.items():
+        table(name, values)
+    return "\n".join(lines) + "\n"
+
+
+def study_config(preset, overrides, variant, out_dir):
+    """The preset at `preset` (relative to the repository) with `overrides`, the shipped
+    [select] and then `variant` (TOML text of [select] keys) on top, writing to `out_dir`;
+    every path absolute."""
+    config = load(os.path.join(ROOT, preset))
+    here = os.path.dirname(os.path.join(ROOT, preset))
+    for table, key in PATH_KEYS:
+        if key in config.get(table, {}):
+            config[table][key] = os.path.normpath(os.path.join(here, config[table][key]))
+    config.setdefault("pipeline", {}).setdefault("cache_dir", os.path.join(here, "cache"))
+    for dotted, keys in overrides.items():
+        t = config
+        for part in dotted.split("."):
+            t = t.setdefault(part, {})
+        t.update(keys)
+    config["select"] = {**load(os.path.join(ROOT, "pipeline.toml")).get("select", {}), **tomllib.loads(variant)}
+    config["pipeline"]["out_dir"] = out_dir
+    return config
+
+
+def summarise(out):
+    rows = list(csv.DictReader(open(os.path.join(out, "results.csv"))))
+    big = [r for r in rows if float(r["gt_diameter_mm"]) >= 10]
+    hits = [r for r in big if r["hit"] == "1"]
+    ape = statistics.median(float(r["ape_pct"]) for r in hits) if hits else float("nan")
+    beat = sum(r["hit"] == "1" and float(r["ape_pct"]) < float(r["sphere_ape_pct"]) for r in rows)
+    return {"n": len(big), "guided": len(hits), "blind": sum(r["blind_hit"] == "1" for r in big),
+            "ape": ape, "beat": beat, "hits_all": sum(r["hit"] == "1" for r in rows)}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("name", help="the study's name (its out dirs: out-study/NAME/SET)")
+    ap.add_argument("variant", help="[select] keys as TOML, ';' between keys: 'rival_ratio = 0.5; …'")
+    ap.add_argument("--sets", help="comma-separated sets (default: all): " + ", ".join(s for s, *_ in SETS))
+    ap.add_argument("--no-run", action="store_true", help="summarise the out dirs already written")
+    ap.add_argument("--binary", default=os.path.join(ROOT, "target", "release", "aret-pipe"))
+    args = ap.parse_args()
+    wanted = args.sets.split(",") if args.sets else [s for s, *_ in SETS]
+    unknown = set(wanted) - {s for s, *_ in SETS}
+    if unknown:
+        sys.exit(f"unknown set(s) {', '.join(sorted(unknown))}: choose from {', '.join(s for s, *_ in SETS)}")
+    variant = args.variant.replace(";", "\n")
+    total = {"n": 0, "guided": 0, "blind": 0}
+    print(f"{'set':<12} {'≥10 mm':>6} {'guided':>6} {'blind':>6} {'APE over guided hits':>21} {'hits beating the sphere':>24}")
+    for name, preset, overrides in SETS:
+        if name not in wanted:
+            continue
+        out = os.path.join(ROOT, "out-study", args.name, name)
+        if not args.no_run:
+            os.makedirs(out, exist_ok=True)
+            path = os.path.join(out, "config.toml")
+            with open(path, "w") as f:
+                f.write(toml_text(study_config(preset, overrides, variant, out)))
+            r = subprocess.run([args.binary, "run", path], capture_output=True, text=True,
+                               env={**os.environ, "CI": "true"})
+            if r.returncode:
+                sys.exit(f"{name}: aret-pipe run {path} failed:\n{r.stderr[-2000:]}")
+        s = summarise(out)
+        for k in total:
+            total[k] += s[k]
+        print(f"{name:<12} {s['n']:>6} {s['guided']:>6} {s['blind']:>6} {s['ape']:>20.1f}% {s['beat']:>17} of {s['hits_all']}")
+    print(f"{'all':<12} {total['n']:>6} {total['guided']:>6} {total['blind']:>6}")
+
+
+if __name__ == "__main__":
+    main()
