@@ -26,52 +26,19 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import tomllib
+from preset_config import load_absolute, toml_text
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LADDER = [round(0.25 + 0.025 * n, 3) for n in range(15)]  # 0.25 … 0.60
 
 
-def toml_value(v):
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=False)
-    if isinstance(v, list):
-        return "[" + ", ".join(toml_value(x) for x in v) + "]"
-    raise TypeError(f"no TOML for {v!r}")
-
-
-def toml_text(tables, prefix=""):
-    """A configuration as TOML: top-level tables of scalars and lists, nested tables under them."""
-    out = []
-    for name, table in tables.items():
-        full = f"{prefix}{name}"
-        out.append(f"[{full}]")
-        out += [f"{k} = {toml_value(v)}" for k, v in table.items() if not isinstance(v, dict)]
-        out.append("")
-        nested = {k: v for k, v in table.items() if isinstance(v, dict)}
-        if nested:
-            out.append(toml_text(nested, prefix=f"{full}."))
-    return "\n".join(out)
-
-
 def config_at(preset, fraction, folder):
     """The preset with half_max_fraction = `fraction`, paths made absolute, its own out dir."""
-    with open(preset, "rb") as f:
-        cfg = tomllib.load(f)
-    here = os.path.dirname(os.path.abspath(preset))
-    absolute = lambda p: os.path.normpath(os.path.join(here, p))
-    pipeline, dataset = cfg.setdefault("pipeline", {}), cfg.setdefault("dataset", {})
-    pipeline["cache_dir"] = absolute(pipeline.get("cache_dir", "cache"))
-    out = absolute(pipeline.get("out_dir", "out")) + f"-f{fraction:.3f}"
+    cfg = load_absolute(preset)
+    pipeline = cfg["pipeline"]
+    out = pipeline["out_dir"] + f"-f{fraction:.3f}"
     pipeline["out_dir"] = out
     pipeline["name"] = f"{pipeline.get('name', 'calibration')} at {fraction:.3f}"
-    for key in ("cohort", "root"):
-        if key in dataset:
-            dataset[key] = absolute(dataset[key])
     cfg.setdefault("select", {})["half_max_fraction"] = fraction
     path = os.path.join(folder, f"calibration-{fraction:.3f}.toml")
     with open(path, "w") as f:

@@ -20,6 +20,8 @@ import subprocess
 import sys
 import tomllib
 
+from preset_config import load_absolute, toml_text
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 # (set, preset, keys set on top of the preset, as {table: {key: value}})
@@ -35,61 +37,19 @@ SETS = [
     ("spheres-2", "presets/calibration_spheres.toml", {"dataset.phantom": {"seed": 2}}),
 ]
 
-# Keys holding paths, which a preset writes relative to its own folder.
-PATH_KEYS = {("pipeline", "cache_dir"), ("pipeline", "out_dir"), ("dataset", "cohort"), ("dataset", "root")}
-
-
-def load(path):
-    with open(path, "rb") as f:
-        return tomllib.load(f)
-
-
-def toml_value(v):
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, list):
-        return "[" + ", ".join(toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + "}"
-    raise ValueError(f"cannot write {v!r} as TOML")
-
-
-def toml_text(config):
-    """`config` (tables of scalars, lists and nested tables) as TOML."""
-    lines = []
-
-    def table(name, values):
-        nested = {k: v for k, v in values.items() if isinstance(v, dict) and v}
-        lines.append(f"[{name}]")
-        lines.extend(f"{k} = {toml_value(v)}" for k, v in values.items() if k not in nested)
-        for k, v in nested.items():
-            table(f"{name}.{k}", v)
-
-    for name, values in config.items():
-        table(name, values)
-    return "\n".join(lines) + "\n"
-
 
 def study_config(preset, overrides, variant, out_dir):
     """The preset at `preset` (relative to the repository) with `overrides`, the shipped
     [select] and then `variant` (TOML text of [select] keys) on top, writing to `out_dir`;
     every path absolute."""
-    config = load(os.path.join(ROOT, preset))
-    here = os.path.dirname(os.path.join(ROOT, preset))
-    for table, key in PATH_KEYS:
-        if key in config.get(table, {}):
-            config[table][key] = os.path.normpath(os.path.join(here, config[table][key]))
-    config.setdefault("pipeline", {}).setdefault("cache_dir", os.path.join(here, "cache"))
+    config = load_absolute(os.path.join(ROOT, preset))
     for dotted, keys in overrides.items():
         t = config
         for part in dotted.split("."):
             t = t.setdefault(part, {})
         t.update(keys)
-    config["select"] = {**load(os.path.join(ROOT, "pipeline.toml")).get("select", {}), **tomllib.loads(variant)}
+    shipped = load_absolute(os.path.join(ROOT, "pipeline.toml")).get("select", {})
+    config["select"] = {**shipped, **tomllib.loads(variant)}
     config["pipeline"]["out_dir"] = out_dir
     return config
 
@@ -132,6 +92,8 @@ def main():
                                env={**os.environ, "CI": "true"})
             if r.returncode:
                 sys.exit(f"{name}: aret-pipe run {path} failed:\n{r.stderr[-2000:]}")
+        if not os.path.exists(os.path.join(out, "results.csv")):
+            sys.exit(f"{out} has no results.csv: run without --no-run first")
         s = summarise(out)
         for k in total:
             total[k] += s[k]

@@ -4,17 +4,21 @@ A study compares select variants on fits other runs cached, so its configs must 
 same cache and cohort as the presets do and change nothing upstream of select.
 """
 import importlib.util
+import sys
 import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tools"))  # the tools import their shared preset_config
+import preset_config  # noqa: E402
+
 spec = importlib.util.spec_from_file_location("select_study", ROOT / "tools" / "select_study.py")
 study = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(study)
 
 
 def written(preset, overrides, variant, out="/tmp/study-out"):
-    return tomllib.loads(study.toml_text(study.study_config(preset, overrides, variant, out)))
+    return tomllib.loads(preset_config.toml_text(study.study_config(preset, overrides, variant, out)))
 
 
 def test_every_set_reads_its_presets_fits_through_the_shipped_select_with_the_variant_on_top():
@@ -41,10 +45,10 @@ def test_the_second_anatomies_differ_from_the_first_only_in_the_phantom_seed():
     assert one == two
 
 
-def test_toml_text_writes_nested_and_empty_tables_and_lists_back_as_read():
+def test_preset_configs_toml_text_writes_nested_and_empty_tables_and_lists_back_as_read():
     config = {
         "pipeline": {"name": 'a "quoted" name', "stage_workers": {}, "workers": 2},
         "dataset": {"kind": "phantom", "phantom": {"seed": 3, "lung_hu": -850.0}},
         "select": {"blob_scales_mm": [6.0, 9.0, 13.0], "primary": "guided", "strict": True},
     }
-    assert tomllib.loads(study.toml_text(config)) == config
+    assert tomllib.loads(preset_config.toml_text(config)) == config
