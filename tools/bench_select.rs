@@ -68,10 +68,7 @@ fn main() -> anyhow::Result<()> {
             Some(&gt.coverage),
             &|_, _| true.into(), // the built-in default sizes with the candidates: the strongest blob
         );
-        let through = |rule: Rule| {
-            let centre = if rule == Rule::Guided { &centres.guided } else { &centres.blind };
-            centre.as_ref().map(|c| c.linear(density.geometry.dims))
-        };
+        let through = |rule: Rule| centres.of(rule).map(|c| c.linear(density.geometry.dims));
         let picks: Vec<_> = [Rule::Guided, Rule::BlindLargest, Rule::BlindPersistent]
             .into_iter()
             .filter_map(|r| analysis.choose(r, annotated, through(r)).map(|at| (r, at, analysis.describe(r, at))))

@@ -55,7 +55,8 @@ def study_config(preset, overrides, variant, out_dir):
 
 
 def summarise(out):
-    rows = list(csv.DictReader(open(os.path.join(out, "results.csv"))))
+    with open(os.path.join(out, "results.csv")) as f:
+        rows = list(csv.DictReader(f))
     big = [r for r in rows if float(r["gt_diameter_mm"]) >= 10]
     hits = [r for r in big if r["hit"] == "1"]
     ape = statistics.median(float(r["ape_pct"]) for r in hits) if hits else float("nan")

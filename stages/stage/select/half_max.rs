@@ -406,7 +406,7 @@ mod tests {
         let solid = |axes_mm: [f64; 3]| -> Vec<usize> {
             (0..g.len())
                 .filter(|&i| {
-                    let ijk = [i % 64, (i / 64) % 64, i / 4096];
+                    let ijk = g.voxel_at(i);
                     (0..3).map(|a| ((ijk[a] as f64 - 32.0) * 0.5 / axes_mm[a]).powi(2)).sum::<f64>() <= 1.0
                 })
                 .collect()
