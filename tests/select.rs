@@ -117,6 +117,7 @@ fn chest() -> (Volume<f32>, [usize; 3]) {
 
 #[test]
 fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
+    use aret_pipe::kernels::filters::distance_inside_mm;
     use aret_pipe::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobFilter};
     let (density, nodule) = chest();
     let (dims, spacing) = (density.geometry.dims, density.geometry.spacing_mm);
@@ -126,7 +127,7 @@ fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
     assert!(!lungs.field[at([1, 20, 20])], "mediastinum is not lung");
     assert!(!lungs.field[at([40, 42, 20])] && !lungs.field[at([55, 44, 33])], "outside air is not lung");
     assert!(lungs.field[at([50, 10, 5])], "parenchyma touching the box faces is lung");
-    let sites = blob_sites(&lungs.field, dims, spacing, 8.0);
+    let sites = blob_sites(&distance_inside_mm(&lungs.field, dims, spacing), dims, spacing, 8.0);
     let find = |filter| {
         let ranked = ranked_blobs(&density.data, dims, spacing, filter, &[6.0, 9.0, 13.0], &sites);
         *ranked.first().expect("a blob")
@@ -151,13 +152,14 @@ fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
 
 #[test]
 fn blob_sites_keep_away_from_the_region_edges_and_the_lattice_faces() {
+    use aret_pipe::kernels::filters::distance_inside_mm;
     use aret_pipe::kernels::lung_mask::blob_sites;
     // A region that fills the lattice but for one unset node: only the faces and that node bound it.
     let (dims, spacing) = ([20, 16, 12], [1.0, 1.5, 2.0]);
     let at = |x: usize, y: usize, z: usize| x + dims[0] * (y + dims[1] * z);
     let mut region = vec![true; dims.iter().product()];
     region[at(14, 8, 6)] = false;
-    let sites = blob_sites(&region, dims, spacing, 3.0);
+    let sites = blob_sites(&distance_inside_mm(&region, dims, spacing), dims, spacing, 3.0);
     // To a face: (i + 1) nodes before it, (n − i) after it, times the spacing; > 3 mm.
     let away = |i: usize, n: usize, s: f64| ((i + 1).min(n - i) as f64) * s > 3.0;
     for z in 0..dims[2] {
@@ -270,7 +272,7 @@ fn a_rival_blob_that_answers_nearly_as_strongly_makes_the_centre_ambiguous() {
 
 #[test]
 fn the_roundness_tie_break_takes_the_roundest_of_the_blobs_that_answer_alike() {
-    use aret_pipe::stage::select::{centres, Centre, Search, TieBreak, Weighed};
+    use aret_pipe::stage::select::{centres, Centre, RegionShape, Search, TieBreak, Weighed};
     let lungs = vec![true; 48 * 40 * 36];
     let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
     // The caller measures the strong ball's region as drawn out (0.3) and the weak one's as
@@ -279,7 +281,11 @@ fn the_roundness_tie_break_takes_the_roundest_of_the_blobs_that_answer_alike() {
         let (density, strong, weak) = two_balls(weak_level);
         let params = SelectParams { inside_mm: 0.0, tie_break, ..SelectParams::default() };
         let judge = |_: Search, c: &Centre| Weighed::Accepted {
-            roundness: Some(if near(c.position_mm, strong) { 0.3 } else { 0.9 }),
+            region: Some(RegionShape {
+                roundness: if near(c.position_mm, strong) { 0.3 } else { 0.9 },
+                diameter_mm: 12.0,
+                peak_score: 1.0,
+            }),
         };
         let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &judge);
         let taken = found.guided.expect("a guided centre");
@@ -287,11 +293,50 @@ fn the_roundness_tie_break_takes_the_roundest_of_the_blobs_that_answer_alike() {
     };
     // At 0.65 / 0.7 of the strong ball's response the weak one contends, and is rounder.
     let (on_strong, on_weak, centre) = taken(0.75, TieBreak::Roundness);
-    assert!(on_weak && !on_strong && centre.roundness == Some(0.9), "{centre:?}");
+    assert!(on_weak && !on_strong && centre.roundness() == Some(0.9), "{centre:?}");
     // Its runner-up is then the stronger ball, with a ratio above 1: still ambiguous.
     let rival = centre.runner_up.clone().expect("the strong ball");
     assert!(rival.ratio > 1.0 && rival.roundness == Some(0.3) && centre.ambiguous, "{centre:?}");
     // The strongest response wins by default, and a blob below the line does not contend.
     assert!(taken(0.75, TieBreak::Response).0);
     assert!(taken(0.5, TieBreak::Roundness).0);
+}
+
+#[test]
+fn the_score_tie_break_ranks_the_strongest_few_by_response_over_peak_and_roundness() {
+    use aret_pipe::stage::select::{blob_score, centres, Centre, RegionShape, Search, TieBreak, Weighed};
+    let lungs = vec![true; 48 * 40 * 36];
+    let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
+    // The caller cuts the strong ball's region with a high peak (a dense speck: 1.0) and the
+    // weak one's with a low one (0.2); both alike round.
+    let (density, strong, weak) = two_balls(0.3);
+    let judge = |_: Search, c: &Centre| Weighed::Accepted {
+        region: Some(RegionShape {
+            roundness: 0.5,
+            diameter_mm: 12.0,
+            peak_score: if near(c.position_mm, strong) { 1.0 } else { 0.2 },
+        }),
+    };
+    let search = |params: SelectParams| {
+        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &judge);
+        let [guided, blind] = [found.guided, found.blind].map(|c| c.expect("a centre"));
+        // Every accepted blob is recorded, strongest first, the taken one among them.
+        let ranks: Vec<usize> = found.blind_accepted.iter().map(|c| c.rank).collect();
+        assert!(ranks.windows(2).all(|w| w[0] < w[1]) && ranks.contains(&blind.rank), "{ranks:?}");
+        (near(guided.position_mm, strong), near(blind.position_mm, weak), blind)
+    };
+    let base = SelectParams { inside_mm: 0.0, blind_tie_break: Some(TieBreak::Score), ..SelectParams::default() };
+    // The weak ball answers at well under 0.7 of the strong one (no roundness contest), but its
+    // response per unit of peak contrast is higher: the blind search takes it, while the guided
+    // one (tie_break "response") keeps the strongest.
+    let (guided_on_strong, blind_on_weak, blind) = search(base.clone());
+    assert!(guided_on_strong && blind_on_weak, "{blind:?}");
+    let score = blob_score(&blind, 3.0).expect("a score");
+    let expected = (f64::from(blind.blob.unwrap().response) / f64::from(0.2f32)).ln() + 3.0 * 0.5;
+    assert!((score - expected).abs() < 1e-9, "{score} vs {expected}");
+    // Only the `score_top` strongest contend: with one, the strongest is taken.
+    let (_, blind_on_weak, _) = search(SelectParams { score_top: 1, ..base.clone() });
+    assert!(!blind_on_weak);
+    // Without a region there is no score.
+    assert_eq!(blob_score(&Centre { region: None, ..blind }, 3.0), None);
 }

@@ -72,9 +72,12 @@ ROWS = [
     ("strongest-blob", "presets/strongest_blob.toml", "B", "C*",
      "the same, each rule's half-maximum region then sized by the ellipsoid that best explains its shadows in"
      " the three views (sizing = \"shadows\"): the default from late on 2026-11-26 until 2026-11-27"),
-    ("default", "pipeline.toml", "B", "C*",
+    ("blind-roundness", "presets/blind_roundness.toml", "B", "C*",
      "the same, each search taking, among the blobs that answer alike (at 0.7 of the strongest or more), the one"
-     " whose half-maximum region is roundest (tie_break = \"roundness\"): the default"),
+     " whose half-maximum region is roundest (tie_break = \"roundness\"): the default until 2026-11-27 (stop 42)"),
+    ("default", "pipeline.toml", "B", "C*",
+     "the same, the blind search ranking its five strongest blobs by ln(response / peak score) + 3 × roundness"
+     " (blind_tie_break = \"score\"): the default"),
     ("default-A", "presets/default_origin.toml", "A", "A",
      "the default centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
     ("default-seed2", "presets/default_seed2.toml", "B", "C*",

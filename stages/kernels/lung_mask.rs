@@ -10,9 +10,7 @@
 //! slice along x, y and z, so that the nodules inside it belong to the field.
 
 use super::components::{label, Connectivity};
-use super::filters::{
-    blob_response, distance_inside_mm, fill_holes_per_slice, gaussian_mm, hessian_blob_response, otsu_threshold,
-};
+use super::filters::{blob_response, fill_holes_per_slice, gaussian_mm, hessian_blob_response, otsu_threshold};
 use super::morphology;
 use rayon::prelude::*;
 
@@ -84,8 +82,8 @@ pub struct BlobPeak {
 /// may lie: edges of the region respond too, and a nodule is a blob surrounded by lung. The
 /// lattice's faces count as edges: σ ends there (the views see only the box), so a filter
 /// there sees half a neighbourhood, and the lungs the box cuts through touch them.
-pub fn blob_sites(region: &[bool], dims: [usize; 3], spacing_mm: [f64; 3], inside_mm: f64) -> Vec<bool> {
-    let inside_region = distance_inside_mm(region, dims, spacing_mm);
+/// `depth_mm` is each node's distance inside the region ([`super::filters::distance_inside_mm`] of it).
+pub fn blob_sites(depth_mm: &[f64], dims: [usize; 3], spacing_mm: [f64; 3], inside_mm: f64) -> Vec<bool> {
     // The distance to the nearest node outside the lattice along `axis`, as the EDT measures
     // the distance to the nearest unset node.
     let to_face = |axis: usize, i: usize| (i + 1).min(dims[axis] - i) as f64 * spacing_mm[axis];
@@ -93,7 +91,7 @@ pub fn blob_sites(region: &[bool], dims: [usize; 3], spacing_mm: [f64; 3], insid
         let (x, y, z) = (i % dims[0], (i / dims[0]) % dims[1], i / (dims[0] * dims[1]));
         to_face(0, x).min(to_face(1, y)).min(to_face(2, z)) > inside_mm
     };
-    inside_region.iter().enumerate().map(|(i, &d)| d > inside_mm && far_from_faces(i)).collect()
+    depth_mm.iter().enumerate().map(|(i, &d)| d > inside_mm && far_from_faces(i)).collect()
 }
 
 /// Which scale-normalised bright-blob response the search maximises.

@@ -21,6 +21,7 @@ use crate::kernels::eigen3::eigenvalues;
 use crate::kernels::localization::GroundTruthOnGrid;
 use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params as SweepParams, Scored};
 use crate::volume::Geometry;
+use serde::{Deserialize, Serialize};
 
 /// How far below and above the fraction the volume interval looks (absolute, in units of the peak).
 const INTERVAL_STEP: f64 = 0.1;
@@ -41,18 +42,30 @@ impl Cut {
     }
 }
 
+/// What a search learns of a blob from the region it cut around it: what a ranker of blobs can
+/// weigh besides the blob response. Recorded in `result.json` for every blob a search accepted.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RegionShape {
+    /// [`roundness`]: 1 for a ball, towards 0 for a rod or a plate.
+    pub roundness: f64,
+    /// The region's equivalent diameter.
+    pub diameter_mm: f64,
+    /// The score at the region's peak (σ's local contrast by default).
+    pub peak_score: f32,
+}
+
 /// Whether the half-maximum region at `centre` can be the nodule: the score has a positive
 /// peak there, and the region ([`half_max_selection`]'s) has an equivalent diameter within the
-/// sweep's `diameter_mm` and within `diameter_range_mm` when given. If it can, how round the
-/// region is ([`roundness`]). Grows only the region, and stops past the largest nodule, so a
-/// search can weigh many centres.
+/// sweep's `diameter_mm` and within `diameter_range_mm` when given. If it can, the region's
+/// shape. Grows only the region, and stops past the largest nodule, so a search can weigh many
+/// centres.
 pub fn plausible(
     scored: &Scored,
     sweep: &SweepParams,
     centre: &Centre,
     cut: Cut,
     diameter_range_mm: Option<[f64; 2]>,
-) -> Option<f64> {
+) -> Option<RegionShape> {
     let (seed, peak) = peak_near(scored, centre.voxel)?;
     let geometry = &scored.score.geometry;
     let voxel_mm3: f64 = geometry.spacing_mm.iter().product();
@@ -63,7 +76,7 @@ pub fn plausible(
     let diameter_mm = equivalent_diameter_mm(voxels.len() as f64 * voxel_mm3);
     let fits =
         within(diameter_mm, sweep.diameter_mm) && diameter_range_mm.is_none_or(|range| within(diameter_mm, range));
-    fits.then(|| roundness(&voxels, geometry))
+    fits.then(|| RegionShape { roundness: roundness(&voxels, geometry), diameter_mm, peak_score: peak })
 }
 
 /// How round a region is: √(λ₃/λ₁) of the covariance of its voxels' positions (mm), 1 for a
@@ -301,7 +314,8 @@ mod tests {
             on_nodule: None,
             runner_up: None,
             ambiguous: false,
-            roundness: None,
+            region: None,
+            depth_mm: None,
         }
     }
 

@@ -42,11 +42,12 @@ mod preview;
 mod rules;
 mod shadows;
 
-pub use localize::{centres, Centre, Centres, Localize, RunnerUp, Search, TieBreak, Weighed};
+pub use half_max::RegionShape;
+pub use localize::{blob_score, centres, Centre, Centres, Localize, RunnerUp, Search, TieBreak, Weighed};
 pub use rules::Analysis;
 pub use shadows::ShadowFit;
 
-pub const VERSION: u32 = 16;
+pub const VERSION: u32 = 17;
 
 /// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
 /// full width at half maximum. `half_max_fraction` then only sets where the nodule is cut (its
@@ -104,8 +105,15 @@ pub struct Params {
     pub rival_ratio: f64,
     /// `localize = "blob"`: among blobs answering alike (at `rival_ratio` of the strongest or
     /// more), which a search takes: "response" (the strongest) or "roundness" (the roundest
-    /// region; needs sizing = "half_max" or "shadows").
+    /// region; needs sizing = "half_max" or "shadows"); or "score", which ranks the
+    /// `score_top` strongest ([`TieBreak::Score`]).
     pub tie_break: TieBreak,
+    /// The blind search's own `tie_break` (none: `tie_break`).
+    pub blind_tie_break: Option<TieBreak>,
+    /// `tie_break = "score"`: the weight of roundness beside ln(response / peak score).
+    pub score_roundness: f64,
+    /// `tie_break = "score"`: how many of the strongest accepted blobs it ranks.
+    pub score_top: usize,
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
@@ -147,11 +155,22 @@ impl Default for Params {
             guided_scale_ratios: vec![1.0],
             rival_ratio: 0.7,
             tie_break: TieBreak::default(),
+            blind_tie_break: None,
+            score_roundness: 3.0,
+            score_top: 5,
         }
     }
 }
 
 impl Params {
+    /// How `search` judges between blobs that answer alike.
+    pub fn tie_break_of(&self, search: Search) -> TieBreak {
+        match search {
+            Search::Guided => self.tie_break,
+            Search::Blind => self.blind_tie_break.unwrap_or(self.tie_break),
+        }
+    }
+
     /// How far from its peak the guided region reaches, mm: `guided_reach_diameters` × the
     /// annotated diameter (none without an annotation).
     fn guided_reach_mm(&self, annotated_mm: Option<f64>) -> Option<f64> {
@@ -182,11 +201,24 @@ impl Params {
         if !(self.rival_ratio.is_finite() && self.rival_ratio > 0.0) {
             bail!("[select] rival_ratio must be a number > 0 (got {})", self.rival_ratio);
         }
-        if self.tie_break == TieBreak::Roundness && !self.sizing.cuts_half_max() {
-            bail!(
-                "[select] tie_break = \"roundness\" judges the blobs' half-maximum regions: set sizing to \
-                 \"half_max\" or \"shadows\""
-            );
+        for (key, tie_break) in [("tie_break", Some(self.tie_break)), ("blind_tie_break", self.blind_tie_break)] {
+            let name = match tie_break {
+                Some(TieBreak::Roundness) => "roundness",
+                Some(TieBreak::Score) => "score",
+                Some(TieBreak::Response) | None => continue,
+            };
+            if !self.sizing.cuts_half_max() {
+                bail!(
+                    "[select] {key} = \"{name}\" judges the blobs' half-maximum regions: set sizing to \
+                     \"half_max\" or \"shadows\""
+                );
+            }
+        }
+        if !(self.score_roundness.is_finite() && self.score_roundness >= 0.0) {
+            bail!("[select] score_roundness must be a number ≥ 0 (got {})", self.score_roundness);
+        }
+        if self.score_top == 0 {
+            bail!("[select] score_top must be at least 1");
         }
         if self.sizing.cuts_half_max() && self.localize == Localize::None {
             bail!(
@@ -338,11 +370,11 @@ impl Stage for Select {
         let guided_cut = Cut { fraction: p.half_max_fraction, reach_mm: p.guided_reach_mm(annotated) };
         let blind_cut = Cut::at(p.half_max_fraction);
         let accept = |search: Search, centre: &Centre| match p.sizing {
-            Sizing::Candidates => Weighed::Accepted { roundness: None },
+            Sizing::Candidates => Weighed::Accepted { region: None },
             Sizing::HalfMax | Sizing::Shadows => {
                 let (cut, range) = blob_check(search, p, annotated);
                 match half_max::plausible(&scored, &sweep.params, centre, cut, range) {
-                    Some(roundness) => Weighed::Accepted { roundness: Some(roundness) },
+                    Some(region) => Weighed::Accepted { region: Some(region) },
                     None => Weighed::PassedOver,
                 }
             }
@@ -558,10 +590,23 @@ mod tests {
     }
 
     #[test]
-    fn the_roundness_tie_break_needs_regions_and_the_rival_ratio_a_positive_number() {
+    fn region_tie_breaks_need_regions_and_the_rival_ratio_a_positive_number() {
         let p = Params { tie_break: TieBreak::Roundness, sizing: Sizing::Candidates, ..Params::default() };
-        assert!(p.check().unwrap_err().to_string().contains("tie_break"));
+        assert!(p.check().unwrap_err().to_string().contains("tie_break = \"roundness\""));
         assert!(Params { sizing: Sizing::Shadows, ..p }.check().is_ok());
+        let p = Params { blind_tie_break: Some(TieBreak::Score), sizing: Sizing::Candidates, ..Params::default() };
+        assert!(p.check().unwrap_err().to_string().contains("blind_tie_break = \"score\""));
+        let p = Params { sizing: Sizing::HalfMax, ..p };
+        assert!(p.check().is_ok());
+        assert_eq!(
+            (p.tie_break_of(Search::Guided), p.tie_break_of(Search::Blind)),
+            (TieBreak::Response, TieBreak::Score)
+        );
+        assert!(Params { score_top: 0, ..p.clone() }.check().unwrap_err().to_string().contains("score_top"));
+        for bad in [-1.0, f64::NAN] {
+            let p = Params { score_roundness: bad, ..p.clone() };
+            assert!(p.check().unwrap_err().to_string().contains("score_roundness"));
+        }
         for bad in [0.0, -1.0, f64::NAN] {
             let p = Params { rival_ratio: bad, ..Params::default() };
             assert!(p.check().unwrap_err().to_string().contains("rival_ratio"));
