@@ -340,3 +340,32 @@ fn the_score_tie_break_ranks_the_strongest_few_by_response_over_peak_and_roundne
     // Without a region there is no score.
     assert_eq!(blob_score(&Centre { region: None, ..blind }, 3.0), None);
 }
+
+#[test]
+fn with_no_guided_centre_the_guided_rule_may_fall_back_to_the_blind_one() {
+    use aret_pipe::stage::select::{centres, Centre, Search, Weighed};
+    let (density, strong, _) = two_balls(0.3);
+    let lungs = vec![true; density.geometry.len()];
+    let params = SelectParams { inside_mm: 0.0, ..SelectParams::default() };
+    let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
+    // The guided search accepts nothing; the blind one takes the strong ball.
+    let found =
+        centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|s, _| Weighed::from(s == Search::Blind));
+    assert!(found.guided.is_none());
+    let blind = found.blind.clone().expect("a blind centre");
+    assert!(near(blind.position_mm, strong) && !blind.from_blind);
+    // The guided size check rejects the blind centre too: still no guided centre.
+    let mut rejected = found.clone();
+    rejected.fall_back_to_blind(|_: &Centre| Weighed::PassedOver);
+    assert!(rejected.guided.is_none());
+    // It passes: the guided rule sizes from the blind centre, and says so.
+    let mut taken = found.clone();
+    taken.fall_back_to_blind(|_: &Centre| Weighed::from(true));
+    let guided = taken.guided.clone().expect("the blind centre");
+    assert!(guided.from_blind && guided.voxel == blind.voxel, "{guided:?}");
+    // A guided centre of its own is never replaced.
+    let mut own = taken.clone();
+    own.blind = Some(Centre { voxel: [0, 0, 0], ..blind });
+    own.fall_back_to_blind(|_: &Centre| Weighed::from(true));
+    assert_eq!(own.guided, taken.guided);
+}

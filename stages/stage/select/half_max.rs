@@ -316,6 +316,7 @@ mod tests {
             ambiguous: false,
             region: None,
             depth_mm: None,
+            from_blind: false,
         }
     }
 

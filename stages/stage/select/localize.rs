@@ -93,6 +93,10 @@ pub struct Centre {
     /// How far inside the lung field the centre lies, for `blob`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_mm: Option<f64>,
+    /// The guided rule's centre is the blind search's: the guided search found no blob it could
+    /// size, and the blind centre passed the guided size check (`guided_fallback`).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub from_blind: bool,
 }
 
 /// What a search's caller says of one blob.
@@ -167,6 +171,16 @@ pub struct RunnerUp {
 }
 
 impl Centres {
+    /// With no guided centre, the blind one, if `guided_accepts` it (the guided search's size
+    /// check, against the annotated diameter): a less assisted centre than the guided search's
+    /// own, taken only where that search found nothing. Nothing changes otherwise.
+    pub fn fall_back_to_blind(&mut self, guided_accepts: impl Fn(&Centre) -> Weighed) {
+        let Some(blind) = self.blind.as_ref().filter(|_| self.guided.is_none()) else { return };
+        if let Weighed::Accepted { region } = guided_accepts(blind) {
+            self.guided = Some(Centre { region, from_blind: true, ..blind.clone() });
+        }
+    }
+
     /// The centre `rule` sized from: the guided one, or the blind one for both blind rules.
     pub fn of(&self, rule: Rule) -> Option<&Centre> {
         match rule {
@@ -279,6 +293,7 @@ pub fn centres(
         ambiguous: false,
         region: None,
         depth_mm: None,
+        from_blind: false,
     };
     match localize {
         Localize::None => Centres::default(),

@@ -114,6 +114,10 @@ pub struct Params {
     pub score_roundness: f64,
     /// `tie_break = "score"`: how many of the strongest accepted blobs it ranks.
     pub score_top: usize,
+    /// `localize = "blob"`, with an annotated diameter: where the guided search finds no blob
+    /// it can size, the guided rule takes the blind centre if it passes the guided size check
+    /// ([`Centres::fall_back_to_blind`]).
+    pub guided_fallback: bool,
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
@@ -158,6 +162,7 @@ impl Default for Params {
             blind_tie_break: None,
             score_roundness: 3.0,
             score_top: 5,
+            guided_fallback: false,
         }
     }
 }
@@ -379,7 +384,7 @@ impl Stage for Select {
                 }
             }
         };
-        let centres = localize::centres(
+        let mut centres = localize::centres(
             p,
             &density,
             scored.region.as_deref(),
@@ -388,6 +393,9 @@ impl Stage for Select {
             gt.as_ref().map(|g| g.coverage.as_slice()),
             &accept,
         );
+        if p.guided_fallback && p.localize == Localize::Blob && annotated.is_some() {
+            centres.fall_back_to_blind(|blind| accept(Search::Guided, blind));
+        }
         let dims = density.geometry.dims;
         // Some(None): any candidate; Some(Some(cell)): those holding the centre; None: the
         // rule's centre was not found, so it cannot choose.
@@ -443,9 +451,11 @@ impl Stage for Select {
             patient: ctx.patient().to_string(),
             verdict: {
                 let line = verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some(), p);
-                match centres.of(self.params.primary).and_then(rival_note) {
-                    Some(note) if primary_sel.is_some() => format!("{line}; {note}"),
-                    _ => line,
+                let centre = centres.of(self.params.primary);
+                let notes = [centre.and_then(rival_note), centre.and_then(fallback_note)];
+                match primary_sel {
+                    Some(_) => std::iter::once(line).chain(notes.into_iter().flatten()).collect::<Vec<_>>().join("; "),
+                    None => line,
                 }
             },
             primary: self.params.primary,
@@ -536,6 +546,14 @@ fn rival_note(centre: &Centre) -> Option<String> {
         "ambiguous: another blob {:.0} mm away answers at {:.2} of this one's response ([select] rival_ratio)",
         rival.distance_mm, rival.ratio
     ))
+}
+
+fn fallback_note(centre: &Centre) -> Option<String> {
+    centre.from_blind.then(|| {
+        "the guided search found no blob of the annotated size: this is the blind search's centre \
+         ([select] guided_fallback)"
+            .to_string()
+    })
 }
 
 /// One line saying whether `primary` can be trusted: "hit", or why not ("MISS: …").
