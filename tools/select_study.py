@@ -10,7 +10,9 @@ Each set is a preset's phantom, views and fit, sized by the shipped select (`pip
 [select]) with the variant's keys on top. Only select and metrics recompute: with every fit in
 cache/ the nine sets take about five minutes on two cores (a set whose fits are not cached
 trains first: 15–20 minutes). docs/experiments.md's select-only tables over "the nine sets"
-were measured this way. Out dirs: out-study/NAME/SET/. Only the standard library is needed.
+were measured this way. Two more sets are held out (`--sets views128-consensus,views128-union`:
+fits to SPEC §3's 128² views, on which no rule was chosen): run them to check a rule the nine
+chose. Out dirs: out-study/NAME/SET/. Only the standard library is needed.
 """
 import argparse
 import csv
@@ -35,6 +37,12 @@ SETS = [
     ("readers", "presets/phantom_readers_256.toml", {}),
     ("spheres-1", "presets/calibration_spheres.toml", {}),
     ("spheres-2", "presets/calibration_spheres.toml", {"dataset.phantom": {"seed": 2}}),
+]
+# Held out: fits no select rule was chosen on (SPEC §3's 128² views, on the consensus and the
+# union phantom). Run only when --sets names them, so that they stay held out.
+HELD_OUT = [
+    ("views128-consensus", "presets/drr128.toml", {}),
+    ("views128-union", "presets/phantom_union.toml", {}),
 ]
 
 
@@ -69,18 +77,20 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("name", help="the study's name (its out dirs: out-study/NAME/SET)")
     ap.add_argument("variant", help="[select] keys as TOML, ';' between keys: 'rival_ratio = 0.5; …'")
-    ap.add_argument("--sets", help="comma-separated sets (default: all): " + ", ".join(s for s, *_ in SETS))
+    ap.add_argument("--sets", help="comma-separated sets (default: the nine): "
+                    + ", ".join(s for s, *_ in SETS + HELD_OUT))
     ap.add_argument("--no-run", action="store_true", help="summarise the out dirs already written")
     ap.add_argument("--binary", default=os.path.join(ROOT, "target", "release", "aret-pipe"))
     args = ap.parse_args()
     wanted = args.sets.split(",") if args.sets else [s for s, *_ in SETS]
-    unknown = set(wanted) - {s for s, *_ in SETS}
+    known = SETS + HELD_OUT
+    unknown = set(wanted) - {s for s, *_ in known}
     if unknown:
-        sys.exit(f"unknown set(s) {', '.join(sorted(unknown))}: choose from {', '.join(s for s, *_ in SETS)}")
+        sys.exit(f"unknown set(s) {', '.join(sorted(unknown))}: choose from {', '.join(s for s, *_ in known)}")
     variant = args.variant.replace(";", "\n")
     total = {"n": 0, "guided": 0, "blind": 0}
-    print(f"{'set':<12} {'≥10 mm':>6} {'guided':>6} {'blind':>6} {'APE over guided hits':>21} {'hits beating the sphere':>24}")
-    for name, preset, overrides in SETS:
+    print(f"{'set':<18} {'≥10 mm':>6} {'guided':>6} {'blind':>6} {'APE over guided hits':>21} {'hits beating the sphere':>24}")
+    for name, preset, overrides in known:
         if name not in wanted:
             continue
         out = os.path.join(ROOT, "out-study", args.name, name)
@@ -98,8 +108,8 @@ def main():
         s = summarise(out)
         for k in total:
             total[k] += s[k]
-        print(f"{name:<12} {s['n']:>6} {s['guided']:>6} {s['blind']:>6} {s['ape']:>20.1f}% {s['beat']:>17} of {s['hits_all']}")
-    print(f"{'all':<12} {total['n']:>6} {total['guided']:>6} {total['blind']:>6}")
+        print(f"{name:<18} {s['n']:>6} {s['guided']:>6} {s['blind']:>6} {s['ape']:>20.1f}% {s['beat']:>17} of {s['hits_all']}")
+    print(f"{'all':<18} {total['n']:>6} {total['guided']:>6} {total['blind']:>6}")
 
 
 if __name__ == "__main__":

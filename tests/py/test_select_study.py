@@ -23,7 +23,7 @@ def written(preset, overrides, variant, out="/tmp/study-out"):
 
 def test_every_set_reads_its_presets_fits_through_the_shipped_select_with_the_variant_on_top():
     shipped = tomllib.loads((ROOT / "pipeline.toml").read_text())["select"]
-    for name, preset, overrides in study.SETS:
+    for name, preset, overrides in study.SETS + study.HELD_OUT:
         config = written(preset, overrides, "rival_ratio = 0.5\nguided_scale_ratios = [0.71, 1.0]")
         original = tomllib.loads((ROOT / preset).read_text())
         assert config["pipeline"]["out_dir"] == "/tmp/study-out", name
