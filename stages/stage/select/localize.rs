@@ -15,7 +15,10 @@
 //! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
 //! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
 //! left, among the [`MAX_WEIGHED`] strongest; with `tie_break = "roundness"`, the roundest of
-//! those that answer about as strongly as it ([`TieBreak`]).
+//! those that answer about as strongly as it; with `"score"` (the blind search's, shipped), the
+//! best of the few strongest by [`blob_score`] ([`TieBreak`]). Every blob a search accepted is
+//! recorded ([`Centres`]). Where the guided search finds nothing, its rule may take the blind
+//! centre ([`Centres::fall_back_to_blind`]).
 //!
 //! A search also reports its runner-up: the strongest other blob it would have accepted, away
 //! from the one it took. A rival that answers nearly as strongly says the choice is a toss-up
