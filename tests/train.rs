@@ -240,3 +240,36 @@ fn one_seed_gives_identical_factors_another_differs() {
     assert_eq!(a, run(1, 3));
     assert_ne!(a, run(2, 2));
 }
+
+/// The dense fit's Bregman steps: the first solve is the plain fit's, step for step, and each
+/// later one fits the views more closely (the TV's bias taken back), from where it stopped.
+#[test]
+fn bregman_steps_continue_the_dense_fit_and_tighten_the_views() {
+    use aret_pipe::train::dense_tv;
+    use aret_pipe::train::fit::FieldModel;
+    let (cameras, images, aabb) = phantom_views();
+    let views = Views { cameras: &cameras, images: &images, aabb };
+    // A strong TV, so that its bias and not the coarse lattice is what limits the plain fit.
+    let plain = TrainParams {
+        model: FieldModel::DenseTv,
+        grid: 16,
+        dense_tv_iterations: 300,
+        dense_tv_lambda: 1e-1,
+        log_every: 100,
+        ..TrainParams::default()
+    };
+    let bregman = TrainParams { dense_tv_bregman_steps: 2, ..plain.clone() };
+    let r = renderer(&plain, aabb);
+    let (a, b) = (dense_tv::fit(&plain, &views, &r, |_| {}), dense_tv::fit(&bregman, &views, &r, |_| {}));
+    let iterations: Vec<usize> = b.log.iter().map(|row| row.iteration).collect();
+    assert_eq!(iterations, [0, 100, 200, 300, 400, 500, 600, 700, 800, 900], "a row every 100 of 3 × 300 steps");
+    for (x, y) in a.log.iter().zip(&b.log) {
+        assert_eq!((x.iteration, x.loss), (y.iteration, y.loss), "the first solve is the plain fit");
+    }
+    let photo_at = |k: usize| b.log[k].photo;
+    // The plain fit has settled: its last 100 steps gain little against what a step gains.
+    assert!(photo_at(2) - photo_at(3) < 0.1 * (photo_at(3) - photo_at(6)), "settled: {:?}", &b.log[..4]);
+    assert!(photo_at(6) < 0.8 * photo_at(3), "one step fits closer: {} → {}", photo_at(3), photo_at(6));
+    assert!(photo_at(9) < photo_at(6), "and the next closer still: {} → {}", photo_at(6), photo_at(9));
+    assert_ne!(a.sigma, b.sigma);
+}

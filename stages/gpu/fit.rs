@@ -89,6 +89,7 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         dense_tv_iterations: _,
         dense_tv_lambda: _,
         dense_tv_epsilon: _,
+        dense_tv_bregman_steps: _,
     } = params;
     if !model.is_vm() {
         anyhow::bail!("[train] model = \"dense_tv\" runs on the CPU only: its solver has no shaders");

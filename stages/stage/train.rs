@@ -77,11 +77,17 @@ impl Stage for Train {
         let table = json.as_object_mut().expect("params are a table");
         // Only what the chosen model reads is part of its key (so VM fits keep their keys).
         let unread: &[&str] = match self.params.model {
-            FieldModel::Vm => &["model", "dense_tv_iterations", "dense_tv_lambda", "dense_tv_epsilon"],
+            FieldModel::Vm => {
+                &["model", "dense_tv_iterations", "dense_tv_lambda", "dense_tv_epsilon", "dense_tv_bregman_steps"]
+            }
             FieldModel::DenseTv => &VM_ONLY_KEYS,
         };
         for key in unread.iter().chain(&["threads"]) {
             table.remove(*key);
+        }
+        // Without Bregman steps the fit is the one cached before the key existed: same key.
+        if self.params.dense_tv_bregman_steps == 0 {
+            table.remove("dense_tv_bregman_steps");
         }
         json
     }

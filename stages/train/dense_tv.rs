@@ -186,7 +186,11 @@ struct Evaluation {
 }
 
 /// Fits σ to `views` as the module describes, `params.dense_tv_iterations` FISTA steps, logging as the
-/// VM fit logs (`photo` is the data term, `tv3d` the smoothed TV, `lr` the step `1/L`).
+/// VM fit logs (`photo` is the data term, `tv3d` the smoothed TV, `lr` the step `1/L`). With
+/// `dense_tv_bregman_steps` > 0 it then solves again that many times, each from the last σ with
+/// the views' residual added to the depths it fits (Bregman iteration: TV takes contrast from a
+/// small object, in proportion to its surface over its volume, and each step gives it back);
+/// the log keeps E against the measured depths.
 pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, mut on_log: impl FnMut(&LogRow)) -> DenseFitted {
     let started = Instant::now();
     let n = params.grid;
@@ -198,12 +202,13 @@ pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, mut on_log:
     let b = seen.iter().filter(|&&s| s).count().max(1) as f64;
     let measured: Vec<f64> = rays.iter().map(|r| -r.target.max(MIN_INTENSITY).ln()).collect();
     let (lambda, epsilon) = (params.dense_tv_lambda, params.dense_tv_epsilon);
-    let residual_of = |depths: &[f64]| -> Vec<f64> {
-        depths.iter().zip(&measured).zip(&seen).map(|((d, m), &s)| if s { d - m } else { 0.0 }).collect()
+    // τ̂ − τ on the rays that meet the box (0 on the others).
+    let residual = |depths: &[f64], target: &[f64]| -> Vec<f64> {
+        depths.iter().zip(target).zip(&seen).map(|((d, m), &s)| if s { d - m } else { 0.0 }).collect()
     };
     let evaluate = |sigma: &[f64]| -> Evaluation {
         let depths = projector.depths(sigma);
-        let data = residual_of(&depths).iter().map(|r| r * r).sum::<f64>() / (2.0 * b);
+        let data = residual(&depths, &measured).iter().map(|r| r * r).sum::<f64>() / (2.0 * b);
         let (tv_sum, _) = smoothed_tv(sigma, n, epsilon);
         Evaluation { data, tv: tv_sum / nodes as f64, depths }
     };
@@ -226,23 +231,34 @@ pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, mut on_log:
     };
     let mut sigma = vec![0.0; nodes];
     record(0, &evaluate(&sigma));
-    let (mut ahead, mut t) = (sigma.clone(), 1.0f64);
     // The step's buffers, reused: at 128³ each is 16 MB, and fresh ones cost their page faults.
     let (mut gradient, mut next, mut p) = (vec![0.0; nodes], vec![0.0; nodes], vec![[0.0; 3]; nodes]);
     let w = lambda / nodes as f64;
-    for it in 0..params.dense_tv_iterations {
-        // ∇E = Aᵀ(Aσ − τ)/B + λ/N³ ∇TV, at the look-ahead point.
-        projector.back_into(&residual_of(&projector.depths(&ahead)), &mut gradient);
-        p.par_iter_mut().enumerate().for_each(|(i, p)| *p = normalised_difference(&ahead, n, epsilon, i).1);
-        gradient.par_iter_mut().enumerate().for_each(|(i, g)| *g = *g / b + w * tv_gradient_at(&p, n, i));
-        next.par_iter_mut().zip(&ahead).zip(&gradient).for_each(|((x, a), g)| *x = (a - step * g).max(0.0));
-        let t_next = (1.0 + (1.0 + 4.0 * t * t).sqrt()) / 2.0;
-        let momentum = (t - 1.0) / t_next;
-        ahead.par_iter_mut().zip(&next).zip(&sigma).for_each(|((a, x), old)| *a = x + momentum * (x - old));
-        std::mem::swap(&mut sigma, &mut next);
-        t = t_next;
-        if params.logs_after(it + 1) {
-            record(it + 1, &evaluate(&sigma));
+    // Bregman: each later solve fits the depths plus what the last σ left unexplained.
+    let mut target = measured.clone();
+    let steps = params.dense_tv_iterations;
+    for solve in 0..=params.dense_tv_bregman_steps {
+        if solve > 0 {
+            for (t, r) in target.iter_mut().zip(residual(&projector.depths(&sigma), &measured)) {
+                *t -= r;
+            }
+        }
+        let (mut ahead, mut t) = (sigma.clone(), 1.0f64);
+        for it in 0..steps {
+            // ∇E = Aᵀ(Aσ − τ)/B + λ/N³ ∇TV, at the look-ahead point.
+            projector.back_into(&residual(&projector.depths(&ahead), &target), &mut gradient);
+            p.par_iter_mut().enumerate().for_each(|(i, p)| *p = normalised_difference(&ahead, n, epsilon, i).1);
+            gradient.par_iter_mut().enumerate().for_each(|(i, g)| *g = *g / b + w * tv_gradient_at(&p, n, i));
+            next.par_iter_mut().zip(&ahead).zip(&gradient).for_each(|((x, a), g)| *x = (a - step * g).max(0.0));
+            let t_next = (1.0 + (1.0 + 4.0 * t * t).sqrt()) / 2.0;
+            let momentum = (t - 1.0) / t_next;
+            ahead.par_iter_mut().zip(&next).zip(&sigma).for_each(|((a, x), old)| *a = x + momentum * (x - old));
+            std::mem::swap(&mut sigma, &mut next);
+            t = t_next;
+            let done = solve * steps + it + 1;
+            if params.logs_after(done) {
+                record(done, &evaluate(&sigma));
+            }
         }
     }
     DenseFitted { sigma: sigma.iter().map(|&v| v as f32).collect(), log }

@@ -54,6 +54,10 @@ pub struct TrainParams {
     pub dense_tv_lambda: f64,
     /// `model = "dense_tv"`: ε of the smoothed TV `√(|∇σ|² + ε²)`, in σ per lattice step.
     pub dense_tv_epsilon: f64,
+    /// `model = "dense_tv"`: Bregman steps after the first solve (0: none). Each adds the views'
+    /// residual back to the measured depths and solves again from the last σ, which returns the
+    /// contrast the TV took from small objects.
+    pub dense_tv_bregman_steps: usize,
     /// Where the fit runs (part of the cache key: backends differ in rounding).
     pub backend: Backend,
     /// Worker threads (0: all cores). Results do not depend on it: not part of the cache key.
@@ -122,7 +126,7 @@ impl TrainParams {
     pub fn steps(&self) -> usize {
         match self.model {
             FieldModel::Vm => self.iterations,
-            FieldModel::DenseTv => self.dense_tv_iterations,
+            FieldModel::DenseTv => self.dense_tv_iterations * (self.dense_tv_bregman_steps + 1),
         }
     }
 
@@ -169,6 +173,7 @@ impl Default for TrainParams {
             dense_tv_iterations: 500,
             dense_tv_lambda: 1e-2,
             dense_tv_epsilon: 1e-3,
+            dense_tv_bregman_steps: 0,
             backend: Backend::Cpu,
             threads: 0,
         }
