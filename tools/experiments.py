@@ -86,6 +86,9 @@ ROWS = [
      "the default on a third anatomy (phantom seed 3), first trained after the roundness tie-break was fixed"),
     ("default-seed4", "presets/default_seed4.toml", "B", "C*",
      "the default on a fourth anatomy (phantom seed 4), first trained after the roundness tie-break was fixed"),
+    ("bregman", "presets/bregman.toml", "B", "C*",
+     "the default with one Bregman step on its dense fit (dense_tv_bregman_steps = 1): a second solve from the"
+     " first σ, fitting the depths plus the views' residual"),
     ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
      "the default fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
     ("drr-128", "presets/drr128.toml", "B", "C*",
