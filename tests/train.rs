@@ -273,3 +273,15 @@ fn bregman_steps_continue_the_dense_fit_and_tighten_the_views() {
     assert!(photo_at(9) < photo_at(6), "and the next closer still: {} → {}", photo_at(6), photo_at(9));
     assert_ne!(a.sigma, b.sigma);
 }
+
+/// Without Bregman steps the parameters serialise as before the key existed, so the dense fits
+/// cached then keep their keys; with them the key is there.
+#[test]
+fn bregman_steps_enter_the_cache_key_only_when_set() {
+    let plain = serde_json::to_value(TrainParams::default()).unwrap();
+    assert!(plain.get("dense_tv_bregman_steps").is_none(), "{plain}");
+    let one = serde_json::to_value(TrainParams { dense_tv_bregman_steps: 1, ..TrainParams::default() }).unwrap();
+    assert_eq!(one["dense_tv_bregman_steps"], 1);
+    let back: TrainParams = serde_json::from_value(plain).unwrap();
+    assert_eq!(back, TrainParams::default());
+}

@@ -85,10 +85,6 @@ impl Stage for Train {
         for key in unread.iter().chain(&["threads"]) {
             table.remove(*key);
         }
-        // Without Bregman steps the fit is the one cached before the key existed: same key.
-        if self.params.dense_tv_bregman_steps == 0 {
-            table.remove("dense_tv_bregman_steps");
-        }
         json
     }
     fn reads(&self, _stage: &str, output: &str) -> bool {
