@@ -239,6 +239,56 @@ fn a_300_iteration_fit_reaches_the_cpu_loss_within_1_percent() {
     eprintln!("final factors: max |Δ| / max |cpu| = {field_err:.2e}; mask nodes differing: {differ}");
 }
 
+/// The dense model's FISTA on the device against the CPU's: in f32 against f64, the same
+/// steps give the same log within 1e-5 and σ within 1e-4 of its peak; the device repeats
+/// itself bit for bit; and its Bregman step continues from its own σ.
+#[test]
+fn the_dense_fit_on_the_device_follows_the_cpu_and_repeats_itself() {
+    use aret_pipe::train::dense_tv;
+    use aret_pipe::train::fit::FieldModel;
+    let Some(gpu) = device() else { return };
+    let (cameras, images, aabb) = views();
+    let views = Views { cameras: &cameras, images: &images, aabb };
+    let params = TrainParams {
+        model: FieldModel::DenseTv,
+        grid: 20,
+        dense_tv_iterations: 150,
+        log_every: 50,
+        ..TrainParams::default()
+    };
+    let r = renderer(&params, aabb);
+    let started = std::time::Instant::now();
+    let cpu = dense_tv::fit(&params, &views, &r, |_| {});
+    let cpu_s = started.elapsed().as_secs_f64();
+    let started = std::time::Instant::now();
+    let on_gpu = aret_pipe::gpu::dense_fit::fit(&gpu, &params, &views, &r, |_| {}).unwrap();
+    let gpu_s = started.elapsed().as_secs_f64();
+    eprintln!("150 dense steps on 20³: CPU {cpu_s:.2} s, GPU {gpu_s:.2} s ({})", gpu.describe());
+    let iterations: Vec<usize> = on_gpu.log.iter().map(|row| row.iteration).collect();
+    assert_eq!(iterations, [0, 50, 100, 150]);
+    for (c, g) in cpu.log.iter().zip(&on_gpu.log) {
+        let err = (g.loss - c.loss).abs() / c.loss;
+        eprintln!("step {:3}: loss {:.6e} (cpu) {:.6e} (gpu) Δ {err:.1e}", c.iteration, c.loss, g.loss);
+        assert_eq!(c.lr, g.lr, "the same step 1/L");
+        assert!(err < 1e-5, "step {}: loss {} (gpu) against {} (cpu)", c.iteration, g.loss, c.loss);
+    }
+    let (first, last) = (cpu.log[0].loss, cpu.log.last().unwrap().loss);
+    assert!(last * 10.0 < first, "the fit makes progress: {first} → {last}");
+    let sigma_err = relative_to_max(&on_gpu.sigma, &cpu.sigma);
+    eprintln!("σ: max |Δ| / max |cpu| = {sigma_err:.1e}");
+    assert!(sigma_err < 1e-4, "σ differs by {sigma_err:.1e} of its peak");
+    let again = aret_pipe::gpu::dense_fit::fit(&gpu, &params, &views, &r, |_| {}).unwrap();
+    assert_eq!(again.sigma, on_gpu.sigma, "the device repeats its own fit bit for bit");
+    let bregman = TrainParams { dense_tv_bregman_steps: 1, ..params.clone() };
+    let (cpu_b, gpu_b) = (
+        dense_tv::fit(&bregman, &views, &r, |_| {}),
+        aret_pipe::gpu::dense_fit::fit(&gpu, &bregman, &views, &r, |_| {}).unwrap(),
+    );
+    let (c, g) = (cpu_b.log.last().unwrap(), gpu_b.log.last().unwrap());
+    assert_eq!((c.iteration, g.iteration), (300, 300));
+    assert!((g.loss - c.loss).abs() < 1e-3 * c.loss, "after a Bregman step: {} (gpu) against {} (cpu)", g.loss, c.loss);
+}
+
 #[test]
 fn no_adapter_is_an_error_not_a_panic() {
     let nothing = GpuOptions { backends: wgpu::Backends::empty(), float_atomics: true };
@@ -348,4 +398,9 @@ fn the_model_records_the_backend_that_ran() {
     // Same key as the explicit backend it resolved to: cached when that one ran before.
     let outcome = if expected == "gpu" { "cached" } else { "computed" };
     assert_eq!(train_outcomes(dir.path()), [outcome]);
+    // The dense model runs there too.
+    write_config(dir.path(), "backend = \"gpu\"\nmodel = \"dense_tv\"\ndense_tv_iterations = 5\n");
+    let out = run(dir.path(), false);
+    assert!(out.status.success(), "{}\n{}", text(&out.stdout), text(&out.stderr));
+    assert_eq!(model_backend(dir.path(), "P1"), "gpu");
 }

@@ -16,6 +16,7 @@ pub struct Gpu {
     errors: Arc<Mutex<Option<String>>>,
     kernels: OnceLock<Result<Arc<crate::gpu::fit::Kernels>, String>>,
     drr: OnceLock<Result<Arc<crate::gpu::drr_march::DrrMarch>, String>>,
+    dense: OnceLock<Result<Arc<crate::gpu::dense_fit::DenseKernels>, String>>,
 }
 
 /// How to open a device.
@@ -72,7 +73,17 @@ impl Gpu {
                 first.get_or_insert_with(|| e.to_string());
             }
         }));
-        Ok(Gpu { device, queue, info, limits, float_atomics, errors, kernels: OnceLock::new(), drr: OnceLock::new() })
+        Ok(Gpu {
+            device,
+            queue,
+            info,
+            limits,
+            float_atomics,
+            errors,
+            kernels: OnceLock::new(),
+            drr: OnceLock::new(),
+            dense: OnceLock::new(),
+        })
     }
 
     /// The process's device (opened on first use from [`GpuOptions::from_env`]), or why there is none.
@@ -121,6 +132,14 @@ impl Gpu {
         let built = self
             .drr
             .get_or_init(|| crate::gpu::drr_march::DrrMarch::new(self).map(Arc::new).map_err(|e| format!("{e:#}")));
+        built.clone().map_err(|e| anyhow::anyhow!(e))
+    }
+
+    /// The dense fit's kernels, compiled once per device.
+    pub(crate) fn dense_kernels(&self) -> anyhow::Result<Arc<crate::gpu::dense_fit::DenseKernels>> {
+        let built = self
+            .dense
+            .get_or_init(|| crate::gpu::dense_fit::DenseKernels::new(self).map(Arc::new).map_err(|e| format!("{e:#}")));
         built.clone().map_err(|e| anyhow::anyhow!(e))
     }
 }

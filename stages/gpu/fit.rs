@@ -58,14 +58,16 @@ impl Kernels {
     }
 }
 
-/// Fails, naming the option, when `params` asks for something the shaders do not compute.
+/// Fails, naming the option, when `params` asks for something the shaders do not compute (since
+/// the dense model gained its shaders, nothing).
 ///
 /// The destructuring lists every `[train]` key on purpose: a new option does not compile here
 /// until someone decides whether the GPU backend covers it (and, if not, refuses it below) —
 /// the GPU must never silently train a different loss than the CPU would.
 pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
+    // Both models have shaders: the VM fit's loop here, the dense fit's in `gpu::dense_fit`.
     let TrainParams {
-        model,
+        model: _,
         grid: _,
         rank: _,
         shift: _,
@@ -91,9 +93,6 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         dense_tv_epsilon: _,
         dense_tv_bregman_steps: _,
     } = params;
-    if !model.is_vm() {
-        anyhow::bail!("[train] model = \"dense_tv\" runs on the CPU only: its solver has no shaders");
-    }
     Ok(())
 }
 
@@ -101,6 +100,9 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
 /// `train::fit::fit`, in f32 on the device. `on_log` sees every logged row as it is made.
 pub fn fit(gpu: &Gpu, params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow)) -> anyhow::Result<Fitted> {
     check_supported(params)?;
+    if !params.model.is_vm() {
+        anyhow::bail!("gpu::fit::fit fits the VM factors; model = \"dense_tv\" fits through gpu::dense_fit::fit");
+    }
     let started = Instant::now();
     let renderer = renderer(params, views.aabb);
     let per_view = views.rays();

@@ -9,6 +9,8 @@
 //! - [`drr_march`]: the DRR stage's Beer–Lambert march through the CT.
 //! - [`compose`], [`render`], [`contract_planes`], [`contract_lines`], [`l1`], [`tv`], [`tv_dense`], [`adam`],
 //!   [`alpha_mask`]: one training iteration, and [`fit`], the loop that keeps it on the device.
+//! - [`csr_times`], [`tv_direction`], [`fista_step`]: one step of the dense model's FISTA, and
+//!   [`dense_fit`], its loop on the device.
 
 pub mod adam;
 pub mod alpha_mask;
@@ -16,14 +18,18 @@ pub mod buffers;
 pub mod compose;
 pub mod contract_lines;
 pub mod contract_planes;
+pub mod csr_times;
+pub mod dense_fit;
 pub mod device;
 pub mod drr_march;
+pub mod fista_step;
 pub mod fit;
 pub mod kernel;
 pub mod l1;
 pub mod render;
 pub mod tv;
 pub mod tv_dense;
+pub mod tv_direction;
 
 pub use device::Gpu;
 

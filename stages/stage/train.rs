@@ -9,8 +9,9 @@ use crate::formats::model::{self, ModelMeta};
 use crate::formats::{exr_image, svg};
 use crate::gpu;
 use crate::stage::drr::CameraSet;
-use crate::train::dense_tv;
+use crate::train::dense_tv::{self, DenseFitted};
 use crate::train::fit::{fit, renderer, FieldModel, Fitted, LogRow, Views};
+use crate::train::render::Renderer;
 use anyhow::bail;
 use std::fmt::Write as _;
 
@@ -44,12 +45,8 @@ pub struct Train {
 
 impl Train {
     /// Where this stage runs: `auto` resolved to `cpu` or `gpu` (for the key and the run alike).
-    /// The dense model's solver runs on the CPU only.
     fn backend(&self) -> Backend {
-        match self.params.model {
-            FieldModel::Vm => self.params.backend.resolve("[train]"),
-            FieldModel::DenseTv => Backend::Cpu,
-        }
+        self.params.backend.resolve("[train]")
     }
 
     /// Runs `work` on `[train] threads` workers (0: rayon's global pool, all cores).
@@ -118,7 +115,12 @@ impl Stage for Train {
         }
         let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
         let (model_bytes, log) = match (self.params.model, device) {
-            (FieldModel::DenseTv, _) => self.fit_dense(&views)?,
+            (FieldModel::DenseTv, Some(device)) => self.fit_dense(&views, |params, views, renderer| {
+                gpu::dense_fit::fit(&device, params, views, renderer, |_| {})
+            })?,
+            (FieldModel::DenseTv, None) => {
+                self.fit_dense(&views, |params, views, renderer| Ok(dense_tv::fit(params, views, renderer, |_| {})))?
+            }
             (FieldModel::Vm, Some(device)) => {
                 self.fit_vm(&views, |params, views| gpu::fit::fit(&device, params, views, |_| {}))?
             }
@@ -161,11 +163,16 @@ impl Train {
         Ok((model::encode(&fitted.field, mask, &meta)?, fitted.log))
     }
 
-    /// The dense lattice (`model = "dense_tv"`, on the CPU): the model file and the log.
-    fn fit_dense(&self, views: &Views) -> anyhow::Result<(Vec<u8>, Vec<LogRow>)> {
+    /// The dense lattice (`model = "dense_tv"`) fitted by `fit_on` (FISTA on the CPU or the
+    /// GPU; `A` is built on the CPU either way): the model file and the log.
+    fn fit_dense(
+        &self,
+        views: &Views,
+        fit_on: impl FnOnce(&Params, &Views, &Renderer) -> anyhow::Result<DenseFitted> + Send,
+    ) -> anyhow::Result<(Vec<u8>, Vec<LogRow>)> {
         let params = &self.params;
         let renderer = renderer(params, views.aabb);
-        let fitted = self.in_pool(|| dense_tv::fit(params, views, &renderer, |_| {}))?;
+        let fitted = self.in_pool(|| fit_on(params, views, &renderer))??;
         let meta = ModelMeta {
             model: FieldModel::DenseTv,
             grid: params.grid,

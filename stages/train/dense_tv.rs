@@ -20,10 +20,10 @@ use rayon::prelude::*;
 use std::time::Instant;
 
 /// A sparse matrix in compressed rows: row `r`'s entries are `index/weight[offsets[r]..offsets[r + 1]]`.
-struct Csr {
-    offsets: Vec<usize>,
-    index: Vec<u32>,
-    weight: Vec<f64>,
+pub struct Csr {
+    pub offsets: Vec<usize>,
+    pub index: Vec<u32>,
+    pub weight: Vec<f64>,
 }
 
 impl Csr {
@@ -65,8 +65,10 @@ impl Csr {
 
 /// The linear projection `τ̂ = A σ` of the rays that meet the box, and its transpose.
 pub struct Projector {
-    rows: Csr,
-    columns: Csr,
+    /// `A`: a row per ray.
+    pub rows: Csr,
+    /// `Aᵀ`: a row per node.
+    pub columns: Csr,
 }
 
 impl Projector {
@@ -185,83 +187,182 @@ struct Evaluation {
     depths: Vec<f64>,
 }
 
-/// Fits σ to `views` as the module describes, `params.dense_tv_iterations` FISTA steps, logging as the
-/// VM fit logs (`photo` is the data term, `tv3d` the smoothed TV, `lr` the step `1/L`). With
+/// What every solver of E shares: `A` and `Aᵀ`, which rays meet the box, the measured depths,
+/// E's weights and FISTA's step `1/L`. The GPU's solver uploads it (`gpu::dense_fit`).
+pub struct DenseProblem {
+    /// The lattice's nodes per side, N.
+    pub n: usize,
+    pub projector: Projector,
+    /// Whether each ray meets the box (a row of `A` with entries).
+    pub seen: Vec<bool>,
+    /// B, the rays that meet the box (at least 1).
+    pub rays_seen: f64,
+    /// `τ = −ln I` of every ray.
+    pub measured: Vec<f64>,
+    pub lambda: f64,
+    pub epsilon: f64,
+    /// FISTA's step, `1/L`.
+    pub step: f64,
+}
+
+impl DenseProblem {
+    pub fn new(params: &TrainParams, rays: &[Ray], renderer: &Renderer) -> DenseProblem {
+        let n = params.grid;
+        let projector = Projector::new(renderer, rays);
+        let seen: Vec<bool> = projector.rows.offsets.windows(2).map(|w| w[1] > w[0]).collect();
+        let rays_seen = seen.iter().filter(|&&s| s).count().max(1) as f64;
+        let measured = rays.iter().map(|r| -r.target.max(MIN_INTENSITY).ln()).collect();
+        let (lambda, epsilon) = (params.dense_tv_lambda, params.dense_tv_epsilon);
+        let step = 1.0 / lipschitz(&projector, n * n * n, rays_seen, lambda, epsilon);
+        DenseProblem { n, projector, seen, rays_seen, measured, lambda, epsilon, step }
+    }
+
+    pub fn nodes(&self) -> usize {
+        self.n * self.n * self.n
+    }
+
+    /// τ̂ − τ on the rays that meet the box (0 on the others).
+    fn residual(&self, depths: &[f64], target: &[f64]) -> Vec<f64> {
+        depths.iter().zip(target).zip(&self.seen).map(|((d, m), &s)| if s { d - m } else { 0.0 }).collect()
+    }
+
+    fn evaluate(&self, sigma: &[f64]) -> Evaluation {
+        let depths = self.projector.depths(sigma);
+        let data = self.residual(&depths, &self.measured).iter().map(|r| r * r).sum::<f64>() / (2.0 * self.rays_seen);
+        let (tv_sum, _) = smoothed_tv(sigma, self.n, self.epsilon);
+        Evaluation { data, tv: tv_sum / self.nodes() as f64, depths }
+    }
+}
+
+/// FISTA on E toward given depths: [`CpuFista`] here, or the device's loop (`gpu::dense_fit`).
+pub trait FistaSolver {
+    /// Runs `steps` FISTA steps on `problem` from `sigma` (restarting the momentum) toward
+    /// `target`, and leaves the last iterate in `sigma`. After each step `k` (from 1) for which
+    /// `wants(k)`, it hands σ to `checkpoint`.
+    fn solve(
+        &mut self,
+        problem: &DenseProblem,
+        sigma: &mut [f64],
+        target: &[f64],
+        steps: usize,
+        wants: &dyn Fn(usize) -> bool,
+        checkpoint: &mut dyn FnMut(usize, &[f64]),
+    ) -> anyhow::Result<()>;
+}
+
+/// FISTA's momentum weight after the step that takes `t` to the returned `t'`: `(t − 1)/t'`.
+pub fn next_momentum(t: f64) -> (f64, f64) {
+    let t_next = (1.0 + (1.0 + 4.0 * t * t).sqrt()) / 2.0;
+    (t_next, (t - 1.0) / t_next)
+}
+
+/// The solver on the CPU, in f64 with rayon.
+pub struct CpuFista {
+    // The step's buffers, reused: at 128³ each is 16 MB, and fresh ones cost their page faults.
+    gradient: Vec<f64>,
+    next: Vec<f64>,
+    p: Vec<[f64; 3]>,
+}
+
+impl CpuFista {
+    pub fn new(problem: &DenseProblem) -> CpuFista {
+        let nodes = problem.nodes();
+        CpuFista { gradient: vec![0.0; nodes], next: vec![0.0; nodes], p: vec![[0.0; 3]; nodes] }
+    }
+}
+
+impl FistaSolver for CpuFista {
+    fn solve(
+        &mut self,
+        problem: &DenseProblem,
+        sigma: &mut [f64],
+        target: &[f64],
+        steps: usize,
+        wants: &dyn Fn(usize) -> bool,
+        checkpoint: &mut dyn FnMut(usize, &[f64]),
+    ) -> anyhow::Result<()> {
+        let (n, b, step, epsilon) = (problem.n, problem.rays_seen, problem.step, problem.epsilon);
+        let w = problem.lambda / problem.nodes() as f64;
+        let (gradient, next, p) = (&mut self.gradient, &mut self.next, &mut self.p);
+        let (mut ahead, mut t) = (sigma.to_vec(), 1.0f64);
+        for it in 0..steps {
+            // ∇E = Aᵀ(Aσ − τ)/B + λ/N³ ∇TV, at the look-ahead point.
+            problem.projector.back_into(&problem.residual(&problem.projector.depths(&ahead), target), gradient);
+            p.par_iter_mut().enumerate().for_each(|(i, p)| *p = normalised_difference(&ahead, n, epsilon, i).1);
+            gradient.par_iter_mut().enumerate().for_each(|(i, g)| *g = *g / b + w * tv_gradient_at(p, n, i));
+            next.par_iter_mut().zip(&ahead).zip(&*gradient).for_each(|((x, a), g)| *x = (a - step * g).max(0.0));
+            let (t_next, momentum) = next_momentum(t);
+            ahead.par_iter_mut().zip(&*next).zip(&*sigma).for_each(|((a, x), old)| *a = x + momentum * (x - old));
+            sigma.copy_from_slice(next);
+            t = t_next;
+            if wants(it + 1) {
+                checkpoint(it + 1, sigma);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Fits σ to `views` on the CPU; see [`fit_with`].
+pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, on_log: impl FnMut(&LogRow)) -> DenseFitted {
+    fit_with(params, views, renderer, |problem| Ok(CpuFista::new(problem)), on_log)
+        .expect("the CPU solver does not fail")
+}
+
+/// Fits σ to `views` as the module describes, `params.dense_tv_iterations` FISTA steps by the
+/// solver `solver_for` makes, logging as the VM fit logs (`photo` is the data term, `tv3d` the
+/// smoothed TV, `lr` the step `1/L`; every row evaluated here, in f64, whatever the solver). With
 /// `dense_tv_bregman_steps` > 0 it then solves again that many times, each from the last σ with
 /// the views' residual added to the depths it fits (Bregman iteration: TV takes contrast from a
 /// small object, in proportion to its surface over its volume, and each step gives it back);
 /// the log keeps E against the measured depths.
-pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, mut on_log: impl FnMut(&LogRow)) -> DenseFitted {
+pub fn fit_with<S: FistaSolver>(
+    params: &TrainParams,
+    views: &Views,
+    renderer: &Renderer,
+    solver_for: impl FnOnce(&DenseProblem) -> anyhow::Result<S>,
+    mut on_log: impl FnMut(&LogRow),
+) -> anyhow::Result<DenseFitted> {
     let started = Instant::now();
-    let n = params.grid;
-    let nodes = n * n * n;
     let per_view = views.rays();
     let rays: Vec<Ray> = per_view.iter().flatten().copied().collect();
-    let projector = Projector::new(renderer, &rays);
-    let seen: Vec<bool> = projector.rows.offsets.windows(2).map(|w| w[1] > w[0]).collect();
-    let b = seen.iter().filter(|&&s| s).count().max(1) as f64;
-    let measured: Vec<f64> = rays.iter().map(|r| -r.target.max(MIN_INTENSITY).ln()).collect();
-    let (lambda, epsilon) = (params.dense_tv_lambda, params.dense_tv_epsilon);
-    // τ̂ − τ on the rays that meet the box (0 on the others).
-    let residual = |depths: &[f64], target: &[f64]| -> Vec<f64> {
-        depths.iter().zip(target).zip(&seen).map(|((d, m), &s)| if s { d - m } else { 0.0 }).collect()
-    };
-    let evaluate = |sigma: &[f64]| -> Evaluation {
-        let depths = projector.depths(sigma);
-        let data = residual(&depths, &measured).iter().map(|r| r * r).sum::<f64>() / (2.0 * b);
-        let (tv_sum, _) = smoothed_tv(sigma, n, epsilon);
-        Evaluation { data, tv: tv_sum / nodes as f64, depths }
-    };
-    let step = 1.0 / lipschitz(&projector, nodes, b, lambda, epsilon);
+    let problem = DenseProblem::new(params, &rays, renderer);
     let mut log = Vec::new();
     let mut record = |iteration: usize, e: &Evaluation| {
         let row = LogRow {
             iteration,
-            loss: e.data + lambda * e.tv,
+            loss: e.data + problem.lambda * e.tv,
             photo: e.data,
             l1: 0.0,
             tv: 0.0,
             tv3d: e.tv,
             psnr_db: view_mse(&per_view, &e.depths).into_iter().map(psnr_db).collect(),
-            lr: step,
+            lr: problem.step,
             seconds: started.elapsed().as_secs_f64(),
         };
         on_log(&row);
         log.push(row);
     };
-    let mut sigma = vec![0.0; nodes];
-    record(0, &evaluate(&sigma));
-    // The step's buffers, reused: at 128³ each is 16 MB, and fresh ones cost their page faults.
-    let (mut gradient, mut next, mut p) = (vec![0.0; nodes], vec![0.0; nodes], vec![[0.0; 3]; nodes]);
-    let w = lambda / nodes as f64;
+    let mut sigma = vec![0.0; problem.nodes()];
+    record(0, &problem.evaluate(&sigma));
+    let mut solver = solver_for(&problem)?;
     // Bregman: each later solve fits the depths plus what the last σ left unexplained.
-    let mut target = measured.clone();
+    let mut target = problem.measured.clone();
     let steps = params.dense_tv_iterations;
     for solve in 0..=params.dense_tv_bregman_steps {
         if solve > 0 {
-            for (t, r) in target.iter_mut().zip(residual(&projector.depths(&sigma), &measured)) {
+            for (t, r) in target.iter_mut().zip(problem.residual(&problem.projector.depths(&sigma), &problem.measured))
+            {
                 *t -= r;
             }
         }
-        let (mut ahead, mut t) = (sigma.clone(), 1.0f64);
-        for it in 0..steps {
-            // ∇E = Aᵀ(Aσ − τ)/B + λ/N³ ∇TV, at the look-ahead point.
-            projector.back_into(&residual(&projector.depths(&ahead), &target), &mut gradient);
-            p.par_iter_mut().enumerate().for_each(|(i, p)| *p = normalised_difference(&ahead, n, epsilon, i).1);
-            gradient.par_iter_mut().enumerate().for_each(|(i, g)| *g = *g / b + w * tv_gradient_at(&p, n, i));
-            next.par_iter_mut().zip(&ahead).zip(&gradient).for_each(|((x, a), g)| *x = (a - step * g).max(0.0));
-            let t_next = (1.0 + (1.0 + 4.0 * t * t).sqrt()) / 2.0;
-            let momentum = (t - 1.0) / t_next;
-            ahead.par_iter_mut().zip(&next).zip(&sigma).for_each(|((a, x), old)| *a = x + momentum * (x - old));
-            std::mem::swap(&mut sigma, &mut next);
-            t = t_next;
-            let done = solve * steps + it + 1;
-            if params.logs_after(done) {
-                record(done, &evaluate(&sigma));
-            }
-        }
+        let first = solve * steps;
+        let wants = |k: usize| params.logs_after(first + k);
+        solver.solve(&problem, &mut sigma, &target, steps, &wants, &mut |k, sigma| {
+            record(first + k, &problem.evaluate(sigma))
+        })?;
     }
-    DenseFitted { sigma: sigma.iter().map(|&v| v as f32).collect(), log }
+    Ok(DenseFitted { sigma: sigma.iter().map(|&v| v as f32).collect(), log })
 }
 
 /// A bound on the curvature of E: the largest eigenvalue of `AᵀA/B` by power iteration (from

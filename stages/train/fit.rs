@@ -78,7 +78,8 @@ pub enum FieldModel {
     #[default]
     Vm,
     /// σ itself on the N³ lattice, fitted to the optical depths under a smoothed 3-D TV by a
-    /// convex solver ([`super::dense_tv`]; CPU only). `pipeline.toml` ships it, on 128³.
+    /// convex solver ([`super::dense_tv`]; its steps on the CPU or the GPU). `pipeline.toml` ships
+    /// it, on 128³.
     DenseTv,
 }
 
@@ -113,9 +114,6 @@ impl TrainParams {
             if !(v.is_finite() && v > 0.0) {
                 anyhow::bail!("[train] {key} must be positive (got {v})");
             }
-        }
-        if self.model == FieldModel::DenseTv && self.backend == Backend::Gpu {
-            anyhow::bail!("[train] model = \"dense_tv\" runs on the CPU only: set backend = \"cpu\" or \"auto\"");
         }
         if !(self.dense_tv_lambda.is_finite() && self.dense_tv_lambda >= 0.0) {
             anyhow::bail!("[train] dense_tv_lambda must be 0 or more (got {})", self.dense_tv_lambda);

@@ -1,0 +1,87 @@
+//! Benchmark: the dense model's FISTA (`[train] model = "dense_tv"`) on the GPU beside the CPU
+//! in one run, on whatever adapter wgpu opens (`WGPU_BACKEND` picks; lavapipe when no GPU is
+//! installed), with the shipped configuration (`pipeline.toml`: 128³, λ = 1e-2) on one
+//! patient's DRRs.
+//!
+//! `cargo run --release --example bench_dense_fit -- [PATIENT_DIR] [STEPS] [RUNS]`: PATIENT_DIR
+//! holds `cameras.json` and `drr_*.exr` (default `out/LIDC-IDRI-0001` of the default pipeline).
+//! Prints the host's set-up (building `A` and `Aᵀ`, the step `1/L`; the same for both backends),
+//! then the median over RUNS of the seconds for STEPS steps (default 500, the shipped count) on
+//! each backend and their ratio, projected to a whole fit, and how far the GPU's σ lies from
+//! the CPU's.
+
+use aret_pipe::formats::exr_image;
+use aret_pipe::gpu::dense_fit::DeviceFista;
+use aret_pipe::gpu::Gpu;
+use aret_pipe::stage::drr::CameraSet;
+use aret_pipe::train::dense_tv::{CpuFista, DenseProblem, FistaSolver};
+use aret_pipe::train::fit::{renderer, FieldModel, TrainParams, Views};
+use aret_pipe::train::render::Ray;
+use std::path::PathBuf;
+use std::time::Instant;
+
+fn main() -> anyhow::Result<()> {
+    let mut args = std::env::args().skip(1);
+    let dir = PathBuf::from(args.next().unwrap_or_else(|| "out/LIDC-IDRI-0001".into()));
+    let steps: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(500);
+    let runs: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(3);
+    let gpu = Gpu::shared().map_err(|e| anyhow::anyhow!("no GPU adapter: {e}"))?;
+    println!("adapter: {}; CPU threads: {}", gpu.describe(), rayon::current_num_threads());
+    let set: CameraSet = serde_json::from_slice(&std::fs::read(dir.join("cameras.json"))?)?;
+    let images: Vec<Vec<f32>> = set
+        .cameras
+        .iter()
+        .map(|c| Ok(exr_image::decode(&std::fs::read(dir.join(format!("drr_{}.exr", c.view.name())))?)?.pixels))
+        .collect::<anyhow::Result<_>>()?;
+    let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
+    let params =
+        TrainParams { model: FieldModel::DenseTv, grid: 128, dense_tv_iterations: steps, ..TrainParams::default() };
+    let rays: Vec<Ray> = views.rays().into_iter().flatten().collect();
+    let t = Instant::now();
+    let problem = DenseProblem::new(&params, &rays, &renderer(&params, views.aabb));
+    let setup_s = t.elapsed().as_secs_f64();
+    let entries = problem.projector.rows.index.len();
+    println!(
+        "{}³ lattice, {} rays ({} meet the box), A holds {entries} entries; host set-up {setup_s:.2} s",
+        problem.n,
+        rays.len(),
+        problem.rays_seen
+    );
+    let none = |_: usize| false;
+    let solve = |solver: &mut dyn FistaSolver| -> anyhow::Result<(f64, Vec<f64>)> {
+        let mut sigma = vec![0.0; problem.nodes()];
+        let t = Instant::now();
+        solver.solve(&problem, &mut sigma, &problem.measured, steps, &none, &mut |_, _| {})?;
+        Ok((t.elapsed().as_secs_f64(), sigma))
+    };
+    let t = Instant::now();
+    let mut device = DeviceFista::new(gpu.clone(), &problem)?;
+    println!("GPU upload of A and Aᵀ: {:.2} s", t.elapsed().as_secs_f64());
+    let mut cpu = CpuFista::new(&problem);
+    let (mut on_gpu, mut on_cpu) = (Vec::new(), Vec::new());
+    let (mut sigma_gpu, mut sigma_cpu) = (Vec::new(), Vec::new());
+    for run in 0..runs {
+        let (s, sigma) = solve(&mut device)?;
+        on_gpu.push(s);
+        if run > 0 && sigma != sigma_gpu {
+            println!("run {run}: the GPU's σ differs from run 0's");
+        }
+        sigma_gpu = sigma;
+        let (s, sigma) = solve(&mut cpu)?;
+        on_cpu.push(s);
+        sigma_cpu = sigma;
+        println!("run {run}: GPU {:.2} s, CPU {:.2} s for {steps} steps", on_gpu[run], on_cpu[run]);
+    }
+    let (g, c) = (median(&mut on_gpu), median(&mut on_cpu));
+    println!("median of {runs}: GPU {g:.3} s, CPU {c:.3} s for {steps} steps: GPU {:.1}× faster", c / g);
+    println!("a whole fit (set-up + steps): GPU {:.2} s, CPU {:.2} s per patient", setup_s + g, setup_s + c);
+    let peak = sigma_cpu.iter().fold(0f64, |m, x| m.max(x.abs()));
+    let gap = sigma_gpu.iter().zip(&sigma_cpu).fold(0f64, |m, (a, b)| m.max((a - b).abs()));
+    println!("σ: max |GPU − CPU| = {:.1e} of the CPU's peak {peak:.4}", gap / peak);
+    Ok(())
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
