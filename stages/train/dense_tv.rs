@@ -100,6 +100,9 @@ impl Projector {
                     }
                     same
                 });
+                // Eight entries a sample were reserved, about four times what is left: at 256³
+                // the spare capacity alone would hold 7 GB until the matrix is assembled.
+                entries.shrink_to_fit();
                 entries
             })
             .collect();
