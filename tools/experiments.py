@@ -91,6 +91,8 @@ ROWS = [
      " first σ, fitting the depths plus the views' residual"),
     ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
      "the default fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
+    ("default-blind-chest-256", "presets/default_blind_chest_256.toml", "C", "C",
+     "default-blind-chest on a 256³ lattice: cells of 1.5 × 1.1 × 1.6 mm, near the default's in the paper's box"),
     ("drr-128", "presets/drr128.toml", "B", "C*",
      "the default fitted to SPEC §3's views of 128 × 128 pixels (the default's views until the evening of 2026-11-26)"),
     ("phantom-readers", "presets/phantom_readers.toml", "B", "C*",
