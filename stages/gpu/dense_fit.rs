@@ -113,8 +113,7 @@ impl DeviceFista {
     /// σ as it stands after everything submitted.
     fn read_sigma(&mut self) -> anyhow::Result<Vec<f64>> {
         self.in_flight.clear();
-        let [sigma] = <[Vec<f32>; 1]>::try_from(buffers::read::<f32>(&self.gpu, &[(&self.sigma, self.nodes)])?)
-            .map_err(|_| anyhow::anyhow!("GPU read-back returned the wrong number of buffers"))?;
+        let sigma = buffers::read::<f32>(&self.gpu, &[(&self.sigma, self.nodes)])?.swap_remove(0);
         Ok(sigma.into_iter().map(f64::from).collect())
     }
 
