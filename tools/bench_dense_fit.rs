@@ -91,7 +91,7 @@ fn main() -> anyhow::Result<()> {
         return Ok(());
     }
     let g = median(&mut on_gpu);
-    println!("median of {runs}: GPU {g:.3} s, CPU {c:.3} s for {steps} steps: GPU {:.1}× faster", c / g);
+    println!("median of {runs}: GPU {g:.3} s, CPU {c:.3} s for {steps} steps (CPU / GPU = {:.2})", c / g);
     println!("a whole fit on the GPU (set-up + steps): {:.2} s per patient", setup_s + g);
     let peak = sigma_cpu.iter().fold(0f64, |m, x| m.max(x.abs()));
     let gap = sigma_gpu.iter().zip(&sigma_cpu).fold(0f64, |m, (a, b)| m.max((a - b).abs()));
