@@ -12,7 +12,6 @@
 //! each backend and their ratio, projected to a whole fit, and how far the GPU's σ lies from
 //! the CPU's.
 
-use aret_pipe::formats::exr_image;
 use aret_pipe::gpu::dense_fit::DeviceFista;
 use aret_pipe::gpu::Gpu;
 use aret_pipe::stage::drr::CameraSet;
@@ -30,12 +29,7 @@ fn main() -> anyhow::Result<()> {
     let grid: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(128);
     let gpu = Gpu::shared().map_err(|e| anyhow::anyhow!("no GPU adapter: {e}"))?;
     println!("adapter: {}; CPU threads: {}", gpu.describe(), rayon::current_num_threads());
-    let set: CameraSet = serde_json::from_slice(&std::fs::read(dir.join("cameras.json"))?)?;
-    let images: Vec<Vec<f32>> = set
-        .cameras
-        .iter()
-        .map(|c| Ok(exr_image::decode(&std::fs::read(dir.join(format!("drr_{}.exr", c.view.name())))?)?.pixels))
-        .collect::<anyhow::Result<_>>()?;
+    let (set, images) = CameraSet::read_published(&dir)?;
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
     let params = TrainParams { model: FieldModel::DenseTv, dense_tv_iterations: steps, grid, ..TrainParams::default() };
     let rays: Vec<Ray> = views.rays().into_iter().flatten().collect();

@@ -10,7 +10,7 @@
 //! rendering time on each, and how far the GPU's DRR pixels are from the CPU's. With PNG, writes
 //! the coronal DRR as GPU | CPU | 1000× |difference| there, to look at.
 
-use aret_pipe::formats::{exr_image, mhd, png};
+use aret_pipe::formats::{mhd, png};
 use aret_pipe::gpu::fit::DeviceFit;
 use aret_pipe::gpu::{Backend, Gpu};
 use aret_pipe::stage::drr::{render_views, CameraSet, Focal, Params as DrrParams, RoiCenter};
@@ -27,12 +27,7 @@ fn main() -> anyhow::Result<()> {
     let png_path = args.next().map(PathBuf::from);
     let gpu = Gpu::shared().map_err(|e| anyhow::anyhow!("no GPU adapter: {e}"))?;
     println!("adapter: {}", gpu.describe());
-    let set: CameraSet = serde_json::from_slice(&std::fs::read(dir.join("cameras.json"))?)?;
-    let images: Vec<Vec<f32>> = set
-        .cameras
-        .iter()
-        .map(|c| Ok(exr_image::decode(&std::fs::read(dir.join(format!("drr_{}.exr", c.view.name())))?)?.pixels))
-        .collect::<anyhow::Result<_>>()?;
+    let (set, images) = CameraSet::read_published(&dir)?;
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
     // The paper's configuration: the defaults without the 3-D TV (issue 8's addition).
     let params = TrainParams { iterations, log_every: iterations, lambda_tv3d: 0.0, ..TrainParams::default() };

@@ -10,7 +10,6 @@
 //! The fit logs as the pipeline does (`log_every` = 100: a full three-view evaluation every
 //! 100 iterations), so the time is what a patient costs.
 
-use aret_pipe::formats::exr_image;
 use aret_pipe::stage::drr::CameraSet;
 use aret_pipe::train::adam::{Adam, AdamParams};
 use aret_pipe::train::field::VmField;
@@ -33,12 +32,7 @@ fn bench() -> anyhow::Result<()> {
     let dir = std::path::PathBuf::from(args.next().unwrap_or_else(|| "out/LIDC-IDRI-0001".into()));
     let iterations: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(300);
     let runs: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(3);
-    let set: CameraSet = serde_json::from_slice(&std::fs::read(dir.join("cameras.json"))?)?;
-    let images: Vec<Vec<f32>> = set
-        .cameras
-        .iter()
-        .map(|c| Ok(exr_image::decode(&std::fs::read(dir.join(format!("drr_{}.exr", c.view.name())))?)?.pixels))
-        .collect::<anyhow::Result<_>>()?;
+    let (set, images) = CameraSet::read_published(&dir)?;
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
     // The paper's configuration: the defaults without the 3-D TV (issue 8's addition).
     let params = TrainParams { iterations, lambda_tv3d: 0.0, ..TrainParams::default() };

@@ -171,6 +171,28 @@ pub struct CameraSet {
     pub attenuation_scale: f64,
 }
 
+impl CameraSet {
+    /// A published view set: `dir`'s `cameras.json` and its `drr_<view>.exr` pixels in camera
+    /// order (how the benchmarks read a patient's folder of `out_dir`).
+    pub fn read_published(dir: &std::path::Path) -> anyhow::Result<(CameraSet, Vec<Vec<f32>>)> {
+        use anyhow::Context as _;
+        let read =
+            |name: &str| std::fs::read(dir.join(name)).with_context(|| format!("reading {}", dir.join(name).display()));
+        let set: CameraSet = serde_json::from_slice(&read("cameras.json")?)
+            .with_context(|| format!("parsing {}", dir.join("cameras.json").display()))?;
+        let images = set
+            .cameras
+            .iter()
+            .map(|c| {
+                let name = format!("drr_{}.exr", c.view.name());
+                let image = exr_image::decode(&read(&name)?).with_context(|| format!("decoding {name}"))?;
+                Ok(image.pixels)
+            })
+            .collect::<anyhow::Result<_>>()?;
+        Ok((set, images))
+    }
+}
+
 pub struct Drr {
     pub params: Params,
 }
