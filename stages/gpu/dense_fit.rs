@@ -7,6 +7,7 @@
 
 use super::buffers;
 use super::csr_times::{CsrTimes, DeviceCsr};
+use super::device::InFlight;
 use super::fista_step::{self, FistaStep};
 use super::kernel::Bound;
 use super::tv_direction::TvDirection;
@@ -14,7 +15,6 @@ use super::Gpu;
 use crate::train::dense_tv::{self, next_momentum, DenseFitted, DenseProblem, FistaSolver};
 use crate::train::fit::{LogRow, TrainParams, Views};
 use crate::train::render::Renderer;
-use std::collections::VecDeque;
 use std::sync::Arc;
 
 /// Steps the host may submit ahead of the device before it waits for the oldest.
@@ -62,7 +62,7 @@ pub struct DeviceFista {
     passes: [Bound; 4],
     /// The uniform buffers the first three passes bind.
     _pass_uniforms: [wgpu::Buffer; 3],
-    in_flight: VecDeque<wgpu::SubmissionIndex>,
+    in_flight: InFlight,
 }
 
 impl DeviceFista {
@@ -106,13 +106,12 @@ impl DeviceFista {
             step_values,
             passes: [project, back_project, tv, step],
             _pass_uniforms: [project_u, back_u, tv_u],
-            in_flight: VecDeque::new(),
+            in_flight: InFlight::new(IN_FLIGHT),
         })
     }
 
     /// σ as it stands after everything submitted.
-    fn read_sigma(&mut self) -> anyhow::Result<Vec<f64>> {
-        self.in_flight.clear();
+    fn read_sigma(&self) -> anyhow::Result<Vec<f64>> {
         let sigma = buffers::read::<f32>(&self.gpu, &[(&self.sigma, self.nodes)])?.swap_remove(0);
         Ok(sigma.into_iter().map(f64::from).collect())
     }
@@ -129,14 +128,7 @@ impl DeviceFista {
         k.csr_times.record(&mut encoder, back_project);
         k.tv_direction.record(&mut encoder, tv);
         k.fista_step.record(&mut encoder, step);
-        self.in_flight.push_back(gpu.queue.submit([encoder.finish()]));
-        if self.in_flight.len() > IN_FLIGHT {
-            let oldest = self.in_flight.pop_front().expect("non-empty");
-            let wait = wgpu::PollType::Wait { submission_index: Some(oldest), timeout: None };
-            gpu.device.poll(wait).map_err(|e| anyhow::anyhow!("GPU ({}): {e}", gpu.info.name))?;
-            gpu.check()?;
-        }
-        Ok(())
+        self.in_flight.submit(gpu, encoder)
     }
 }
 

@@ -1,5 +1,6 @@
 //! The wgpu adapter and device: one per process, shared by every stage and worker.
 
+use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, OnceLock};
 
 /// An open device and what the kernels need to know about it.
@@ -141,5 +142,31 @@ impl Gpu {
             .dense
             .get_or_init(|| crate::gpu::dense_fit::DenseKernels::new(self).map(Arc::new).map_err(|e| format!("{e:#}")));
         built.clone().map_err(|e| anyhow::anyhow!(e))
+    }
+}
+
+/// The submissions a loop keeps ahead of the device: after `limit` are in flight, `submit`
+/// waits for the oldest, which bounds the staging memory of per-step uploads (no data comes
+/// back). The VM fit's loop and the dense fit's share it.
+pub struct InFlight {
+    limit: usize,
+    submitted: VecDeque<wgpu::SubmissionIndex>,
+}
+
+impl InFlight {
+    pub fn new(limit: usize) -> InFlight {
+        InFlight { limit, submitted: VecDeque::new() }
+    }
+
+    /// Submits `encoder` on `gpu`'s queue, then waits for the oldest submission if too many are in flight.
+    pub fn submit(&mut self, gpu: &Gpu, encoder: wgpu::CommandEncoder) -> anyhow::Result<()> {
+        self.submitted.push_back(gpu.queue.submit([encoder.finish()]));
+        if self.submitted.len() > self.limit {
+            let oldest = self.submitted.pop_front().expect("non-empty");
+            let wait = wgpu::PollType::Wait { submission_index: Some(oldest), timeout: None };
+            gpu.device.poll(wait).map_err(|e| anyhow::anyhow!("GPU ({}): {e}", gpu.info.name))?;
+            gpu.check()?;
+        }
+        Ok(())
     }
 }

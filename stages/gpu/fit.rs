@@ -12,6 +12,7 @@ use super::buffers;
 use super::compose::{self, Compose};
 use super::contract_lines;
 use super::contract_planes;
+use super::device::InFlight;
 use super::kernel::{Bound, ItemKernel};
 use super::l1;
 use super::render::{self, RaySamples, Render};
@@ -22,7 +23,6 @@ use crate::train::adam::AdamParams;
 use crate::train::field::VmField;
 use crate::train::fit::{self as cpu, log_row, ray_pool, renderer, Fitted, LogRow, Schedule, Step, TrainParams, Views};
 use crate::train::render::{AlphaMask, PhotoLoss, Ray, Renderer};
-use std::collections::VecDeque;
 use std::time::Instant;
 
 /// Submitted iterations the host may run ahead of the device before it waits for the oldest
@@ -198,7 +198,7 @@ pub struct DeviceFit<'g> {
     tv_dense_b: Bound,
     adam_b: Bound,
     alpha_b: Bound,
-    in_flight: VecDeque<wgpu::SubmissionIndex>,
+    in_flight: InFlight,
 }
 
 impl<'g> DeviceFit<'g> {
@@ -314,7 +314,7 @@ impl<'g> DeviceFit<'g> {
             tv_dense_b,
             adam_b,
             alpha_b,
-            in_flight: VecDeque::new(),
+            in_flight: InFlight::new(IN_FLIGHT),
         })
     }
 
@@ -323,14 +323,7 @@ impl<'g> DeviceFit<'g> {
     }
 
     fn submit(&mut self, encoder: wgpu::CommandEncoder) -> anyhow::Result<()> {
-        self.in_flight.push_back(self.gpu.queue.submit([encoder.finish()]));
-        if self.in_flight.len() > IN_FLIGHT {
-            let oldest = self.in_flight.pop_front().expect("non-empty");
-            let wait = wgpu::PollType::Wait { submission_index: Some(oldest), timeout: None };
-            self.gpu.device.poll(wait).map_err(|e| anyhow::anyhow!("GPU ({}): {e}", self.gpu.info.name))?;
-            self.gpu.check()?;
-        }
-        Ok(())
+        self.in_flight.submit(self.gpu, encoder)
     }
 
     /// Uploads a batch: its rays with their jitter, walked as the CPU walks them.
