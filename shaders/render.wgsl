@@ -6,8 +6,8 @@
 //
 // The host uploads each ray's first sample and per-sample increment in continuous lattice
 // index (Renderer::samples, in f64, rounded to f32 as the CPU renderer rounds them), so both
-// backends walk the same samples. `add_grad` comes from grad_add_f32.wgsl (native float
-// atomics) or grad_add_cas.wgsl (compare-exchange), appended by the host.
+// backends walk the same samples. dL/dF is summed as integers (fixed_point.wgsl, appended by
+// the host), so the sum does not depend on the order the rays run in.
 
 struct Render {
     n: u32,
@@ -40,7 +40,8 @@ struct RaySamples {
 @group(0) @binding(2) var<storage, read> mask_nodes: array<u32>;
 @group(0) @binding(3) var<storage, read> rays: array<RaySamples>;
 @group(0) @binding(4) var<storage, read_write> predicted: array<f32>;
-// binding 5: dense_grad, declared with add_grad in the appended file.
+// dL/dF as integer chunk sums, eight words per node (fixed_point.wgsl).
+@group(0) @binding(5) var<storage, read_write> dense_grad_fixed: array<atomic<u32>>;
 
 struct Sample {
     cell: u32,
@@ -81,25 +82,41 @@ fn pre_activation(s: Sample) -> f32 {
     return lerp(lower, upper, f.z) + u.shift;
 }
 
-// Adds g times the trilinear weights of `s` to its cell's 8 nodes (the CPU scatter's order:
-// lower face by g·(1 − fz), upper face by g·fz).
-fn scatter(s: Sample, g: f32) {
-    let c = s.cell;
+// Adds v to node i's integer sums: each non-zero chunk to its word, positive and negative
+// addends apart (fixed_point.wgsl).
+fn add_grad(i: u32, v: f32) {
+    let chunks = fixed_chunks(v);
+    let base = 8u * i + select(0u, 4u, v < 0.0);
+    if (chunks.x != 0u) {
+        atomicAdd(&dense_grad_fixed[base], chunks.x);
+    }
+    if (chunks.y != 0u) {
+        atomicAdd(&dense_grad_fixed[base + 1u], chunks.y);
+    }
+    if (chunks.z != 0u) {
+        atomicAdd(&dense_grad_fixed[base + 2u], chunks.z);
+    }
+    if (chunks.w != 0u) {
+        atomicAdd(&dense_grad_fixed[base + 3u], chunks.w);
+    }
+}
+
+// A value no cell index takes: no cell is open yet.
+const NO_CELL: u32 = 0xffffffffu;
+
+// Adds a cell's held addends to its 8 nodes: `lower` to the nodes at z, `upper` at z + 1,
+// each in the order (x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1).
+fn flush(c: u32, lower: vec4<f32>, upper: vec4<f32>) {
     let sy = u.n;
     let sz = u.n * u.n;
-    let f = s.frac;
-    let gx = 1.0 - f.x;
-    let gy = 1.0 - f.y;
-    let lower = g * (1.0 - f.z);
-    let upper = g * f.z;
-    add_grad(c, lower * (gx * gy));
-    add_grad(c + 1u, lower * (f.x * gy));
-    add_grad(c + sy, lower * (gx * f.y));
-    add_grad(c + sy + 1u, lower * (f.x * f.y));
-    add_grad(c + sz, upper * (gx * gy));
-    add_grad(c + sz + 1u, upper * (f.x * gy));
-    add_grad(c + sz + sy, upper * (gx * f.y));
-    add_grad(c + sz + sy + 1u, upper * (f.x * f.y));
+    add_grad(c, lower.x);
+    add_grad(c + 1u, lower.y);
+    add_grad(c + sy, lower.z);
+    add_grad(c + sy + 1u, lower.w);
+    add_grad(c + sz, upper.x);
+    add_grad(c + sz + 1u, upper.y);
+    add_grad(c + sz + sy, upper.z);
+    add_grad(c + sz + sy + 1u, upper.w);
 }
 
 @compute @workgroup_size(64)
@@ -128,11 +145,31 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) g
     if (g == 0.0) {
         return;
     }
-    // Second walk: the same samples, scattering where σ > 0 (dσ/dF = 1 there, 0 elsewhere).
+    // Second walk: the same samples, scattering g times the trilinear weights where σ > 0
+    // (dσ/dF = 1 there, 0 elsewhere). A ray leaves about two samples in each cell it crosses:
+    // their weights are summed here, in walk order, and the cell's 8 nodes take one addend
+    // each when the walk leaves it, half the atomics of one per sample.
+    var open = NO_CELL;
+    var lower = vec4<f32>(0.0);
+    var upper = vec4<f32>(0.0);
     for (var k = 0u; k < ray.count; k++) {
         let s = locate(ray, k);
         if (kept(s.cell) && pre_activation(s) > 0.0) {
-            scatter(s, g);
+            if (s.cell != open) {
+                if (open != NO_CELL) {
+                    flush(open, lower, upper);
+                }
+                open = s.cell;
+                lower = vec4<f32>(0.0);
+                upper = vec4<f32>(0.0);
+            }
+            let f = s.frac;
+            let face = vec4<f32>((1.0 - f.x) * (1.0 - f.y), f.x * (1.0 - f.y), (1.0 - f.x) * f.y, f.x * f.y);
+            lower += (g * (1.0 - f.z)) * face;
+            upper += (g * f.z) * face;
         }
+    }
+    if (open != NO_CELL) {
+        flush(open, lower, upper);
     }
 }

@@ -9,9 +9,6 @@ pub struct Gpu {
     pub queue: wgpu::Queue,
     pub info: wgpu::AdapterInfo,
     pub limits: wgpu::Limits,
-    /// Native `atomicAdd` on `atomic<f32>` (`SHADER_FLOAT32_ATOMIC`; lavapipe and NVIDIA's
-    /// Vulkan driver have it). Without it the gradient scatter uses a compare-exchange loop.
-    pub float_atomics: bool,
     /// The first validation or device error wgpu reported since the last [`Gpu::check`]
     /// (wgpu's default is to panic on them; we turn them into errors).
     errors: Arc<Mutex<Option<String>>>,
@@ -25,15 +22,13 @@ pub struct Gpu {
 pub struct GpuOptions {
     /// wgpu backends to look at (this build compiles Vulkan only).
     pub backends: wgpu::Backends,
-    /// Use native float atomics when the adapter has them (false: always the CAS loop).
-    pub float_atomics: bool,
 }
 
 impl GpuOptions {
     /// Vulkan, or what wgpu's `WGPU_BACKEND` environment variable names (e.g. `WGPU_BACKEND=gl`
     /// in this Vulkan-only build: no adapter, which is how the tests force the CPU fallback).
     pub fn from_env() -> GpuOptions {
-        GpuOptions { backends: wgpu::Backends::VULKAN.with_env(), float_atomics: true }
+        GpuOptions { backends: wgpu::Backends::VULKAN.with_env() }
     }
 }
 
@@ -55,14 +50,13 @@ impl Gpu {
         }))
         .map_err(|e| format!("{e} (wgpu backends tried: {:?})", options.backends))?;
         let info = adapter.get_info();
-        let float_atomics = options.float_atomics && adapter.features().contains(wgpu::Features::SHADER_FLOAT32_ATOMIC);
-        let features = if float_atomics { wgpu::Features::SHADER_FLOAT32_ATOMIC } else { wgpu::Features::empty() };
         // The adapter's own limits: a CT volume or a large lattice needs more than WebGPU's
         // defaults, and the kernels check sizes against these before they allocate.
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("aret-pipe"),
-            required_features: features,
+            // Nothing beyond WebGPU's core: the gradient scatter adds integers, not floats.
+            required_features: wgpu::Features::empty(),
             required_limits: limits.clone(),
             ..Default::default()
         }))
@@ -79,7 +73,6 @@ impl Gpu {
             queue,
             info,
             limits,
-            float_atomics,
             errors,
             kernels: OnceLock::new(),
             drr: OnceLock::new(),
@@ -98,10 +91,9 @@ impl Gpu {
         self.info.device_type == wgpu::DeviceType::Cpu
     }
 
-    /// The adapter in words, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan, Cpu, float atomics)`.
+    /// The adapter in words, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan, Cpu)`.
     pub fn describe(&self) -> String {
-        let atomics = if self.float_atomics { "float atomics" } else { "CAS atomics" };
-        format!("{} ({:?}, {:?}, {atomics})", self.info.name, self.info.backend, self.info.device_type)
+        format!("{} ({:?}, {:?})", self.info.name, self.info.backend, self.info.device_type)
     }
 
     /// Fails with the first error wgpu reported since the last check.

@@ -1,8 +1,8 @@
 //! The training loop on the device (mirrors `train::fit::fit`): the factors, Adam's moments,
 //! the dense field, its gradient and the alpha mask live on the GPU for the whole fit. Per
 //! iteration the host draws the batch from the same seeded [`Schedule`] as the CPU, uploads
-//! its rays and Adam's step scalars, and submits compose → render + scatter → 3-D TV →
-//! contract → L1 → TV → Adam; nothing comes back except at logged iterations (the batch
+//! its rays and Adam's step scalars, and submits compose → render + scatter → dF to f32 →
+//! 3-D TV → contract → L1 → TV → Adam; nothing comes back except at logged iterations (the batch
 //! predictions, the three full views and the regularisers' partial sums) and at the end
 //! (factors, mask).
 
@@ -13,6 +13,7 @@ use super::compose::{self, Compose};
 use super::contract_lines;
 use super::contract_planes;
 use super::device::InFlight;
+use super::grad_from_fixed::{self, GradFromFixed};
 use super::kernel::{Bound, ItemKernel};
 use super::l1;
 use super::render::{self, RaySamples, Render};
@@ -33,6 +34,7 @@ const IN_FLIGHT: usize = 8;
 pub struct Kernels {
     compose: Compose,
     render: Render,
+    grad_from_fixed: GradFromFixed,
     contract_planes: ItemKernel,
     contract_lines: ItemKernel,
     l1: ItemKernel,
@@ -47,6 +49,7 @@ impl Kernels {
         Ok(Kernels {
             compose: Compose::new(gpu)?,
             render: Render::new(gpu)?,
+            grad_from_fixed: GradFromFixed::new(gpu)?,
             contract_planes: contract_planes::kernel(gpu)?,
             contract_lines: contract_lines::kernel(gpu)?,
             l1: l1::kernel(gpu)?,
@@ -172,7 +175,7 @@ pub struct DeviceFit<'g> {
     masked: bool,
     factors: wgpu::Buffer,
     grad: wgpu::Buffer,
-    dense_grad: wgpu::Buffer,
+    dense_grad_fixed: wgpu::Buffer,
     mask_nodes: wgpu::Buffer,
     batch_rays: wgpu::Buffer,
     batch_predicted: wgpu::Buffer,
@@ -191,6 +194,7 @@ pub struct DeviceFit<'g> {
     compose_b: Bound,
     render_batch_b: Bound,
     render_eval_b: Bound,
+    grad_from_fixed_b: Bound,
     planes_b: Bound,
     lines_b: Bound,
     l1_b: Bound,
@@ -212,6 +216,15 @@ impl<'g> DeviceFit<'g> {
         batch_len: usize,
         per_view: &[Vec<Ray>],
     ) -> anyhow::Result<DeviceFit<'g>> {
+        let most = grad_from_fixed::max_batch_rays(renderer);
+        if batch_len > most {
+            anyhow::bail!(
+                "[train] batch_rays = {} gives batches of {batch_len} rays, more than the GPU backend sums \
+                 exactly ({most} rays at this lattice's sample step: a node's integer sum takes at most 65,536 \
+                 addends a batch); set batch_rays to {most} or fewer, or [train] backend = \"cpu\"",
+                params.batch_rays
+            );
+        }
         let kernels = gpu.train_kernels()?;
         let (n, rank) = (field.n, field.rank);
         let nodes = n * n * n;
@@ -224,6 +237,8 @@ impl<'g> DeviceFit<'g> {
             [buffers::zeroed(gpu, "adam m", bytes(entries))?, buffers::zeroed(gpu, "adam v", bytes(entries))?];
         let dense = buffers::zeroed(gpu, "dense field (lattice of [train] grid³ nodes)", bytes(nodes))?;
         let dense_grad = buffers::zeroed(gpu, "dense gradient", bytes(nodes))?;
+        let dense_grad_fixed =
+            buffers::zeroed(gpu, "dense gradient (fixed point)", grad_from_fixed::fixed_bytes(nodes))?;
         let mask_nodes = buffers::zeroed(gpu, "alpha mask", bytes(nodes))?;
         let batch_rays = buffers::zeroed(gpu, "batch rays", (std::mem::size_of::<RaySamples>() * batch_len) as u64)?;
         let batch_predicted = buffers::zeroed(gpu, "batch predictions", bytes(batch_len))?;
@@ -242,10 +257,29 @@ impl<'g> DeviceFit<'g> {
         let render_batch_u = buffers::uniform(gpu, "render batch", &render_batch);
         let render_eval_u = buffers::uniform(gpu, "render views", &render_eval);
         let r = &k.render;
-        let render_batch_b =
-            r.bind(gpu, &render_batch_u, &dense, &mask_nodes, &batch_rays, &batch_predicted, &dense_grad, batch_len)?;
-        let render_eval_b =
-            r.bind(gpu, &render_eval_u, &dense, &mask_nodes, &eval_rays, &eval_predicted, &dense_grad, eval.len())?;
+        let render_batch_b = r.bind(
+            gpu,
+            &render_batch_u,
+            &dense,
+            &mask_nodes,
+            &batch_rays,
+            &batch_predicted,
+            &dense_grad_fixed,
+            batch_len,
+        )?;
+        let render_eval_b = r.bind(
+            gpu,
+            &render_eval_u,
+            &dense,
+            &mask_nodes,
+            &eval_rays,
+            &eval_predicted,
+            &dense_grad_fixed,
+            eval.len(),
+        )?;
+        let fixed_shape = grad_from_fixed::Shape { nodes: nodes as u32, _pad: [0; 3] };
+        let fixed_u = buffers::uniform(gpu, "dense gradient from fixed point", &fixed_shape);
+        let grad_from_fixed_b = k.grad_from_fixed.bind(gpu, &fixed_u, &dense_grad_fixed, &dense_grad, nodes)?;
         let planes =
             contract_planes::Shape { n: n as u32, rank: rank as u32, entries: (3 * rank * n * n) as u32, _pad: 0 };
         let planes_u = buffers::uniform(gpu, "contract planes", &planes);
@@ -288,7 +322,7 @@ impl<'g> DeviceFit<'g> {
             masked: false,
             factors,
             grad,
-            dense_grad,
+            dense_grad_fixed,
             mask_nodes,
             batch_rays,
             batch_predicted,
@@ -307,6 +341,7 @@ impl<'g> DeviceFit<'g> {
             compose_b,
             render_batch_b,
             render_eval_b,
+            grad_from_fixed_b,
             planes_b,
             lines_b,
             l1_b,
@@ -341,18 +376,27 @@ impl<'g> DeviceFit<'g> {
         Ok(())
     }
 
-    /// compose → clear dF → render + scatter → 3-D TV → contract → L1 → TV: the loss gradient
-    /// in `grad`. (The 3-D TV runs at weight 0 too: its value is logged, as on the CPU.)
+    /// compose → clear dF → render + scatter → dF to f32 → 3-D TV → contract → L1 → TV: the
+    /// loss gradient in `grad`. (The 3-D TV runs at weight 0 too: its value is logged, as on
+    /// the CPU.)
     fn record_gradient(&self, encoder: &mut wgpu::CommandEncoder) {
         let k = &self.kernels;
         k.compose.record(encoder, &self.compose_b);
-        encoder.clear_buffer(&self.dense_grad, 0, None);
-        k.render.record(encoder, &self.render_batch_b);
+        self.record_scatter(encoder);
         k.tv_dense.record(encoder, &self.tv_dense_b);
         k.contract_planes.record(encoder, &self.planes_b);
         k.contract_lines.record(encoder, &self.lines_b);
         k.l1.record(encoder, &self.l1_b);
         k.tv.record(encoder, &self.tv_b);
+    }
+
+    /// The batch's `dL/dF` in `dense_grad`: cleared fixed-point sums, the render's scatter
+    /// into them, and their conversion to f32.
+    fn record_scatter(&self, encoder: &mut wgpu::CommandEncoder) {
+        let k = &self.kernels;
+        encoder.clear_buffer(&self.dense_grad_fixed, 0, None);
+        k.render.record(encoder, &self.render_batch_b);
+        k.grad_from_fixed.record(encoder, &self.grad_from_fixed_b);
     }
 
     /// One training iteration on `rays` with jitter `offsets` (submitted, not waited for);
@@ -414,10 +458,7 @@ impl<'g> DeviceFit<'g> {
         type Record<'a> = &'a dyn Fn(&mut wgpu::CommandEncoder);
         let rows: [(&'static str, Record); 10] = [
             ("compose", &|e| k.compose.record(e, &self.compose_b)),
-            ("render + scatter", &|e| {
-                e.clear_buffer(&self.dense_grad, 0, None);
-                k.render.record(e, &self.render_batch_b)
-            }),
+            ("render + scatter", &|e| self.record_scatter(e)),
             ("contract planes", &|e| k.contract_planes.record(e, &self.planes_b)),
             ("contract lines", &|e| k.contract_lines.record(e, &self.lines_b)),
             ("L1", &|e| k.l1.record(e, &self.l1_b)),

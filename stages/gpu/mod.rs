@@ -4,10 +4,10 @@
 //! uniform struct and dispatch size — and the table in `docs/gpu.md` pairs each with the CPU
 //! function it reproduces.
 //!
-//! - [`device`]: adapter and device, feature detection, errors that say what to do.
+//! - [`device`]: adapter and device, errors that say what to do.
 //! - [`kernel`], [`buffers`]: pipelines and bind groups, buffers and read-back.
 //! - [`drr_march`]: the DRR stage's Beer–Lambert march through the CT.
-//! - [`compose`], [`render`], [`contract_planes`], [`contract_lines`], [`l1`], [`tv`], [`tv_dense`], [`adam`],
+//! - [`compose`], [`render`], [`grad_from_fixed`], [`contract_planes`], [`contract_lines`], [`l1`], [`tv`], [`tv_dense`], [`adam`],
 //!   [`alpha_mask`]: one training iteration, and [`fit`], the loop that keeps it on the device.
 //! - [`csr_times`], [`tv_direction`], [`fista_step`]: one step of the dense model's FISTA, and
 //!   [`dense_fit`], its loop on the device.
@@ -24,6 +24,7 @@ pub mod device;
 pub mod drr_march;
 pub mod fista_step;
 pub mod fit;
+pub mod grad_from_fixed;
 pub mod kernel;
 pub mod l1;
 pub mod render;

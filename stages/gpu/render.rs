@@ -1,14 +1,14 @@
-//! Host of `shaders/render.wgsl` (+ `grad_add_f32.wgsl` or `grad_add_cas.wgsl`): render a ray
-//! batch through `F`, and scatter `dL/dF` (`train::render::Renderer::batch` and its scatter).
+//! Host of `shaders/render.wgsl` (+ `fixed_point.wgsl`): render a ray batch through `F`, and
+//! scatter `dL/dF` as fixed-point sums (`train::render::Renderer::batch` and its scatter);
+//! [`super::grad_from_fixed`] turns them into f32.
 
+use super::grad_from_fixed::FIXED_POINT;
 use super::kernel::{groups, whole, Binding, Bound, Kernel, WORKGROUP};
 use super::Gpu;
 use crate::train::render::{PhotoLoss, Ray, Renderer};
 use bytemuck::{Pod, Zeroable};
 
 const SOURCE: &str = include_str!("../../shaders/render.wgsl");
-const ADD_NATIVE: &str = include_str!("../../shaders/grad_add_f32.wgsl");
-const ADD_CAS: &str = include_str!("../../shaders/grad_add_cas.wgsl");
 
 /// `struct Render` of the shader.
 #[repr(C)]
@@ -70,15 +70,14 @@ impl RaySamples {
 pub struct Render(Kernel);
 
 impl Render {
-    /// Native float atomics when the device has them, else the compare-exchange loop.
     pub fn new(gpu: &Gpu) -> anyhow::Result<Render> {
-        let add = if gpu.float_atomics { ADD_NATIVE } else { ADD_CAS };
         let storage = |read_only| Binding::Storage { read_only };
         let bindings = [Binding::Uniform, storage(true), storage(true), storage(true), storage(false), storage(false)];
-        Ok(Render(Kernel::new(gpu, "render", &format!("{SOURCE}\n{add}"), &bindings)?))
+        Ok(Render(Kernel::new(gpu, "render", &[SOURCE, FIXED_POINT].concat(), &bindings)?))
     }
 
-    /// One invocation per ray of `rays` (`count` of them).
+    /// One invocation per ray of `rays` (`count` of them); `dense_grad_fixed` holds
+    /// [`super::grad_from_fixed::fixed_bytes`] and must be cleared before each scatter.
     #[allow(clippy::too_many_arguments)]
     pub fn bind(
         &self,
@@ -88,11 +87,11 @@ impl Render {
         mask_nodes: &wgpu::Buffer,
         rays: &wgpu::Buffer,
         predicted: &wgpu::Buffer,
-        dense_grad: &wgpu::Buffer,
+        dense_grad_fixed: &wgpu::Buffer,
         count: usize,
     ) -> anyhow::Result<Bound> {
         let resources =
-            [whole(uniforms), whole(dense), whole(mask_nodes), whole(rays), whole(predicted), whole(dense_grad)];
+            [whole(uniforms), whole(dense), whole(mask_nodes), whole(rays), whole(predicted), whole(dense_grad_fixed)];
         Ok(Bound { group: self.0.bind(gpu, &resources), groups: groups(gpu, count as u64, WORKGROUP)? })
     }
 
