@@ -376,9 +376,9 @@ impl<'g> DeviceFit<'g> {
         Ok(())
     }
 
-    /// compose → clear dF → render + scatter → dF to f32 → 3-D TV → contract → L1 → TV: the
-    /// loss gradient in `grad`. (The 3-D TV runs at weight 0 too: its value is logged, as on
-    /// the CPU.)
+    /// compose → clear the integer sums → render + scatter → dF to f32 → 3-D TV → contract →
+    /// L1 → TV: the loss gradient in `grad`. (The 3-D TV runs at weight 0 too: its value is
+    /// logged, as on the CPU.)
     fn record_gradient(&self, encoder: &mut wgpu::CommandEncoder) {
         let k = &self.kernels;
         k.compose.record(encoder, &self.compose_b);
