@@ -62,9 +62,7 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         default_workers: p.config.pipeline.workers,
         out_dir: p.config.out_dir(),
     };
-    let totals: Vec<(&str, u64)> =
-        p.graph.stages().iter().map(|s| (s.name(), if s.is_cohort() { 1 } else { p.units.len() as u64 })).collect();
-    let progress = Progress::auto(&totals);
+    let progress = Progress::auto(&p.graph.runs_per_stage(p.units.len()));
     let summary = run::run(&p.graph, &p.store, &p.units, &options, &progress);
     drop(progress);
     print!("{}", progress::table(&summary, &p.graph.names()));

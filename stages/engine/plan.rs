@@ -29,6 +29,23 @@ pub fn patient_inputs(stage: &dyn Stage, sources: &[SourceFile], finished: &Fini
     out
 }
 
+/// The triples a gathering stage reads: those of the stages before the fan-out (in `base`),
+/// then each replica's own, under `<replica>/<stage>`.
+pub fn gathered_inputs(
+    stage: &dyn Stage,
+    sources: &[SourceFile],
+    base: &Finished,
+    replicas: &[Finished],
+    names: &[String],
+) -> Vec<(String, String, Hash)> {
+    let mut out = patient_inputs(stage, sources, base);
+    for (finished, name) in replicas.iter().zip(names) {
+        let own = patient_inputs(stage, &[], finished).into_iter().filter(|t| !base.contains_key(t.0.as_str()));
+        out.extend(own.map(|(s, n, h)| (format!("{name}/{s}"), n, h)));
+    }
+    out
+}
+
 /// The triples a cohort stage reads: every patient's outputs of its input stages, and the
 /// patients that failed (so a newly failing patient changes the key).
 pub fn cohort_inputs(

@@ -30,43 +30,68 @@ pub struct Row {
     pub state: State,
 }
 
+/// One unit's (or replica's) way through the per-patient stages while previewing.
+#[derive(Clone)]
+struct Lane {
+    unit: String,
+    finished: Finished,
+    /// The first stage of this lane that would not be cached.
+    pending: Option<String>,
+}
+
 pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, force: &[String]) -> Vec<Row> {
     let mut rows = Vec::new();
     let mut cohort: BTreeMap<String, Finished> = BTreeMap::new();
     let mut cohort_blocker: Option<String> = None;
+    let span = graph.replica_span();
     for unit in units {
-        let mut finished = Finished::new();
-        let mut pending: Option<String> = None; // first stage of this unit that would not be cached
         let sources = source::scan(store, unit, verify);
-        for stage in graph.stages().iter().filter(|s| !s.is_cohort()) {
-            let stage = stage.as_ref();
-            let state = match (&sources, &pending) {
-                (Err(e), _) if stage.inputs().contains(&SOURCE) => State::Blocked(format!("{e:#}")),
-                (_, Some(up)) if depends_on(graph, stage, up) => {
-                    State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, &unit.id) }
-                }
-                _ => {
-                    let files = sources.as_deref().unwrap_or(&[]);
-                    let keyed = plan::key(stage, &unit.id, plan::patient_inputs(stage, files, &finished));
-                    let forced = force.iter().any(|f| f == stage.name());
-                    match plan::decide(store, stage, &unit.id, &keyed, verify, forced) {
-                        Decision::Cached(m) => {
-                            finished.insert(stage.name(), m.outputs);
-                            State::Cached
-                        }
-                        Decision::Compute(reasons) => State::Compute(reasons),
-                    }
-                }
-            };
-            if !matches!(state, State::Cached) && pending.is_none() {
-                pending = Some(stage.name().to_string());
+        let files = sources.as_deref().unwrap_or(&[]);
+        let mut base = Lane { unit: unit.id.clone(), finished: Finished::new(), pending: None };
+        let mut replicas: Vec<Lane> = Vec::new();
+        for (index, stage) in graph.per_patient().into_iter().enumerate() {
+            let in_span = span.as_ref().is_some_and(|sp| sp.replicates(index));
+            if let Some(sp) = span.as_ref().filter(|sp| sp.fan_out == index) {
+                replicas = (0..sp.names.len()).map(|r| Lane { unit: sp.unit(&unit.id, r), ..base.clone() }).collect();
             }
-            rows.push(Row { unit: unit.id.clone(), stage: stage.name().into(), state });
+            let gathered = (span.is_some() && stage.gathers_replicas() && !replicas.is_empty()).then(|| {
+                let sp = span.as_ref().expect("checked");
+                let finished: Vec<Finished> = replicas.iter().map(|l| l.finished.clone()).collect();
+                base.pending = base.pending.take().or_else(|| replicas.iter().find_map(|l| l.pending.clone()));
+                plan::gathered_inputs(stage, files, &base.finished, &finished, &sp.names)
+            });
+            let lanes: Vec<&mut Lane> = if in_span { replicas.iter_mut().collect() } else { vec![&mut base] };
+            for lane in lanes {
+                let state = match (&sources, &lane.pending) {
+                    (Err(e), _) if stage.inputs().contains(&SOURCE) => State::Blocked(format!("{e:#}")),
+                    (_, Some(up)) if depends_on(graph, stage, up) => {
+                        State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, &lane.unit) }
+                    }
+                    _ => {
+                        let inputs =
+                            gathered.clone().unwrap_or_else(|| plan::patient_inputs(stage, files, &lane.finished));
+                        let keyed = plan::key(stage, &lane.unit, inputs);
+                        let forced = force.iter().any(|f| f == stage.name());
+                        match plan::decide(store, stage, &lane.unit, &keyed, verify, forced) {
+                            Decision::Cached(m) => {
+                                lane.finished.insert(stage.name(), m.outputs);
+                                State::Cached
+                            }
+                            Decision::Compute(reasons) => State::Compute(reasons),
+                        }
+                    }
+                };
+                if !matches!(state, State::Cached) && lane.pending.is_none() {
+                    lane.pending = Some(stage.name().to_string());
+                }
+                rows.push(Row { unit: lane.unit.clone(), stage: stage.name().into(), state });
+            }
         }
-        if let Some(p) = pending {
+        // A graph cut inside the span ends on the replicas.
+        if let Some(p) = base.pending.or_else(|| replicas.iter().find_map(|l| l.pending.clone())) {
             cohort_blocker.get_or_insert(format!("{}/{p}", unit.id));
         }
-        cohort.insert(unit.id.clone(), finished);
+        cohort.insert(unit.id.clone(), base.finished);
     }
     let mut cohort_finished = Finished::new();
     for stage in graph.stages().iter().filter(|s| s.is_cohort()) {

@@ -4,15 +4,19 @@
 //! worker threads and a bounded channel in front of it, so a slow stage holds back only as many
 //! patients as it has workers. A patient that fails at one stage is reported and skipped by the
 //! stages after it; the others go on. Cohort stages run once every patient is through.
+//!
+//! A stage may fan a patient out into replicas ([`Stage::replica_names`]): a splitter hands
+//! each replica on as its own job, and a collector in front of the gathering stage waits for
+//! all of a patient's replicas and merges them back into one job.
 
 use super::export::publish;
 use super::lock::FileLock;
 use super::plan::{self, Decision};
 use super::progress::Progress;
 use super::source::{self, SourceFile};
-use super::stage::{Context, Finished, OutputRef, Stage, StageGraph, SOURCE};
+use super::stage::{Context, Finished, OutputRef, ReplicaSpan, Stage, StageGraph, SOURCE};
 use super::store::{InputRef, Manifest, Store};
-use crossbeam_channel::bounded;
+use crossbeam_channel::{bounded, Receiver};
 use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -103,13 +107,39 @@ impl RunSummary {
     }
 }
 
-/// A patient travelling through the stages.
+/// A patient (or one of its replicas) travelling through the stages.
 struct Job {
     unit: Unit,
+    /// Which replica this job is, between a fan-out and its gathering.
+    replica: Option<usize>,
     sources: Option<Vec<SourceFile>>,
     finished: Finished,
+    /// After a gathering: every replica's outputs, in replica order.
+    replicas: Vec<Finished>,
     failed_at: Option<String>,
     records: Vec<Record>,
+}
+
+impl Job {
+    fn new(unit: Unit) -> Job {
+        Job {
+            unit,
+            replica: None,
+            sources: None,
+            finished: Finished::new(),
+            replicas: vec![],
+            failed_at: None,
+            records: vec![],
+        }
+    }
+
+    /// The unit this job's stages are keyed and published under.
+    fn key_unit(&self, span: Option<&ReplicaSpan>) -> String {
+        match (self.replica, span) {
+            (Some(r), Some(span)) => span.unit(&self.unit.id, r),
+            _ => self.unit.id.clone(),
+        }
+    }
 }
 
 /// Shared, read-only state of a run.
@@ -117,15 +147,14 @@ struct Shared<'a> {
     store: &'a Store,
     options: &'a RunOptions,
     progress: &'a Progress,
+    span: Option<ReplicaSpan>,
 }
 
 /// Runs `graph` for every unit, then its cohort stages. Never stops early for a failure.
 pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptions, progress: &Progress) -> RunSummary {
     let started = Instant::now();
-    let shared = Shared { store, options, progress };
-    let patient_stages: Vec<&dyn Stage> =
-        graph.stages().iter().filter(|s| !s.is_cohort()).map(|s| s.as_ref()).collect();
-    let mut jobs = stream_patients(&shared, &patient_stages, units);
+    let shared = Shared { store, options, progress, span: graph.replica_span() };
+    let mut jobs = stream_patients(&shared, &graph.per_patient(), units);
     jobs.sort_by(|a, b| a.unit.id.cmp(&b.unit.id));
 
     let mut records: Vec<Record> = jobs.iter_mut().flat_map(|j| std::mem::take(&mut j.records)).collect();
@@ -145,6 +174,8 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
             let ctx = Context {
                 stage,
                 unit: COHORT,
+                replica: None,
+                replicas: &[],
                 store,
                 sources: &[],
                 inputs: &cohort_finished,
@@ -169,7 +200,14 @@ fn stream_patients(shared: &Shared, stages: &[&dyn Stage], units: &[Unit]) -> Ve
     let mut done = Vec::with_capacity(units.len());
     std::thread::scope(|scope| {
         let (feed_tx, mut rx) = bounded::<Job>(1);
-        for &stage in stages {
+        let span = shared.span.as_ref();
+        for (index, &stage) in stages.iter().enumerate() {
+            if let Some(span) = span.filter(|s| s.fan_out == index) {
+                rx = split(scope, rx, span.names.len());
+            }
+            if let Some(span) = span.filter(|s| s.gather == Some(index)) {
+                rx = gather(scope, rx, span.names.len(), replicated_names(stages, span));
+            }
             let workers = shared.options.workers_for(stage.name());
             let (tx, next_rx) = bounded::<Job>(workers);
             for _ in 0..workers {
@@ -185,16 +223,13 @@ fn stream_patients(shared: &Shared, stages: &[&dyn Stage], units: &[Unit]) -> Ve
             }
             rx = next_rx;
         }
+        // A graph cut inside the span (`--until`) still hands back one job per patient.
+        if let Some(span) = span.filter(|s| s.gather.is_none()) {
+            rx = gather(scope, rx, span.names.len(), replicated_names(stages, span));
+        }
         scope.spawn(move || {
             for unit in units {
-                let job = Job {
-                    unit: unit.clone(),
-                    sources: None,
-                    finished: Finished::new(),
-                    failed_at: None,
-                    records: vec![],
-                };
-                if feed_tx.send(job).is_err() {
+                if feed_tx.send(Job::new(unit.clone())).is_err() {
                     break;
                 }
             }
@@ -204,29 +239,116 @@ fn stream_patients(shared: &Shared, stages: &[&dyn Stage], units: &[Unit]) -> Ve
     done
 }
 
-/// One stage for one patient: serve from the cache or compute, then publish.
+/// The names of the stages that run once per replica.
+fn replicated_names(stages: &[&dyn Stage], span: &ReplicaSpan) -> Vec<&'static str> {
+    stages.iter().enumerate().filter(|(i, _)| span.replicates(*i)).map(|(_, s)| s.name()).collect()
+}
+
+/// Hands each job on as `count` replica jobs (a job that already failed goes on whole).
+fn split<'s>(scope: &'s std::thread::Scope<'s, '_>, rx: Receiver<Job>, count: usize) -> Receiver<Job> {
+    let (tx, out) = bounded::<Job>(count);
+    scope.spawn(move || {
+        for mut job in rx {
+            if job.failed_at.is_some() {
+                if tx.send(job).is_err() {
+                    return;
+                }
+                continue;
+            }
+            let records = std::mem::take(&mut job.records);
+            for r in 0..count {
+                let replica = Job {
+                    replica: Some(r),
+                    sources: job.sources.clone(),
+                    finished: job.finished.clone(),
+                    records: if r == 0 { records.clone() } else { vec![] },
+                    ..Job::new(job.unit.clone())
+                };
+                if tx.send(replica).is_err() {
+                    return;
+                }
+            }
+        }
+    });
+    out
+}
+
+/// Waits for all `count` replicas of a patient and hands them on as one job: the outputs of the
+/// stages before the fan-out as its own, each replica's in `replicas`. A failed replica fails it.
+fn gather<'s>(
+    scope: &'s std::thread::Scope<'s, '_>,
+    rx: Receiver<Job>,
+    count: usize,
+    replicated: Vec<&'static str>,
+) -> Receiver<Job> {
+    let (tx, out) = bounded::<Job>(1);
+    scope.spawn(move || {
+        let mut waiting: HashMap<String, Vec<Job>> = HashMap::new();
+        for job in rx {
+            let merged = match job.replica {
+                None => job,
+                Some(_) => {
+                    let id = job.unit.id.clone();
+                    let parts = waiting.entry(id.clone()).or_default();
+                    parts.push(job);
+                    if parts.len() < count {
+                        continue;
+                    }
+                    let parts = waiting.remove(&id).expect("just filled");
+                    merge(parts, &replicated)
+                }
+            };
+            if tx.send(merged).is_err() {
+                return;
+            }
+        }
+    });
+    out
+}
+
+fn merge(mut parts: Vec<Job>, replicated: &[&'static str]) -> Job {
+    parts.sort_by_key(|j| j.replica);
+    let failed_at = parts.iter().find_map(|j| j.failed_at.clone());
+    let records = parts.iter_mut().flat_map(|j| std::mem::take(&mut j.records)).collect();
+    let replicas: Vec<Finished> = parts.iter().map(|j| j.finished.clone()).collect();
+    let first = parts.swap_remove(0);
+    let mut finished = first.finished;
+    finished.retain(|name, _| !replicated.contains(name));
+    Job { sources: first.sources, finished, replicas, failed_at, records, ..Job::new(first.unit) }
+}
+
+/// One stage for one patient (or replica): serve from the cache or compute, then publish.
 fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
+    let unit = job.key_unit(shared.span.as_ref());
     let outcome = if let Some(up) = &job.failed_at {
         Outcome::Skipped { upstream: up.clone() }
     } else {
-        shared.progress.started(stage.name(), &job.unit.id);
+        shared.progress.started(stage.name(), &unit);
         let outcome = match ensure_sources(shared, stage, job) {
             Err(cause) => Outcome::Failed { cause },
             Ok(()) => {
                 let sources = job.sources.as_deref().unwrap_or(&[]);
-                let inputs = plan::patient_inputs(stage, sources, &job.finished);
+                let replicas: &[Finished] = if stage.gathers_replicas() { &job.replicas } else { &[] };
+                let inputs = match (replicas, &shared.span) {
+                    ([], _) | (_, None) => plan::patient_inputs(stage, sources, &job.finished),
+                    (replicas, Some(span)) => {
+                        plan::gathered_inputs(stage, sources, &job.finished, replicas, &span.names)
+                    }
+                };
                 let no_cohort = BTreeMap::new();
                 let ctx = Context {
                     stage,
                     unit: &job.unit.id,
+                    replica: job.replica,
+                    replicas,
                     store: shared.store,
                     sources,
                     inputs: &job.finished,
                     cohort: &no_cohort,
                     failed: &[],
                 };
-                let dir = shared.options.out_dir.join(&job.unit.id);
-                let (outcome, outputs) = run_stage(shared, stage, &job.unit.id, inputs, &ctx, &dir);
+                let dir = shared.options.out_dir.join(&unit);
+                let (outcome, outputs) = run_stage(shared, stage, &unit, inputs, &ctx, &dir);
                 if let Some(outputs) = outputs {
                     job.finished.insert(stage.name(), outputs);
                 }
@@ -238,8 +360,8 @@ fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
         }
         outcome
     };
-    shared.progress.finished(stage.name(), &job.unit.id, &outcome);
-    job.records.push(Record { unit: job.unit.id.clone(), stage: stage.name().into(), outcome });
+    shared.progress.finished(stage.name(), &unit, &outcome);
+    job.records.push(Record { unit, stage: stage.name().into(), outcome });
 }
 
 fn ensure_sources(shared: &Shared, stage: &dyn Stage, job: &mut Job) -> Result<(), String> {

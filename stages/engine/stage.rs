@@ -62,8 +62,42 @@ pub trait Stage: Send + Sync {
     fn publishes(&self, _name: &str) -> bool {
         true
     }
+    /// The replicas this stage fans each patient out into (none: empty). It and every
+    /// per-patient stage after it then run once per replica, each as unit
+    /// `<patient>/<replica>` with its own cache key and `out_dir/<patient>/<replica>/` folder,
+    /// until the stage that [gathers](Stage::gathers_replicas) them.
+    fn replica_names(&self) -> Vec<String> {
+        Vec::new()
+    }
+    /// Whether this stage runs once per patient over every replica's outputs
+    /// ([`Context::replica_count`], [`Context::in_replica`]). Without a fan-out it sees one.
+    fn gathers_replicas(&self) -> bool {
+        false
+    }
     /// Compute the outputs. Must not read anything the context does not hand it.
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>>;
+}
+
+/// Where a graph fans patients out into replicas, and where it gathers them again (indices
+/// into the per-patient stages, in order).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReplicaSpan {
+    pub fan_out: usize,
+    /// The gathering stage; none when the graph was cut (`--until`) before it.
+    pub gather: Option<usize>,
+    pub names: Vec<String>,
+}
+
+impl ReplicaSpan {
+    /// Whether the per-patient stage at `index` runs once per replica.
+    pub fn replicates(&self, index: usize) -> bool {
+        index >= self.fan_out && self.gather.is_none_or(|g| index < g)
+    }
+
+    /// The unit a replica's stages are keyed and published under.
+    pub fn unit(&self, patient: &str, replica: usize) -> String {
+        format!("{patient}/{}", self.names[replica])
+    }
 }
 
 /// The stages in an order where each comes after all of its inputs.
@@ -84,13 +118,60 @@ impl StageGraph {
                     return Err(anyhow!("stage `{}` reads `{input}`, which is not declared before it", s.name()));
                 }
             }
+            if !s.replica_names().is_empty() && s.is_cohort() {
+                return Err(anyhow!("cohort stage `{}` cannot fan out into replicas", s.name()));
+            }
             let cohort_input = s.inputs().iter().any(|i| stages.iter().any(|t| t.name() == *i && t.is_cohort()));
             if cohort_input && !s.is_cohort() {
                 return Err(anyhow!("per-patient stage `{}` cannot read a cohort stage", s.name()));
             }
             seen.push(s.name());
         }
-        Ok(StageGraph { stages })
+        let fanning = stages.iter().filter(|s| !s.replica_names().is_empty()).count();
+        if fanning > 1 {
+            return Err(anyhow!("only one stage may fan out into replicas ({fanning} do)"));
+        }
+        let graph = StageGraph { stages };
+        if let Some(span) = graph.replica_span() {
+            if span.gather.is_none() {
+                let name = graph.per_patient()[span.fan_out].name();
+                return Err(anyhow!(
+                    "stage `{name}` fans out into replicas, and no later per-patient stage gathers them"
+                ));
+            }
+        }
+        Ok(graph)
+    }
+
+    /// The stages run once per patient, in order.
+    pub fn per_patient(&self) -> Vec<&dyn Stage> {
+        self.stages.iter().filter(|s| !s.is_cohort()).map(|s| s.as_ref()).collect()
+    }
+
+    /// Where the per-patient stages fan out into replicas and gather again, if they do.
+    pub fn replica_span(&self) -> Option<ReplicaSpan> {
+        let stages = self.per_patient();
+        let fan_out = stages.iter().position(|s| !s.replica_names().is_empty())?;
+        let gather = stages.iter().skip(fan_out + 1).position(|s| s.gathers_replicas()).map(|g| g + fan_out + 1);
+        Some(ReplicaSpan { fan_out, gather, names: stages[fan_out].replica_names() })
+    }
+
+    /// How many times each stage runs for `patients` patients (replicated stages once per replica).
+    pub fn runs_per_stage(&self, patients: usize) -> Vec<(&'static str, u64)> {
+        let span = self.replica_span();
+        let mut index = 0;
+        let mut out = Vec::new();
+        for s in &self.stages {
+            let runs = if s.is_cohort() {
+                1
+            } else {
+                let replicas = span.as_ref().filter(|sp| sp.replicates(index)).map_or(1, |sp| sp.names.len());
+                index += 1;
+                patients * replicas
+            };
+            out.push((s.name(), runs as u64));
+        }
+        out
     }
 
     pub fn stages(&self) -> &[Box<dyn Stage>] {
@@ -116,6 +197,7 @@ impl StageGraph {
                 needed.extend(s.inputs().iter().copied());
             }
         }
+        // A graph cut inside a replica span has no gathering stage: each replica ends on its own.
         let stages = self.stages.into_iter().filter(|s| needed.contains(&s.name())).collect();
         Ok(StageGraph { stages })
     }
@@ -129,6 +211,10 @@ pub struct Context<'a> {
     /// The stage being run: what it may read.
     pub(crate) stage: &'a dyn Stage,
     pub(crate) unit: &'a str,
+    /// The replica this run is for (replicated stages only).
+    pub(crate) replica: Option<usize>,
+    /// A gathering stage's view of every replica's outputs (empty: no fan-out happened).
+    pub(crate) replicas: &'a [Finished],
     pub(crate) store: &'a Store,
     pub(crate) sources: &'a [SourceFile],
     pub(crate) inputs: &'a Finished,
@@ -141,6 +227,27 @@ impl<'a> Context<'a> {
     /// The patient this run is for (`"cohort"` for a cohort stage).
     pub fn patient(&self) -> &str {
         self.unit
+    }
+
+    /// The replica this run is for, when the stage runs once per replica.
+    pub fn replica(&self) -> Option<usize> {
+        self.replica
+    }
+
+    /// How many replicas a gathering stage reads (1 when the patient was not fanned out).
+    pub fn replica_count(&self) -> usize {
+        self.replicas.len().max(1)
+    }
+
+    /// The same context reading replica `r`'s outputs (for a gathering stage; replica 0 is the
+    /// context itself when the patient was not fanned out).
+    pub fn in_replica(&self, r: usize) -> anyhow::Result<Context<'a>> {
+        let inputs = match self.replicas {
+            [] if r == 0 => self.inputs,
+            [] => return Err(anyhow!("replica {r} asked for, and this patient was not fanned out")),
+            all => all.get(r).ok_or_else(|| anyhow!("replica {r} asked for, and there are {}", all.len()))?,
+        };
+        Ok(Context { inputs, replica: Some(r), replicas: &[], ..*self })
     }
 
     /// The patient's own files (when the stage reads [`SOURCE`]), sorted by relative path.
