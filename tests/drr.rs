@@ -200,3 +200,28 @@ fn same_inputs_give_identical_images_whatever_the_thread_count() {
     };
     assert_eq!(run(1), run(4));
 }
+
+#[test]
+fn tiles_lay_boxes_on_a_grid_centred_on_the_lungs_and_key_only_a_tiling() {
+    use aret_pipe::engine::Stage;
+    use aret_pipe::stage::drr::{Drr, RoiMode};
+    let tiling = Params { roi_center: RoiCenter::Mode(RoiMode::Tiles), ..Params::default() };
+    assert_eq!(tiling.tile_count(), 18);
+    // The default box (x −100…140, y ±60, z −80…60 mm about its origin): box centres at
+    // ±66 mm in x, −74/0/74 in y, −120/0/120 in z from the lungs; x slowest, z fastest.
+    let lungs = [10.0, -20.0, 30.0];
+    let origin = |t| tiling.tile_origin_mm(lungs, t);
+    assert_eq!(origin(0), [10.0 - 66.0 - 20.0, -20.0 - 74.0, 30.0 - 120.0 + 10.0]);
+    assert_eq!(origin(1), [10.0 - 66.0 - 20.0, -20.0 - 74.0, 30.0 + 10.0]);
+    assert_eq!(origin(17), [10.0 + 66.0 - 20.0, -20.0 + 74.0, 30.0 + 120.0 + 10.0]);
+    let names = Drr { params: tiling.clone() }.replica_names();
+    assert_eq!((names.len(), names[0].as_str(), names[17].as_str()), (18, "tile00", "tile17"));
+    assert!(Drr { params: tiling.clone() }.params().get("tiles").is_some());
+    // Any other ROI centre neither fans out nor has the tiling in its cache key.
+    let lungs_only = Drr { params: Params { roi_center: RoiCenter::Mode(RoiMode::Lungs), ..tiling.clone() } };
+    assert!(lungs_only.replica_names().is_empty());
+    assert!(lungs_only.params().get("tiles").is_none() && lungs_only.params().get("tile_step_mm").is_none());
+    assert!(Params { tiles: [2, 0, 3], ..tiling.clone() }.check().unwrap_err().to_string().contains("tiles"));
+    let bad_step = Params { tile_step_mm: [1.0, -1.0, 1.0], ..tiling };
+    assert!(bad_step.check().unwrap_err().to_string().contains("tile_step_mm"));
+}

@@ -120,7 +120,7 @@ impl Stage for Join {
     }
 }
 
-/// Cohort: one line per patient that got through.
+/// Cohort: one line per patient that got through, with its replicas' count and last slice.
 struct Report;
 impl Stage for Report {
     fn name(&self) -> &'static str {
@@ -130,7 +130,7 @@ impl Stage for Report {
         1
     }
     fn inputs(&self) -> &'static [&'static str] {
-        &["join"]
+        &["join", "slice"]
     }
     fn params(&self) -> serde_json::Value {
         serde_json::json!({})
@@ -141,8 +141,14 @@ impl Stage for Report {
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let mut text = String::new();
         for p in ctx.cohort_patients() {
-            text.push_str(&String::from_utf8(ctx.read_patient(p, "join", "join.txt")?)?);
-            text.push('\n');
+            let n = ctx.patient_replica_count(p);
+            let last = String::from_utf8(ctx.read_patient_replica(p, n - 1, "slice", "slice.txt")?)?;
+            if n > 1 {
+                let whole = ctx.read_patient(p, "slice", "slice.txt").unwrap_err().to_string();
+                anyhow::ensure!(whole.contains("ran once per replica"), "{whole}");
+            }
+            let join = String::from_utf8(ctx.read_patient(p, "join", "join.txt")?)?;
+            text.push_str(&format!("{join} ({n}, {last})\n"));
         }
         Ok(vec![Output::new("report.txt", text)])
     }
@@ -214,7 +220,7 @@ fn replicas_run_once_each_publish_in_their_own_folder_and_gather_in_order() {
     assert_eq!(w.out("P1/part0/slice.txt"), "adg");
     assert_eq!(w.out("P1/part2/shout.txt"), "CF");
     assert_eq!(w.out("P1/join.txt"), "abcdefg: ADG|BE|CF");
-    assert_eq!(w.out("report.txt"), "abcdefg: ADG|BE|CF\nxyz: X|Y|Z\n");
+    assert_eq!(w.out("report.txt"), "abcdefg: ADG|BE|CF (3, cf)\nxyz: X|Y|Z (3, z)\n");
     let units: Vec<&str> = s.records.iter().filter(|r| r.stage == "shout").map(|r| r.unit.as_str()).collect();
     assert_eq!(units, ["P1/part0", "P1/part1", "P1/part2", "P2/part0", "P2/part1", "P2/part2"]);
     assert_eq!(w.graph(3).runs_per_stage(2), [("text", 2), ("slice", 6), ("shout", 6), ("join", 2), ("report", 1)]);
@@ -247,6 +253,7 @@ fn without_a_fan_out_the_gathering_stage_sees_one_replica_under_the_patient_itse
     let s = w.run(&w.graph(1));
     assert_eq!(w.take(), [2, 2, 2]);
     assert_eq!(w.out("P1/join.txt"), "abc: ABC");
+    assert_eq!(w.out("report.txt"), "abc: ABC (1, abc)\nde: DE (1, de)\n");
     assert!(s.records.iter().all(|r| !r.unit.contains('/')));
 }
 
@@ -258,7 +265,7 @@ fn a_failing_replica_fails_its_patient_and_nothing_else() {
     assert_eq!(failed, ["P2/part1:shout"]);
     let join = s.records.iter().find(|r| r.unit == "P2" && r.stage == "join").unwrap();
     assert!(matches!(&join.outcome, Outcome::Skipped { upstream } if upstream == "shout"));
-    assert_eq!(w.out("report.txt"), "abcdef: AD|BE|CF\n");
+    assert_eq!(w.out("report.txt"), "abcdef: AD|BE|CF (3, cf)\n");
 }
 
 #[test]

@@ -46,17 +46,26 @@ pub fn gathered_inputs(
     out
 }
 
-/// The triples a cohort stage reads: every patient's outputs of its input stages, and the
-/// patients that failed (so a newly failing patient changes the key).
+/// Each patient's replicas' outputs (patients not fanned out: none), with the replicas' names.
+pub struct CohortReplicas<'a> {
+    pub finished: &'a BTreeMap<String, Vec<Finished>>,
+    pub names: &'a [String],
+}
+
+/// The triples a cohort stage reads: every patient's outputs of its input stages (a fanned-out
+/// patient's under `<patient>/<replica>/<stage>`), and the patients that failed (so a newly
+/// failing patient changes the key).
 pub fn cohort_inputs(
     stage: &dyn Stage,
     patients: &BTreeMap<String, Finished>,
+    replicas: &CohortReplicas,
     cohort_finished: &Finished,
     failed: &[String],
 ) -> Vec<(String, String, Hash)> {
     let mut out = patient_inputs(stage, &[], cohort_finished);
     for (patient, finished) in patients {
-        for triple in patient_inputs(stage, &[], finished) {
+        let own = replicas.finished.get(patient).map_or(&[][..], |r| &r[..]);
+        for triple in gathered_inputs(stage, &[], finished, own, replicas.names) {
             out.push((format!("{patient}/{}", triple.0), triple.1, triple.2));
         }
     }

@@ -42,6 +42,7 @@ struct Lane {
 pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, force: &[String]) -> Vec<Row> {
     let mut rows = Vec::new();
     let mut cohort: BTreeMap<String, Finished> = BTreeMap::new();
+    let mut cohort_replicas: BTreeMap<String, Vec<Finished>> = BTreeMap::new();
     let mut cohort_blocker: Option<String> = None;
     let span = graph.replica_span();
     for unit in units {
@@ -92,6 +93,7 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
             cohort_blocker.get_or_insert(format!("{}/{p}", unit.id));
         }
         cohort.insert(unit.id.clone(), base.finished);
+        cohort_replicas.insert(unit.id.clone(), replicas.into_iter().map(|l| l.finished).collect());
     }
     let mut cohort_finished = Finished::new();
     for stage in graph.stages().iter().filter(|s| s.is_cohort()) {
@@ -99,7 +101,9 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
         let state = if let Some(up) = &cohort_blocker {
             State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, COHORT) }
         } else {
-            let keyed = plan::key(stage, COHORT, plan::cohort_inputs(stage, &cohort, &cohort_finished, &[]));
+            let names = span.as_ref().map_or(&[][..], |s| &s.names[..]);
+            let replicas = plan::CohortReplicas { finished: &cohort_replicas, names };
+            let keyed = plan::key(stage, COHORT, plan::cohort_inputs(stage, &cohort, &replicas, &cohort_finished, &[]));
             let forced = force.iter().any(|f| f == stage.name());
             match plan::decide(store, stage, COHORT, &keyed, verify, forced) {
                 Decision::Cached(m) => {

@@ -159,8 +159,12 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
 
     let mut records: Vec<Record> = jobs.iter_mut().flat_map(|j| std::mem::take(&mut j.records)).collect();
     let failed: Vec<String> = jobs.iter().filter(|j| j.failed_at.is_some()).map(|j| j.unit.id.clone()).collect();
-    let patients: BTreeMap<String, Finished> =
-        jobs.into_iter().filter(|j| j.failed_at.is_none()).map(|j| (j.unit.id, j.finished)).collect();
+    jobs.retain(|j| j.failed_at.is_none());
+    let replicas: BTreeMap<String, Vec<Finished>> =
+        jobs.iter_mut().map(|j| (j.unit.id.clone(), std::mem::take(&mut j.replicas))).collect();
+    let patients: BTreeMap<String, Finished> = jobs.into_iter().map(|j| (j.unit.id, j.finished)).collect();
+    let names = shared.span.as_ref().map_or(&[][..], |s| &s.names[..]);
+    let cohort_replicas = plan::CohortReplicas { finished: &replicas, names };
     // Cohort stages run in order; each may read the patients' outputs and earlier cohort stages.
     let mut cohort_finished = Finished::new();
     let mut cohort_failed: Option<String> = None;
@@ -170,7 +174,7 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
             Outcome::Skipped { upstream: up.clone() }
         } else {
             progress.started(stage.name(), COHORT);
-            let inputs = plan::cohort_inputs(stage, &patients, &cohort_finished, &failed);
+            let inputs = plan::cohort_inputs(stage, &patients, &cohort_replicas, &cohort_finished, &failed);
             let ctx = Context {
                 stage,
                 unit: COHORT,
@@ -180,6 +184,7 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
                 sources: &[],
                 inputs: &cohort_finished,
                 cohort: &patients,
+                cohort_replicas: &replicas,
                 failed: &failed,
             };
             let (outcome, outputs) = run_stage(&shared, stage, COHORT, inputs, &ctx, &options.out_dir);
@@ -335,7 +340,7 @@ fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
                         plan::gathered_inputs(stage, sources, &job.finished, replicas, &span.names)
                     }
                 };
-                let no_cohort = BTreeMap::new();
+                let (no_cohort, no_replicas) = (BTreeMap::new(), BTreeMap::new());
                 let ctx = Context {
                     stage,
                     unit: &job.unit.id,
@@ -345,6 +350,7 @@ fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
                     sources,
                     inputs: &job.finished,
                     cohort: &no_cohort,
+                    cohort_replicas: &no_replicas,
                     failed: &[],
                 };
                 let dir = shared.options.out_dir.join(&unit);

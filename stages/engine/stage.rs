@@ -219,6 +219,8 @@ pub struct Context<'a> {
     pub(crate) sources: &'a [SourceFile],
     pub(crate) inputs: &'a Finished,
     pub(crate) cohort: &'a BTreeMap<String, Finished>,
+    /// Each patient's replicas' outputs, for a cohort stage (patients not fanned out: none).
+    pub(crate) cohort_replicas: &'a BTreeMap<String, Vec<Finished>>,
     /// Patients that failed before a cohort stage (it reports them; they are in its key).
     pub(crate) failed: &'a [String],
 }
@@ -274,7 +276,29 @@ impl<'a> Context<'a> {
     pub fn read_patient(&self, patient: &str, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
         let finished =
             self.cohort.get(patient).ok_or_else(|| anyhow!("patient `{patient}` did not reach this cohort stage"))?;
+        if !finished.contains_key(stage) && self.patient_replica_count(patient) > 1 {
+            return Err(anyhow!("stage `{stage}` ran once per replica for patient `{patient}`: read one replica's"));
+        }
         self.read_from(finished, stage, name)
+    }
+
+    /// How many replicas `patient` was fanned out into (1: none), for a cohort stage.
+    pub fn patient_replica_count(&self, patient: &str) -> usize {
+        self.cohort_replicas.get(patient).map_or(1, |r| r.len().max(1))
+    }
+
+    /// Bytes of output `name` of stage `stage` for replica `r` of `patient` (cohort stages only;
+    /// replica 0 of a patient not fanned out is the patient itself).
+    pub fn read_patient_replica(&self, patient: &str, r: usize, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
+        match self.cohort_replicas.get(patient).filter(|all| !all.is_empty()) {
+            None if r == 0 => self.read_patient(patient, stage, name),
+            None => Err(anyhow!("replica {r} of patient `{patient}` asked for, and it was not fanned out")),
+            Some(all) => {
+                let finished =
+                    all.get(r).ok_or_else(|| anyhow!("patient `{patient}` has {} replicas, not {r}", all.len()))?;
+                self.read_from(finished, stage, name)
+            }
+        }
     }
 
     /// The files of input `stage` as named paths: the patient's own files for [`SOURCE`], else

@@ -57,6 +57,10 @@ pub enum RoiMode {
     Nodule,
     /// Centroid of the lung field found by thresholding the CT (blind).
     Lungs,
+    /// Boxes tiling the lungs (blind): `tiles` boxes on a grid `tile_step_mm` apart, centred on
+    /// the lung field's centroid. Each is a replica with its own views, fit and grid; `select`
+    /// compares them ([`crate::stage::select`]).
+    Tiles,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -88,6 +92,10 @@ pub struct Params {
     pub seed: u64,
     /// Where the rays are marched: "cpu", "gpu" or "auto" (resolved before the cache key).
     pub backend: Backend,
+    /// `roi_center = "tiles"`: how many boxes along x, y and z.
+    pub tiles: [usize; 3],
+    /// `roi_center = "tiles"`: the distance between neighbouring boxes' centres (mm).
+    pub tile_step_mm: [f64; 3],
 }
 
 impl Default for Params {
@@ -109,6 +117,8 @@ impl Default for Params {
             view_angle_offsets_deg: [0.0; 3],
             seed: 0,
             backend: Backend::Cpu,
+            tiles: [2, 3, 3],
+            tile_step_mm: [132.0, 74.0, 120.0],
         }
     }
 }
@@ -146,6 +156,12 @@ impl Params {
                 bail!("[drr] {key} must be ≥ 0 (got {v})");
             }
         }
+        if self.tiles.contains(&0) {
+            bail!("[drr] tiles must be at least 1 along every axis (got {:?})", self.tiles);
+        }
+        if self.tile_step_mm.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            bail!("[drr] tile_step_mm must be positive on every axis (got {:?})", self.tile_step_mm);
+        }
         if self.aabb_min.iter().chain(&self.aabb_max).any(|&c| c.abs() >= self.distance) {
             bail!("[drr] the cameras (distance {}) must stay outside the box", self.distance);
         }
@@ -155,13 +171,35 @@ impl Params {
     pub fn aabb(&self) -> Aabb {
         Aabb { min: self.aabb_min, max: self.aabb_max }
     }
+
+    fn tiling(&self) -> bool {
+        self.roi_center == RoiCenter::Mode(RoiMode::Tiles)
+    }
+
+    /// How many boxes tile the lungs (`roi_center = "tiles"`), x slowest, z fastest.
+    pub fn tile_count(&self) -> usize {
+        self.tiles.iter().product()
+    }
+
+    /// The scene origin of box `tile` whose grid is centred on `lungs_mm`: the box's own
+    /// centre lies `(i − (n − 1)/2) · tile_step_mm` from it on each axis.
+    pub fn tile_origin_mm(&self, lungs_mm: [f64; 3], tile: usize) -> [f64; 3] {
+        let [_, ny, nz] = self.tiles;
+        let index = [tile / (ny * nz), (tile / nz) % ny, tile % nz];
+        std::array::from_fn(|a| {
+            let box_centre = (self.aabb_min[a] + self.aabb_max[a]) / 2.0 * self.mm_per_unit;
+            let offset = (index[a] as f64 - (self.tiles[a] as f64 - 1.0) / 2.0) * self.tile_step_mm[a];
+            lungs_mm[a] + offset - box_centre
+        })
+    }
 }
 
 /// What `cameras.json` holds: everything the train stage needs to cast the same rays.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct CameraSet {
     pub frame: SceneFrame,
-    /// How `frame.roi_center_mm` was chosen: "nodule", "lungs" or "explicit".
+    /// How `frame.roi_center_mm` was chosen: "nodule", "lungs", "explicit" or "tileNN" (the box
+    /// of a tiling).
     pub roi_center_mode: String,
     pub aabb: Aabb,
     /// The nominal cameras, in the order coronal, sagittal, axial.
@@ -212,24 +250,37 @@ impl Stage for Drr {
         let mut json = super::params_json(&Params { backend, ..self.params.clone() });
         // The key names the backend only when it is the GPU: DRRs cached before the GPU
         // backend existed were the CPU's, and stay valid.
+        let table = json.as_object_mut().expect("params are a table");
         if backend == Backend::Cpu {
-            json.as_object_mut().expect("params are a table").remove("backend");
+            table.remove("backend");
+        }
+        // The tiling's keys matter only to a tiling, and DRRs cached before it existed stay valid.
+        if !self.params.tiling() {
+            table.remove("tiles");
+            table.remove("tile_step_mm");
         }
         json
+    }
+    /// `roi_center = "tiles"` fans each patient out into its boxes.
+    fn replica_names(&self) -> Vec<String> {
+        if !self.params.tiling() {
+            return vec![];
+        }
+        (0..self.params.tile_count()).map(|t| format!("tile{t:02}")).collect()
     }
     /// The normalised CT, and from ingest only what the ROI centre needs.
     fn reads(&self, stage: &str, output: &str) -> bool {
         match (stage, self.params.roi_center) {
             ("hu", _) => output.starts_with("ct_unit."),
             (_, RoiCenter::Mode(RoiMode::Nodule)) => output == "ground_truth.json",
-            (_, RoiCenter::Mode(RoiMode::Lungs)) => output.starts_with("ct_hu."),
+            (_, RoiCenter::Mode(RoiMode::Lungs | RoiMode::Tiles)) => output.starts_with("ct_hu."),
             (_, RoiCenter::Mm(_)) => false,
         }
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let ct_unit: Volume<f32> = super::read_volume(ctx, "hu", "ct_unit")?;
         let (roi_center_mm, mode) = self.roi_center(ctx)?;
-        let (set, images) = render_views(&self.params, &ct_unit, roi_center_mm, mode)?;
+        let (set, images) = render_views(&self.params, &ct_unit, roi_center_mm, &mode)?;
         let mut outputs = vec![Output::new("cameras.json", serde_json::to_vec_pretty(&set)?)];
         for (camera, pixels) in set.cameras.iter().zip(images) {
             let view = camera.view.name();
@@ -251,14 +302,14 @@ impl Stage for Drr {
 
 impl Drr {
     /// The scene origin in patient mm, and how it was chosen.
-    fn roi_center(&self, ctx: &Context) -> anyhow::Result<([f64; 3], &'static str)> {
+    fn roi_center(&self, ctx: &Context) -> anyhow::Result<([f64; 3], String)> {
         match self.params.roi_center {
-            RoiCenter::Mm(c) => Ok((c, "explicit")),
+            RoiCenter::Mm(c) => Ok((c, "explicit".into())),
             RoiCenter::Mode(RoiMode::Nodule) => {
                 let truth: GroundTruth = serde_json::from_slice(&ctx.read("ingest", "ground_truth.json")?)?;
                 let centre = truth.target.and_then(|t| truth.nodules[t].centroid_mm);
                 match centre {
-                    Some(c) => Ok((c, "nodule")),
+                    Some(c) => Ok((c, "nodule".into())),
                     None => bail!(
                         "[drr] roi_center = \"nodule\" needs a target nodule, and patient {} has no annotated \
                          nodule: use roi_center = \"lungs\" or an explicit [x, y, z] in mm",
@@ -266,13 +317,20 @@ impl Drr {
                     ),
                 }
             }
-            RoiCenter::Mode(RoiMode::Lungs) => {
+            RoiCenter::Mode(mode @ (RoiMode::Lungs | RoiMode::Tiles)) => {
                 let ct_hu: Volume<i16> = super::read_volume(ctx, "ingest", "ct_hu")?;
-                match lung_field_centroid_mm(&ct_hu, LUNG_THRESHOLD_HU) {
-                    Some(c) => Ok((c, "lungs")),
-                    None => {
-                        bail!("[drr] roi_center = \"lungs\": no air enclosed by the body below {LUNG_THRESHOLD_HU} HU")
+                let Some(lungs) = lung_field_centroid_mm(&ct_hu, LUNG_THRESHOLD_HU) else {
+                    let name = if mode == RoiMode::Lungs { "lungs" } else { "tiles" };
+                    bail!("[drr] roi_center = \"{name}\": no air enclosed by the body below {LUNG_THRESHOLD_HU} HU")
+                };
+                match (mode, ctx.replica()) {
+                    (RoiMode::Tiles, Some(tile)) => {
+                        Ok((self.params.tile_origin_mm(lungs, tile), format!("tile{tile:02}")))
                     }
+                    (RoiMode::Tiles, None) => {
+                        bail!("[drr] roi_center = \"tiles\" runs once per box, and no box was given")
+                    }
+                    _ => Ok((lungs, "lungs".into())),
                 }
             }
         }

@@ -72,10 +72,16 @@ impl Stage for Metrics {
         for patient in ctx.cohort_patients() {
             let result: SelectResult = serde_json::from_slice(&ctx.read_patient(patient, "select", "result.json")?)
                 .with_context(|| format!("{patient}: select/result.json"))?;
-            let log = String::from_utf8(ctx.read_patient(patient, "train", "train_log.csv")?)?;
-            let seconds = rows::train_seconds(&log).with_context(|| format!("{patient}: train_log.csv has no time"))?;
+            // A tiled patient trained one field per box: its time is theirs together.
+            let mut seconds = 0.0;
+            for r in 0..ctx.patient_replica_count(patient) {
+                let log = String::from_utf8(ctx.read_patient_replica(patient, r, "train", "train_log.csv")?)?;
+                seconds += rows::train_seconds(&log)
+                    .with_context(|| format!("{patient}: train_log.csv of box {r} has no time"))?;
+            }
             if info.lines.is_empty() {
-                let (_, _, meta) = model::decode(&ctx.read_patient(patient, "train", "model.safetensors")?)?;
+                let (_, _, meta) =
+                    model::decode(&ctx.read_patient_replica(patient, 0, "train", "model.safetensors")?)?;
                 info.lines = vec![
                     (
                         "field".into(),
@@ -96,11 +102,19 @@ impl Stage for Metrics {
                     ),
                 ];
             }
+            if result.tiles.len() > 1 && info.lines.iter().all(|(k, _)| k != "tiling") {
+                info.lines.push((
+                    "tiling".into(),
+                    format!("{} boxes a patient, ranked by response × depth", result.tiles.len()),
+                ));
+            }
             match PatientRow::new(&result, seconds) {
                 Some(row) => {
                     rows.push(row);
                     thumbs.push(report::Thumbnails {
-                        drr_coronal: ctx.read_patient(patient, "drr", "drr_coronal.png").ok(),
+                        drr_coronal: ctx
+                            .read_patient_replica(patient, shown_box(&result), "drr", "drr_coronal.png")
+                            .ok(),
                         nodule: ctx.read_patient(patient, "select", "nodule.png").ok(),
                     });
                 }
@@ -119,4 +133,10 @@ impl Stage for Metrics {
             Output::new("report.html", html),
         ])
     }
+}
+
+/// The box a tiled patient's primary selection was found in (its preview's DRR); 0 otherwise.
+fn shown_box(result: &SelectResult) -> usize {
+    let tile = result.selection(result.primary).and_then(|s| s.tile.as_deref());
+    tile.and_then(|t| result.tiles.iter().position(|b| b.tile == t)).unwrap_or(0)
 }

@@ -159,7 +159,8 @@ pub fn half_max_selection(
     }
     let localization =
         gt.map(|gt| gt.compare_labels(&components.labels, components.count(), geometry)[own as usize - 1]);
-    let selection = Selection { rule, candidate, volume_interval_mm3: interval, localization, shadows: None };
+    let selection =
+        Selection { rule, candidate, volume_interval_mm3: interval, localization, shadows: None, tile: None };
     Some((selection, components.mask_of(own)))
 }
 

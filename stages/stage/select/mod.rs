@@ -24,7 +24,7 @@
 
 use crate::engine::{Context, Output, Stage};
 use crate::formats::obj;
-use crate::kernels::localization::{ground_truth_on_grid, Localization};
+use crate::kernels::localization::{ground_truth_on_grid, GroundTruthOnGrid, Localization};
 use crate::kernels::lung_mask::BlobFilter;
 use crate::kernels::marching_cubes::mesh_mask;
 use crate::kernels::mesh::{enclosed_volume_mm3, vertex_normals};
@@ -41,11 +41,13 @@ mod localize;
 mod preview;
 mod rules;
 mod shadows;
+mod tiles;
 
 pub use half_max::RegionShape;
 pub use localize::{blob_score, centres, Centre, Centres, Localize, RunnerUp, Search, TieBreak, Weighed};
 pub use rules::Analysis;
 pub use shadows::ShadowFit;
+pub use tiles::TileScore;
 
 pub const VERSION: u32 = 17;
 
@@ -257,6 +259,9 @@ pub struct Selection {
     /// With `sizing = "shadows"`: the ellipsoid fitted to the nodule's shadows.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shadows: Option<ShadowFit>,
+    /// With `roi_center = "tiles"`: the box it was found in.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tile: Option<String>,
 }
 
 /// The oracle diagnostic: could any candidate at any threshold have been right?
@@ -297,6 +302,9 @@ pub struct SelectResult {
     #[serde(default)]
     pub sizing: Sizing,
     pub centres: Centres,
+    /// With `roi_center = "tiles"`: every box's centres and scores, in box order ([`tiles`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub tiles: Vec<TileScore>,
 }
 
 impl SelectResult {
@@ -339,8 +347,47 @@ impl Stage for Select {
             _ => false,
         }
     }
+    fn gathers_replicas(&self) -> bool {
+        true
+    }
+    /// Selects in each box the patient was fanned out into (one unless `roi_center = "tiles"`),
+    /// then keeps, per rule, the box whose centre answers most ([`tiles`]).
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         self.params.check()?;
+        let boxes = ctx.replica_count();
+        if boxes > 1 && self.params.localize != Localize::Blob {
+            bail!(
+                "[select] comparing the {boxes} boxes of [drr] roi_center = \"tiles\" needs localize = \"blob\" \
+                 (the boxes are ranked by their blob centres)"
+            );
+        }
+        let mut chosen = Vec::with_capacity(boxes);
+        for r in 0..boxes {
+            chosen.push(self.choose(&ctx.in_replica(r)?).with_context(|| format!("box {r}"))?);
+        }
+        let chosen = match chosen.len() {
+            1 => chosen.pop().expect("one box"),
+            _ => tiles::combine(chosen, self.params.primary),
+        };
+        self.write(ctx.patient(), chosen)
+    }
+}
+
+/// One box's selections, with what its outputs are drawn from.
+struct Chosen {
+    /// Complete but for the verdict and the mesh, which [`Select::write`] adds.
+    result: SelectResult,
+    primary_mask: Option<Vec<bool>>,
+    density: Volume<f32>,
+    gt: Option<GroundTruthOnGrid>,
+    views: Option<shadows::Views>,
+    /// The box's name ("tileNN"), from how its scene origin was chosen.
+    box_name: String,
+}
+
+impl Select {
+    /// Every rule's selection in one box (the inputs `ctx` reads).
+    fn choose(&self, ctx: &Context) -> anyhow::Result<Chosen> {
         let density: Volume<f32> = super::read_volume(ctx, "grid", "density")?;
         let cameras: CameraSet = serde_json::from_slice(&ctx.read("drr", "cameras.json")?)?;
         let sweep: SweepFile = serde_json::from_slice(&ctx.read("sweep", "sweep.json")?)?;
@@ -445,19 +492,9 @@ impl Stage for Select {
         let primary_mask = chosen[primary_index].as_mut().map(|(_, mask)| std::mem::take(mask));
         let [guided, blind_largest, blind_persistent] = chosen.map(|c| c.map(|(selection, _)| selection));
         let primary_sel = [&guided, &blind_largest, &blind_persistent][primary_index].clone();
-        let mesh = primary_mask.as_ref().map(|m| mesh_mask(m, &density.geometry));
-        let mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
         let result = SelectResult {
             patient: ctx.patient().to_string(),
-            verdict: {
-                let line = verdict(self.params.primary, primary_sel.as_ref(), gt.is_some(), annotated.is_some(), p);
-                let centre = centres.of(self.params.primary);
-                let notes = [centre.and_then(rival_note), centre.and_then(fallback_note)];
-                match primary_sel {
-                    Some(_) => std::iter::once(line).chain(notes.into_iter().flatten()).collect::<Vec<_>>().join("; "),
-                    None => line,
-                }
-            },
+            verdict: String::new(),
             primary: self.params.primary,
             blind_rule: self.params.blind,
             gt_volume_mm3: target.map(|t| t.volume_mm3),
@@ -468,13 +505,38 @@ impl Stage for Select {
             blind_largest,
             blind_persistent,
             voxel_volume_mm3: primary_sel.as_ref().map(|s| s.candidate.volume_mm3),
-            mesh_volume_mm3,
-            mesh_triangles: mesh.as_ref().map_or(0, |m| m.triangles.len()),
+            mesh_volume_mm3: None,
+            mesh_triangles: 0,
             candidates: found.len(),
             localize: p.localize,
             sizing: p.sizing,
             centres,
+            tiles: vec![],
         };
+        Ok(Chosen { result, primary_mask, density, gt, views, box_name: cameras.roi_center_mode })
+    }
+
+    /// The verdict on `result`'s primary selection, with notes on its centre.
+    fn verdict_of(&self, result: &SelectResult, has_truth: bool) -> String {
+        let rule = self.params.primary;
+        let primary = result.selection(rule);
+        let line = verdict(rule, primary, has_truth, result.annotated_diameter_mm.is_some(), &self.params);
+        let centre = result.centres.of(rule);
+        let notes = [centre.and_then(rival_note), centre.and_then(fallback_note)];
+        match primary {
+            Some(_) => std::iter::once(line).chain(notes.into_iter().flatten()).collect::<Vec<_>>().join("; "),
+            None => line,
+        }
+    }
+
+    /// `result.json`, the primary selection's mask, mesh and previews.
+    fn write(&self, patient: &str, chosen: Chosen) -> anyhow::Result<Vec<Output>> {
+        let Chosen { mut result, primary_mask, density, gt, views, .. } = chosen;
+        let mesh = primary_mask.as_ref().map(|m| mesh_mask(m, &density.geometry));
+        result.mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
+        result.mesh_triangles = mesh.as_ref().map_or(0, |m| m.triangles.len());
+        result.verdict = self.verdict_of(&result, gt.is_some());
+        let primary_sel = result.selection(self.params.primary).cloned();
         let mask_volume = Volume {
             geometry: density.geometry.clone(),
             data: primary_mask
@@ -486,7 +548,7 @@ impl Stage for Select {
         let (header, raw) = crate::formats::mhd::encode(&mask_volume, "nodule_mask.raw");
         let mesh = mesh.unwrap_or_default();
         let comments = [
-            format!("aret-pipe nodule surface of {} ({:?} selection)", ctx.patient(), self.params.primary),
+            format!("aret-pipe nodule surface of {patient} ({:?} selection)", self.params.primary),
             "units: mm, patient LPS (DICOM) coordinates".to_string(),
         ];
         let comment_refs: Vec<&str> = comments.iter().map(String::as_str).collect();

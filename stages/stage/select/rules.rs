@@ -148,7 +148,7 @@ impl<'a> Analysis<'a> {
             interval = [interval[0].min(v), interval[1].max(v)];
         }
         let localization = self.localization.as_ref().map(|l| l[at.0][at.1 as usize - 1]);
-        Selection { rule, candidate, volume_interval_mm3: interval, localization, shadows: None }
+        Selection { rule, candidate, volume_interval_mm3: interval, localization, shadows: None, tile: None }
     }
 
     /// Whether any candidate touched the nodule, and the best Dice among those that did.

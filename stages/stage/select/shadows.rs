@@ -270,6 +270,7 @@ pub fn shadow_selection(
         volume_interval_mm3: interval,
         localization,
         shadows: Some(shadows),
+        tile: None,
     };
     Some((selection, mask))
 }

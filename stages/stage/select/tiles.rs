@@ -1,0 +1,143 @@
+//! Comparing the boxes of `[drr] roi_center = "tiles"`: each box's searches find their own
+//! centres, and each rule keeps the box whose centre scores most, its blob response × its
+//! depth inside the lung field found in σ (`depth_mm`).
+//!
+//! Why depth: across boxes the hilum answers as strongly as a nodule or more, but its blind
+//! centres lie near the lung field's edge (9–15 mm deep) while nodules in the parenchyma lie
+//! deeper (29–43 mm). The rule was fixed on two pilot patients and then tested on seven held
+//! out (docs/experiments.md, "Tiling the lungs with the paper's box").
+
+use super::{Centre, Chosen, Oracle, Rule, Selection};
+use serde::{Deserialize, Serialize};
+
+/// One box of a tiling, as `result.json` lists it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TileScore {
+    pub tile: String,
+    /// The guided centre's response × depth (none: no guided centre in this box).
+    pub guided_score: Option<f64>,
+    /// The blind centre's response × depth (none: no blind centre in this box).
+    pub blind_score: Option<f64>,
+    /// Whether the blind centre lies on the nodule (diagnostic only: never used to choose).
+    pub blind_on_nodule: Option<bool>,
+}
+
+/// A centre's score across boxes: its blob response × its depth inside the lung field.
+pub fn score(centre: Option<&Centre>) -> Option<f64> {
+    let centre = centre?;
+    Some(f64::from(centre.blob.as_ref()?.response) * centre.depth_mm?)
+}
+
+/// The index of the highest score (the first, on a tie); none when no box has one.
+pub fn best(scores: impl IntoIterator<Item = Option<f64>>) -> Option<usize> {
+    let mut top: Option<(usize, f64)> = None;
+    for (i, s) in scores.into_iter().enumerate() {
+        if let Some(s) = s.filter(|s| s.is_finite()) {
+            if top.is_none_or(|(_, t)| s > t) {
+                top = Some((i, s));
+            }
+        }
+    }
+    top.map(|(i, _)| i)
+}
+
+/// One result over all boxes: the guided rule's selection and centre from the box whose guided
+/// centre scores most, both blind rules' from the box whose blind centre does, and the primary
+/// rule's box for the mask, mesh and previews. The oracle is the best over every box.
+pub(super) fn combine(mut boxes: Vec<Chosen>, primary: Rule) -> Chosen {
+    let table: Vec<TileScore> = boxes
+        .iter()
+        .map(|b| TileScore {
+            tile: b.box_name.clone(),
+            guided_score: score(b.result.centres.guided.as_ref()),
+            blind_score: score(b.result.centres.blind.as_ref()),
+            blind_on_nodule: b.result.centres.blind.as_ref().and_then(|c| c.on_nodule),
+        })
+        .collect();
+    let guided_box = best(table.iter().map(|t| t.guided_score));
+    let blind_box = best(table.iter().map(|t| t.blind_score));
+    let tagged =
+        |i: usize, s: &Option<Selection>| s.clone().map(|s| Selection { tile: Some(boxes[i].box_name.clone()), ..s });
+    let guided = guided_box.and_then(|i| tagged(i, &boxes[i].result.guided));
+    let blind_largest = blind_box.and_then(|i| tagged(i, &boxes[i].result.blind_largest));
+    let blind_persistent = blind_box.and_then(|i| tagged(i, &boxes[i].result.blind_persistent));
+    let guided_centres = guided_box.map(|i| &boxes[i].result.centres);
+    let guided_centre = guided_centres.and_then(|c| c.guided.clone());
+    let guided_accepted = guided_centres.map(|c| c.guided_accepted.clone()).unwrap_or_default();
+    let blind_centres = blind_box.map(|i| &boxes[i].result.centres);
+    let blind_centre = blind_centres.and_then(|c| c.blind.clone());
+    let blind_accepted = blind_centres.map(|c| c.blind_accepted.clone()).unwrap_or_default();
+    let oracle = best_oracle(boxes.iter().filter_map(|b| b.result.oracle.as_ref()));
+    let candidates = boxes.iter().map(|b| b.result.candidates).sum();
+    let shown = match primary {
+        Rule::Guided => guided_box.or(blind_box),
+        Rule::BlindLargest | Rule::BlindPersistent => blind_box.or(guided_box),
+    };
+    let mut out = boxes.swap_remove(shown.unwrap_or(0));
+    let r = &mut out.result;
+    (r.guided, r.blind_largest, r.blind_persistent) = (guided, blind_largest, blind_persistent);
+    (r.centres.guided, r.centres.guided_accepted) = (guided_centre, guided_accepted);
+    (r.centres.blind, r.centres.blind_accepted) = (blind_centre, blind_accepted);
+    r.voxel_volume_mm3 = r.selection(primary).map(|s| s.candidate.volume_mm3);
+    (r.oracle, r.candidates, r.tiles) = (oracle, candidates, table);
+    // The primary's mask was cut in the box it is shown from; without a selection it has none.
+    if r.selection(primary).is_none() {
+        out.primary_mask = None;
+    }
+    out
+}
+
+/// Could any candidate of any box have been right, and which came closest.
+fn best_oracle<'a>(oracles: impl Iterator<Item = &'a Oracle>) -> Option<Oracle> {
+    oracles.fold(None, |best: Option<Oracle>, o| match best {
+        Some(b) if b.best_dice >= o.best_dice => Some(Oracle { any_hit: b.any_hit || o.any_hit, ..b }),
+        Some(b) => Some(Oracle { any_hit: b.any_hit || o.any_hit, ..o.clone() }),
+        None => Some(o.clone()),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::lung_mask::BlobPeak;
+
+    fn centre(response: f32, depth_mm: Option<f64>) -> Centre {
+        Centre {
+            voxel: [0; 3],
+            position_mm: [0.0; 3],
+            blob: Some(BlobPeak { voxel: [0; 3], response, scale_mm: 6.0 }),
+            rank: 0,
+            on_nodule: None,
+            runner_up: None,
+            ambiguous: false,
+            region: None,
+            depth_mm,
+            from_blind: false,
+        }
+    }
+
+    #[test]
+    fn a_deep_blob_outranks_a_stronger_shallow_one() {
+        // The pilot's 0003: the hilar box answers 0.105 at 12 mm deep, the nodule's 0.083 at 35 mm.
+        let hilum = score(Some(&centre(0.105, Some(12.0))));
+        let nodule = score(Some(&centre(0.083, Some(35.0))));
+        assert_eq!(best([hilum, None, nodule]), Some(2));
+        assert_eq!(score(Some(&centre(0.1, None))), None);
+        assert_eq!(score(None), None);
+    }
+
+    #[test]
+    fn the_first_box_wins_a_tie_and_no_score_is_no_box() {
+        assert_eq!(best([Some(1.0), Some(2.0), Some(2.0)]), Some(1));
+        assert_eq!(best([None, None]), None);
+        assert_eq!(best([Some(f64::NAN), Some(-1.0)]), Some(1));
+    }
+
+    #[test]
+    fn the_oracle_is_the_best_box_and_any_hit_anywhere() {
+        let o = |any_hit, best_dice| Oracle { any_hit, best_dice, best: None };
+        let all = [o(true, 0.4), o(false, 0.6), o(false, 0.1)];
+        assert_eq!(best_oracle(all.iter()), Some(o(true, 0.6)));
+        assert_eq!(best_oracle([].iter()), None);
+    }
+}
