@@ -522,7 +522,8 @@ impl Select {
         let primary = result.selection(rule);
         let line = verdict(rule, primary, has_truth, result.annotated_diameter_mm.is_some(), &self.params);
         let centre = result.centres.of(rule);
-        let notes = [centre.and_then(rival_note), centre.and_then(fallback_note)];
+        let tiled = (!result.tiles.is_empty()).then(|| tiles::margin_note(&result.tiles, rule)).flatten();
+        let notes = [centre.and_then(rival_note), centre.and_then(fallback_note), tiled];
         match primary {
             Some(_) => std::iter::once(line).chain(notes.into_iter().flatten()).collect::<Vec<_>>().join("; "),
             None => line,

@@ -87,6 +87,29 @@ pub(super) fn combine(mut boxes: Vec<Chosen>, primary: Rule) -> Chosen {
     out
 }
 
+/// What the verdict adds for a tiling: which box `rule`'s centre came from, and by how much it
+/// scored over the next box's (a small margin: two places are nearly as likely).
+pub fn margin_note(tiles: &[TileScore], rule: Rule) -> Option<String> {
+    let score_of = |t: &TileScore| match rule {
+        Rule::Guided => t.guided_score,
+        Rule::BlindLargest | Rule::BlindPersistent => t.blind_score,
+    };
+    let top = best(tiles.iter().map(score_of))?;
+    let top_score = score_of(&tiles[top])?;
+    let others = tiles.iter().enumerate().filter(|(i, _)| *i != top).map(|(_, t)| score_of(t));
+    let next =
+        others.flatten().filter(|s| s.is_finite()).fold(None, |m: Option<f64>, s| Some(m.map_or(s, |m| m.max(s))));
+    Some(match next {
+        Some(next) if next > 0.0 => format!(
+            "found in box {} of {}, scoring {:.2}× the next box",
+            tiles[top].tile,
+            tiles.len(),
+            top_score / next
+        ),
+        _ => format!("found in box {} of {}, the only box with a centre", tiles[top].tile, tiles.len()),
+    })
+}
+
 /// Could any candidate of any box have been right, and which came closest.
 fn best_oracle<'a>(oracles: impl Iterator<Item = &'a Oracle>) -> Option<Oracle> {
     oracles.fold(None, |best: Option<Oracle>, o| match best {
@@ -131,6 +154,22 @@ mod tests {
         assert_eq!(best([Some(1.0), Some(2.0), Some(2.0)]), Some(1));
         assert_eq!(best([None, None]), None);
         assert_eq!(best([Some(f64::NAN), Some(-1.0)]), Some(1));
+    }
+
+    #[test]
+    fn the_verdict_names_the_box_and_its_margin_over_the_next() {
+        let tile = |name: &str, guided_score, blind_score| TileScore {
+            tile: name.into(),
+            guided_score,
+            blind_score,
+            blind_on_nodule: None,
+        };
+        let tiles = [tile("tile00", Some(1.0), Some(2.0)), tile("tile01", None, Some(3.0)), tile("tile02", None, None)];
+        let blind = margin_note(&tiles, Rule::BlindPersistent).unwrap();
+        assert_eq!(blind, "found in box tile01 of 3, scoring 1.50× the next box");
+        let guided = margin_note(&tiles, Rule::Guided).unwrap();
+        assert_eq!(guided, "found in box tile00 of 3, the only box with a centre");
+        assert_eq!(margin_note(&tiles[2..], Rule::Guided), None);
     }
 
     #[test]
