@@ -55,12 +55,13 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
             if let Some(sp) = span.as_ref().filter(|sp| sp.fan_out == index) {
                 replicas = (0..sp.names.len()).map(|r| Lane { unit: sp.unit(&unit.id, r), ..base.clone() }).collect();
             }
-            let gathered = (span.is_some() && stage.gathers_replicas() && !replicas.is_empty()).then(|| {
-                let sp = span.as_ref().expect("checked");
+            // A gathering stage is keyed by every replica's outputs, and waits for any of them.
+            let mut gathered = None;
+            if let Some(sp) = span.as_ref().filter(|_| stage.gathers_replicas() && !replicas.is_empty()) {
                 let finished: Vec<Finished> = replicas.iter().map(|l| l.finished.clone()).collect();
+                gathered = Some(plan::gathered_inputs(stage, files, &base.finished, &finished, &sp.names));
                 base.pending = base.pending.take().or_else(|| replicas.iter().find_map(|l| l.pending.clone()));
-                plan::gathered_inputs(stage, files, &base.finished, &finished, &sp.names)
-            });
+            }
             let lanes: Vec<&mut Lane> = if in_span { replicas.iter_mut().collect() } else { vec![&mut base] };
             for lane in lanes {
                 let state = match (&sources, &lane.pending) {
