@@ -24,18 +24,10 @@ import sys
 import numpy as np
 from scipy import ndimage
 
+from metaimage import read_mhd
+
 INSIDE_MM = 8.0
 BLIND_SCALES_MM = (6.0, 9.0, 13.0)
-
-
-def read_mhd(path):
-    header = dict(line.split(" = ", 1) for line in open(path).read().strip().splitlines())
-    dims = [int(v) for v in header["DimSize"].split()]
-    spacing = np.array([float(v) for v in header["ElementSpacing"].split()])
-    origin = np.array([float(v) for v in header["Offset"].split()])
-    dtype = {"MET_FLOAT": np.float32, "MET_UCHAR": np.uint8}[header["ElementType"]]
-    raw = os.path.join(os.path.dirname(path), header["ElementDataFile"])
-    return np.fromfile(raw, dtype).reshape(dims[::-1]), spacing, origin  # (z, y, x); x, y, z
 
 
 def node_mm(shape, spacing, origin):

@@ -16,16 +16,7 @@ import os
 
 import numpy as np
 
-
-def read_mhd(path):
-    """A MetaImage volume [z, y, x] with its spacing and origin (x, y, z mm)."""
-    header = dict(line.split(" = ", 1) for line in open(path).read().strip().splitlines())
-    dims = [int(v) for v in header["DimSize"].split()]
-    spacing = np.array([float(v) for v in header["ElementSpacing"].split()])
-    origin = np.array([float(v) for v in header["Offset"].split()])
-    dtype = {"MET_SHORT": "<i2", "MET_UCHAR": "u1", "MET_FLOAT": "<f4"}[header["ElementType"]]
-    raw = os.path.join(os.path.dirname(path), header["ElementDataFile"])
-    return np.fromfile(raw, dtype=dtype).reshape(dims[::-1]), spacing, origin
+from metaimage import read_mhd
 
 
 def box_extent_mm(cameras):
