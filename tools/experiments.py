@@ -94,6 +94,8 @@ ROWS = [
     ("tiles", "presets/tiles.toml", "C", "C",
      "the default fully blind by tiling: the paper's box at 2 × 3 × 3 points over the lungs, each its own fit;"
      " each rule keeps the box whose centre scores most (response × depth in the lung field)"),
+    ("tiles-gpu", "presets/tiles_gpu.toml", "C", "C",
+     "tiles with its views and fits on a GPU (backend = \"gpu\"), eight patients at a time"),
     ("tiles-seed2", "presets/tiles_seed2.toml", "C", "C",
      "tiles on the second phantom anatomy (seed 2), a cohort the tiling's rule was not chosen on"),
     ("default-blind-chest-256", "presets/default_blind_chest_256.toml", "C", "C",
