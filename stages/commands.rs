@@ -5,7 +5,7 @@ use crate::config::Config;
 use crate::engine::lock::FileLock;
 use crate::engine::preview::{self, State};
 use crate::engine::progress::{self, Progress};
-use crate::engine::run::{self, RunOptions, RunSummary, Unit};
+use crate::engine::run::{self, RunOptions, RunSummary, StopRequest, Unit};
 use crate::engine::store::{write_atomic, Store};
 use crate::engine::StageGraph;
 use crate::formats::vdb::{self, FloatGrid, GridClass};
@@ -43,6 +43,8 @@ fn prepare(config_path: &Path, patients: Option<&[String]>, until: Option<&str>)
 
 /// `aret-pipe run`. Returns the process exit code: 0 when every stage of every patient succeeded.
 pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
+    let stop = StopRequest::default();
+    stop_on_signals(&stop);
     let p = prepare(config_path, args.patients.as_deref(), args.until.as_deref())?;
     for f in &args.force {
         if p.graph.get(f).is_none() {
@@ -61,6 +63,7 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         workers: p.config.pipeline.stage_workers.clone().into_iter().collect(),
         default_workers: p.config.pipeline.workers,
         out_dir: p.config.out_dir(),
+        stop,
     };
     let progress = Progress::auto(&p.graph.runs_per_stage(p.units.len()));
     let summary = run::run(&p.graph, &p.store, &p.units, &options, &progress);
@@ -75,7 +78,44 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
             print!("{}", crate::stage::metrics::summary::headline(&json)?);
         }
     }
-    Ok(if summary.failures().next().is_some() { 1 } else { 0 })
+    Ok(if summary.failures().next().is_some() {
+        1
+    } else if summary.interrupted() {
+        INTERRUPTED_EXIT
+    } else {
+        0
+    })
+}
+
+/// The exit status of a run stopped by a signal (128 + SIGINT, the shells' convention).
+const INTERRUPTED_EXIT: i32 = 130;
+
+/// Ctrl-C, SIGTERM (`timeout`, a batch scheduler's time limit) or SIGHUP asks the run to stop:
+/// the stages in progress finish and are cached, so the end table and `run_report.json` say
+/// what was done. A second signal, a second or more after the first, quits at once (`timeout`
+/// signals the process and then its group, so one request can arrive twice); the cache stays
+/// consistent either way (every write is atomic).
+fn stop_on_signals(stop: &StopRequest) {
+    let stop = stop.clone();
+    let mut first: Option<std::time::Instant> = None;
+    let installed = ctrlc::set_handler(move || match first {
+        Some(at) if at.elapsed().as_secs_f64() >= 1.0 => {
+            eprintln!("aret-pipe: quitting at once");
+            std::process::exit(INTERRUPTED_EXIT);
+        }
+        Some(_) => {}
+        None => {
+            first = Some(std::time::Instant::now());
+            stop.request();
+            eprintln!(
+                "aret-pipe: stopping: the stages in progress finish and are cached, no other starts \
+                 (signal again to quit at once)"
+            );
+        }
+    });
+    if let Err(e) = installed {
+        eprintln!("aret-pipe: warning: a signal will end the run abruptly ({e})");
+    }
 }
 
 /// Writes `out_dir/run_report.json`: every (patient, stage) outcome with its time.

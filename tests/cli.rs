@@ -1,6 +1,6 @@
 //! The pipeline through its command line, on small CT series written by the tests: caching and
-//! invalidation per stage, dry-run reasons, concurrent runs, SIGKILL mid-run, failure isolation,
-//! no identifying tags in any artifact.
+//! invalidation per stage, dry-run reasons, concurrent runs, SIGKILL and SIGTERM mid-run, failure
+//! isolation, no identifying tags in any artifact.
 
 mod support;
 
@@ -287,6 +287,57 @@ fn a_run_killed_at_any_moment_leaves_nothing_a_later_run_trusts() {
         let r = p.run(&["--verify"]);
         assert_eq!(count(&r, "ingest", "computed") + count(&r, "hu", "computed"), 0, "verify finds nothing corrupt");
     }
+}
+
+#[test]
+fn sigterm_lets_the_stages_in_progress_finish_and_the_next_run_goes_on() {
+    let p = Project::new(&[], 0);
+    for id in ["P1", "P2", "P3", "P4", "P5", "P6"] {
+        p.write_patient(id, &big_series(24));
+    }
+    let child = Command::new(BIN)
+        .args(["run", "pipeline.toml"])
+        .current_dir(p.dir.path())
+        .env("CI", "true")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Signal once the first stage has been cached: the handler is in place by then, and the
+    // run has most of its stages ahead of it.
+    let started = std::time::Instant::now();
+    while !has_a_manifest(&p.path("cache")) {
+        assert!(started.elapsed().as_secs() < 60, "the run cached nothing in a minute");
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    let status = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    assert!(status.success());
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(130), "{}\n{}", text(&out.stdout), text(&out.stderr));
+    assert!(text(&out.stderr).contains("stopping"), "{}", text(&out.stderr));
+    assert!(text(&out.stdout).contains("run the same command again"), "{}", text(&out.stdout));
+    let first = p.report("out");
+    let records = first["records"].as_array().unwrap();
+    let stopped = records.iter().filter(|r| r["outcome"] == "interrupted").count();
+    let done: Vec<(String, String)> = records
+        .iter()
+        .filter(|r| r["outcome"] == "computed")
+        .map(|r| (r["unit"].as_str().unwrap().into(), r["stage"].as_str().unwrap().into()))
+        .collect();
+    assert!(stopped > 0 && !done.is_empty(), "{first}");
+    assert!(records.iter().all(|r| r["outcome"] == "computed" || r["outcome"] == "interrupted"), "{first}");
+    // The next run serves what finished from the cache and does the rest.
+    let second = p.run(&[]);
+    for r in second["records"].as_array().unwrap() {
+        let key = (r["unit"].as_str().unwrap().to_string(), r["stage"].as_str().unwrap().to_string());
+        let want = if done.contains(&key) { "cached" } else { "computed" };
+        assert_eq!(r["outcome"], want, "{key:?}");
+    }
+}
+
+/// Whether the cache `dir` holds any stage's manifest yet.
+fn has_a_manifest(dir: &Path) -> bool {
+    walkdir::WalkDir::new(dir.join("manifests")).into_iter().flatten().any(|e| e.file_type().is_file())
 }
 
 fn unsafe_kill(pid: u32) {

@@ -1,8 +1,8 @@
 //! The engine on toy stages (it knows nothing about CT): caching, invalidation, early cutoff,
-//! forced runs, corrupt blobs, failure isolation and cohort fan-in.
+//! forced runs, corrupt blobs, failure isolation, cohort fan-in and stopping a run.
 
 use aret_pipe::engine::progress::Progress;
-use aret_pipe::engine::run::{self, Outcome, RunOptions, RunSummary, Unit};
+use aret_pipe::engine::run::{self, Outcome, RunOptions, RunSummary, StopRequest, Unit};
 use aret_pipe::engine::store::Store;
 use aret_pipe::engine::{Context, Output, Stage, StageGraph, SOURCE};
 use std::path::Path;
@@ -11,10 +11,12 @@ use std::sync::Arc;
 
 type Counter = Arc<AtomicUsize>;
 
-/// Joins the patient's files (sorted by name) with `sep`. Fails on a file named `poison`.
+/// Joins the patient's files (sorted by name) with `sep`. Fails on a file named `poison`; a
+/// file named `stop` asks the run to stop while this stage works (as Ctrl-C would).
 struct Concat {
     sep: String,
     runs: Counter,
+    stop: StopRequest,
 }
 impl Stage for Concat {
     fn name(&self) -> &'static str {
@@ -38,6 +40,9 @@ impl Stage for Concat {
             }
             if f.rel == "panic" {
                 panic!("deliberate panic");
+            }
+            if f.rel == "stop" {
+                self.stop.request();
             }
             parts.push(std::fs::read_to_string(&f.path)?);
         }
@@ -122,6 +127,7 @@ impl Counters {
 struct World {
     dir: tempfile::TempDir,
     counters: Counters,
+    stop: StopRequest,
 }
 
 impl World {
@@ -134,12 +140,12 @@ impl World {
                 std::fs::write(path, text).unwrap();
             }
         }
-        World { dir, counters: Counters::default() }
+        World { dir, counters: Counters::default(), stop: StopRequest::default() }
     }
 
     fn graph(&self, sep: &str, parity_only: bool) -> StageGraph {
         StageGraph::new(vec![
-            Box::new(Concat { sep: sep.into(), runs: self.counters.concat.clone() }),
+            Box::new(Concat { sep: sep.into(), runs: self.counters.concat.clone(), stop: self.stop.clone() }),
             Box::new(Length { parity_only, runs: self.counters.length.clone() }),
             Box::new(Report { runs: self.counters.report.clone() }),
         ])
@@ -169,6 +175,7 @@ impl World {
             workers: [("length".to_string(), 3)].into_iter().collect(),
             default_workers: 2,
             out_dir: self.dir.path().join("out"),
+            stop: self.stop.clone(),
         };
         run::run(graph, &self.store(), &self.units(), &options, &Progress::hidden(&[]))
     }
@@ -317,6 +324,7 @@ fn a_missing_patient_folder_is_a_failure_of_that_patient() {
         workers: Default::default(),
         default_workers: 1,
         out_dir: w.path("out"),
+        stop: w.stop.clone(),
     };
     let s = run::run(&w.graph("", false), &w.store(), &units, &options, &Progress::hidden(&[]));
     let failures: Vec<_> = s.failures().collect();
@@ -346,7 +354,7 @@ fn graph_rejects_inputs_declared_later() {
     let c = Counters::default();
     let g = StageGraph::new(vec![
         Box::new(Length { parity_only: false, runs: c.length.clone() }) as Box<dyn Stage>,
-        Box::new(Concat { sep: String::new(), runs: c.concat.clone() }),
+        Box::new(Concat { sep: String::new(), runs: c.concat.clone(), stop: Default::default() }),
     ]);
     assert!(g.is_err());
 }
@@ -362,4 +370,45 @@ fn outputs_a_stage_does_not_read_do_not_invalidate_it() {
     w.run(&g, &[], false);
     assert_eq!(w.counters.take(), [1, 0, 0], "length reads only all.txt");
     assert_eq!(w.out("P1/files.txt"), "3");
+}
+
+#[test]
+fn a_stop_request_starts_no_further_stage_and_the_next_run_goes_on() {
+    let mut w =
+        World::new(&[("a", &[("1.txt", "x"), ("stop", "")]), ("b", &[("1.txt", "y")]), ("c", &[("1.txt", "z")])]);
+    let graph = w.graph("+", false);
+    // One worker a stage: the request comes while a's concat works and before anything else starts.
+    let options = |w: &World| RunOptions {
+        verify: false,
+        force: vec![],
+        workers: Default::default(),
+        default_workers: 1,
+        out_dir: w.path("out"),
+        stop: w.stop.clone(),
+    };
+    let s = run::run(&graph, &w.store(), &w.units(), &options(&w), &Progress::hidden(&[]));
+    assert!(s.interrupted() && s.failures().next().is_none());
+    let outcome = |s: &RunSummary, unit: &str, stage: &str| {
+        s.records.iter().find(|r| r.unit == unit && r.stage == stage).map(|r| r.outcome.clone()).unwrap()
+    };
+    // The stage in progress finishes, is cached and published; nothing else starts.
+    assert!(matches!(outcome(&s, "a", "concat"), Outcome::Computed { .. }));
+    assert!(w.path("out/a/all.txt").exists());
+    for (unit, stage) in [("a", "length"), ("b", "concat"), ("b", "length"), ("c", "concat"), ("c", "length")] {
+        assert!(matches!(outcome(&s, unit, stage), Outcome::Interrupted), "{unit} · {stage}");
+    }
+    assert!(matches!(outcome(&s, "cohort", "report"), Outcome::Interrupted));
+    assert_eq!(w.counters.take(), [1, 0, 0]);
+    let table = aret_pipe::engine::progress::table(&s, &graph.names());
+    assert!(table.contains("stopped") && table.contains("run the same command again"), "{table}");
+    let report = serde_json::to_value(&s).unwrap();
+    assert_eq!(report["records"][1]["outcome"], "interrupted");
+
+    // The same command again, unasked to stop, goes on from the cache.
+    w.stop = StopRequest::default();
+    let graph = w.graph("+", false);
+    let s = run::run(&graph, &w.store(), &w.units(), &options(&w), &Progress::hidden(&[]));
+    assert!(!s.interrupted() && s.failures().next().is_none());
+    assert!(matches!(outcome(&s, "a", "concat"), Outcome::Cached { .. }));
+    assert_eq!(w.counters.take(), [2, 3, 1]);
 }

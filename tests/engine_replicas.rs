@@ -197,6 +197,7 @@ impl World {
             workers: [("shout".to_string(), 3)].into_iter().collect(),
             default_workers: 2,
             out_dir: self.dir.path().join("out"),
+            stop: Default::default(),
         };
         run::run(graph, &self.store(), &self.units(), &options, &Progress::hidden(&[]))
     }

@@ -15,6 +15,7 @@ struct Counts {
     cached: u64,
     failed: u64,
     skipped: u64,
+    interrupted: u64,
 }
 
 enum Mode {
@@ -79,6 +80,7 @@ impl Progress {
                 Outcome::Computed { .. } => c.computed += 1,
                 Outcome::Failed { .. } => c.failed += 1,
                 Outcome::Skipped { .. } => c.skipped += 1,
+                Outcome::Interrupted => c.interrupted += 1,
             }
         }
         match &self.mode {
@@ -136,7 +138,8 @@ pub fn grid(cells: &[(String, String, String)], stages: &[&str]) -> String {
     out
 }
 
-/// The end-of-run table: cached / seconds computed / FAILED per patient and stage, totals, causes.
+/// The end-of-run table: cached / seconds computed / FAILED / stopped (not started after a stop
+/// request) per patient and stage, totals, causes.
 pub fn table(summary: &RunSummary, stages: &[&str]) -> String {
     let cells: Vec<(String, String, String)> = summary
         .records
@@ -147,6 +150,7 @@ pub fn table(summary: &RunSummary, stages: &[&str]) -> String {
                 Outcome::Computed { seconds } => format!("{seconds:.2}s"),
                 Outcome::Failed { .. } => "FAILED".to_string(),
                 Outcome::Skipped { .. } => "skipped".to_string(),
+                Outcome::Interrupted => "stopped".to_string(),
             };
             (r.unit.clone(), r.stage.clone(), cell)
         })
@@ -165,6 +169,12 @@ pub fn table(summary: &RunSummary, stages: &[&str]) -> String {
         if let Outcome::Failed { cause } = &r.outcome {
             out.push_str(&format!("failed: {} · {}: {cause}\n", r.unit, r.stage));
         }
+    }
+    let stopped = n(|o| matches!(o, Outcome::Interrupted));
+    if stopped > 0 {
+        out.push_str(&format!(
+            "stopped: {stopped} stages were not started; run the same command again to go on (what finished is cached)\n"
+        ));
     }
     out
 }

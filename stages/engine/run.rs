@@ -5,6 +5,10 @@
 //! patients as it has workers. A patient that fails at one stage is reported and skipped by the
 //! stages after it; the others go on. Cohort stages run once every patient is through.
 //!
+//! A run asked to stop ([`StopRequest`], Ctrl-C or SIGTERM from the command line) starts no
+//! further stage: the ones in progress finish and are cached, the rest are recorded as
+//! [`Outcome::Interrupted`], so that running the same command again goes on where it stopped.
+//!
 //! A stage may fan a patient out into replicas ([`Stage::replica_names`]): a splitter hands
 //! each replica on as its own job, and a collector in front of the gathering stage waits for
 //! all of a patient's replicas and merges them back into one job.
@@ -21,6 +25,8 @@ use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// The unit a cohort stage runs for, and its folder name under `out_dir` (none: `out_dir` itself).
@@ -54,6 +60,23 @@ pub struct RunOptions {
     pub default_workers: usize,
     /// Where results are published (`out_dir/<patient>/<output>`).
     pub out_dir: PathBuf,
+    /// Set while the run works to have it start no further stage.
+    pub stop: StopRequest,
+}
+
+/// A request that a run start no further stage; clones share it. The stages in progress when
+/// it comes finish and are cached.
+#[derive(Debug, Clone, Default)]
+pub struct StopRequest(Arc<AtomicBool>);
+
+impl StopRequest {
+    pub fn request(&self) {
+        self.0.store(true, Ordering::SeqCst);
+    }
+
+    pub fn requested(&self) -> bool {
+        self.0.load(Ordering::SeqCst)
+    }
 }
 
 impl RunOptions {
@@ -80,6 +103,8 @@ pub enum Outcome {
     Skipped {
         upstream: String,
     },
+    /// Not started because the run was asked to stop ([`StopRequest`]).
+    Interrupted,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -104,6 +129,11 @@ impl RunSummary {
 
     pub fn count(&self, stage: &str, pred: impl Fn(&Outcome) -> bool) -> usize {
         self.records.iter().filter(|r| r.stage == stage && pred(&r.outcome)).count()
+    }
+
+    /// Whether a stop request left some stage unstarted.
+    pub fn interrupted(&self) -> bool {
+        self.records.iter().any(|r| matches!(r.outcome, Outcome::Interrupted))
     }
 }
 
@@ -172,6 +202,8 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
         let stage = stage.as_ref();
         let outcome = if let Some(up) = &cohort_failed {
             Outcome::Skipped { upstream: up.clone() }
+        } else if options.stop.requested() {
+            Outcome::Interrupted
         } else {
             progress.started(stage.name(), COHORT);
             let inputs = plan::cohort_inputs(stage, &patients, &cohort_replicas, &cohort_finished, &failed);
@@ -327,6 +359,8 @@ fn step(shared: &Shared, stage: &dyn Stage, job: &mut Job) {
     let unit = job.key_unit(shared.span.as_ref());
     let outcome = if let Some(up) = &job.failed_at {
         Outcome::Skipped { upstream: up.clone() }
+    } else if shared.options.stop.requested() {
+        Outcome::Interrupted
     } else {
         shared.progress.started(stage.name(), &unit);
         let outcome = match ensure_sources(shared, stage, job) {
