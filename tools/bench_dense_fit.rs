@@ -5,8 +5,9 @@
 //!
 //! `cargo run --release --example bench_dense_fit -- [PATIENT_DIR] [STEPS] [RUNS] [GRID]`:
 //! PATIENT_DIR holds `cameras.json` and `drr_*.exr` (default `out/LIDC-IDRI-0001` of the default
-//! pipeline); GRID is the lattice's nodes per axis (default 128). Where the device cannot hold
-//! `A` (lavapipe past 128³ under 256² views), it says why and times the CPU alone.
+//! pipeline); GRID is the lattice's nodes per axis (default 128). Where there is no adapter, or
+//! the device cannot hold `A` (lavapipe past 128³ under 256² views), it says why and times the
+//! CPU alone.
 //! Prints the host's set-up (building `A` and `Aᵀ`, the step `1/L`; the same for both backends),
 //! then the median over RUNS of the seconds for STEPS steps (default 500, the shipped count) on
 //! each backend and their ratio, projected to a whole fit, and how far the GPU's σ lies from
@@ -27,8 +28,16 @@ fn main() -> anyhow::Result<()> {
     let steps: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(500);
     let runs: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(3);
     let grid: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(128);
-    let gpu = Gpu::shared().map_err(|e| anyhow::anyhow!("no GPU adapter: {e}"))?;
-    println!("adapter: {}; CPU threads: {}", gpu.describe(), rayon::current_num_threads());
+    let gpu = match Gpu::shared() {
+        Ok(gpu) => {
+            println!("adapter: {}; CPU threads: {}", gpu.describe(), rayon::current_num_threads());
+            Some(gpu)
+        }
+        Err(e) => {
+            println!("no GPU adapter ({e}); timing the CPU alone on {} threads", rayon::current_num_threads());
+            None
+        }
+    };
     let (set, images) = CameraSet::read_published(&dir)?;
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
     let params = TrainParams { model: FieldModel::DenseTv, dense_tv_iterations: steps, grid, ..TrainParams::default() };
@@ -51,15 +60,16 @@ fn main() -> anyhow::Result<()> {
         Ok((t.elapsed().as_secs_f64(), sigma))
     };
     let t = Instant::now();
-    let mut device = match DeviceFista::new(gpu.clone(), &problem) {
-        Ok(device) => {
+    let mut device = match gpu.map(|gpu| DeviceFista::new(gpu, &problem)) {
+        Some(Ok(device)) => {
             println!("GPU upload of A and Aᵀ: {:.2} s", t.elapsed().as_secs_f64());
             Some(device)
         }
-        Err(e) => {
+        Some(Err(e)) => {
             println!("GPU: {e:#}; timing the CPU alone");
             None
         }
+        None => None,
     };
     let mut cpu = CpuFista::new(&problem);
     let (mut on_gpu, mut on_cpu) = (Vec::new(), Vec::new());

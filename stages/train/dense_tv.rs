@@ -438,6 +438,51 @@ mod tests {
         }
     }
 
+    /// `A` and `Aᵀ` as the plainest code builds them: a map per ray, summed in sample order.
+    fn plain_projector(renderer: &Renderer, rays: &[Ray]) -> (Vec<Vec<(u32, f64)>>, Vec<Vec<(u32, f64)>>) {
+        let n = renderer.lattice.n;
+        let rows: Vec<Vec<(u32, f64)>> = rays
+            .iter()
+            .map(|ray| {
+                let (q0, dq, count) = renderer.samples(ray, renderer.step / 2.0);
+                let mut row = std::collections::BTreeMap::new();
+                for k in 0..count {
+                    let q: [f64; 3] = std::array::from_fn(|a| q0[a] + k as f64 * dq[a]);
+                    let (cell, weights) = cell_and_weights(q, n);
+                    let corners = [0, 1, n, n + 1, n * n, n * n + 1, n * n + n, n * n + n + 1];
+                    for (offset, w) in corners.iter().zip(weights) {
+                        let w = w * (renderer.scale * renderer.step);
+                        row.entry((cell + offset) as u32).and_modify(|sum| *sum += w).or_insert(w);
+                    }
+                }
+                row.into_iter().collect()
+            })
+            .collect();
+        let mut columns = vec![vec![]; n * n * n];
+        for (r, row) in rows.iter().enumerate() {
+            for &(c, w) in row {
+                columns[c as usize].push((r as u32, w));
+            }
+        }
+        (rows, columns)
+    }
+
+    fn entries(m: &Csr) -> Vec<Vec<(u32, f64)>> {
+        m.offsets.windows(2).map(|w| (w[0]..w[1]).map(|k| (m.index[k], m.weight[k])).collect()).collect()
+    }
+
+    #[test]
+    fn the_projector_is_the_plain_sums_bit_for_bit_on_any_thread_count() {
+        let (renderer, rays) = (renderer(7), rays());
+        let (rows, columns) = plain_projector(&renderer, &rays);
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let projector = pool.install(|| Projector::new(&renderer, &rays));
+            assert!(entries(&projector.rows) == rows, "A on {threads} threads");
+            assert!(entries(&projector.columns) == columns, "Aᵀ on {threads} threads");
+        }
+    }
+
     #[test]
     fn the_back_projection_is_the_transpose() {
         let (renderer, rays) = (renderer(5), rays());
