@@ -438,10 +438,13 @@ mod tests {
         }
     }
 
+    /// A sparse matrix's rows as (column, weight) lists.
+    type Rows = Vec<Vec<(u32, f64)>>;
+
     /// `A` and `Aᵀ` as the plainest code builds them: a map per ray, summed in sample order.
-    fn plain_projector(renderer: &Renderer, rays: &[Ray]) -> (Vec<Vec<(u32, f64)>>, Vec<Vec<(u32, f64)>>) {
+    fn plain_projector(renderer: &Renderer, rays: &[Ray]) -> (Rows, Rows) {
         let n = renderer.lattice.n;
-        let rows: Vec<Vec<(u32, f64)>> = rays
+        let rows: Rows = rays
             .iter()
             .map(|ray| {
                 let (q0, dq, count) = renderer.samples(ray, renderer.step / 2.0);
@@ -467,7 +470,7 @@ mod tests {
         (rows, columns)
     }
 
-    fn entries(m: &Csr) -> Vec<Vec<(u32, f64)>> {
+    fn entries(m: &Csr) -> Rows {
         m.offsets.windows(2).map(|w| (w[0]..w[1]).map(|k| (m.index[k], m.weight[k])).collect()).collect()
     }
 
