@@ -356,16 +356,51 @@ fn with_no_guided_centre_the_guided_rule_may_fall_back_to_the_blind_one() {
     assert!(near(blind.position_mm, strong) && !blind.from_blind);
     // The guided size check rejects the blind centre too: still no guided centre.
     let mut rejected = found.clone();
-    rejected.fall_back_to_blind(|_: &Centre| Weighed::PassedOver);
+    rejected.fall_back_to_blind(0.0, |_: &Centre| Weighed::PassedOver);
     assert!(rejected.guided.is_none());
     // It passes: the guided rule sizes from the blind centre, and says so.
     let mut taken = found.clone();
-    taken.fall_back_to_blind(|_: &Centre| Weighed::from(true));
+    taken.fall_back_to_blind(0.0, |_: &Centre| Weighed::from(true));
     let guided = taken.guided.clone().expect("the blind centre");
     assert!(guided.from_blind && guided.voxel == blind.voxel, "{guided:?}");
     // A guided centre of its own is never replaced.
     let mut own = taken.clone();
     own.blind = Some(Centre { voxel: [0, 0, 0], ..blind });
-    own.fall_back_to_blind(|_: &Centre| Weighed::from(true));
+    own.fall_back_to_blind(0.0, |_: &Centre| Weighed::from(true));
     assert_eq!(own.guided, taken.guided);
+}
+
+#[test]
+fn a_guided_centre_far_fainter_than_the_blind_one_gives_way_to_it() {
+    use aret_pipe::stage::select::{centres, Centre, RegionShape, Weighed};
+    let (density, strong, weak) = two_balls(0.3);
+    let lungs = vec![true; density.geometry.len()];
+    let params = SelectParams { inside_mm: 0.0, ..SelectParams::default() };
+    let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|_, _| Weighed::from(true));
+    let shape = |peak_score| Some(RegionShape { roundness: 0.8, diameter_mm: 18.0, peak_score });
+    let blind = Centre { voxel: strong, region: shape(0.30), ..found.blind.clone().expect("a blind centre") };
+    let guided = Centre { voxel: weak, region: shape(0.05), ..found.guided.clone().expect("a guided centre") };
+    let with = |guided: Centre| aret_pipe::stage::select::Centres {
+        guided: Some(guided),
+        blind: Some(blind.clone()),
+        ..found.clone()
+    };
+    // 0.05 against 0.30: under a ratio of 0.5 the blind centre is taken, and the peak it
+    // replaced is recorded; under 0.1 (and 0, the default) the guided centre stays.
+    let mut replaced = with(guided.clone());
+    replaced.fall_back_to_blind(0.5, |_: &Centre| Weighed::from(true));
+    let taken = replaced.guided.expect("a centre");
+    assert!(taken.from_blind && taken.voxel == strong && taken.replaced_guided_peak == Some(0.05), "{taken:?}");
+    for ratio in [0.0, 0.1] {
+        let mut kept = with(guided.clone());
+        kept.fall_back_to_blind(ratio, |_: &Centre| Weighed::from(true));
+        assert_eq!(kept.guided.as_ref(), Some(&guided), "ratio {ratio}");
+    }
+    // Not if the blind centre fails the guided size check, nor without regions to compare.
+    let mut rejected = with(guided.clone());
+    rejected.fall_back_to_blind(0.5, |_: &Centre| Weighed::PassedOver);
+    assert_eq!(rejected.guided.as_ref(), Some(&guided));
+    let mut unmeasured = with(Centre { region: None, ..guided.clone() });
+    unmeasured.fall_back_to_blind(0.5, |_: &Centre| Weighed::from(true));
+    assert!(!unmeasured.guided.expect("a centre").from_blind);
 }

@@ -318,6 +318,7 @@ mod tests {
             region: None,
             depth_mm: None,
             from_blind: false,
+            replaced_guided_peak: None,
         }
     }
 

@@ -97,9 +97,14 @@ pub struct Centre {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_mm: Option<f64>,
     /// The guided rule's centre is the blind search's: the guided search found no blob it could
-    /// size, and the blind centre passed the guided size check (`guided_fallback`).
+    /// size, or one fainter than `guided_faint_ratio` allows, and the blind centre passed the
+    /// guided size check (`guided_fallback`).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub from_blind: bool,
+    /// With `from_blind`: the peak local contrast of the guided search's own centre, which was
+    /// fainter than `guided_faint_ratio` × the blind centre's (none: it found no centre).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replaced_guided_peak: Option<f32>,
 }
 
 /// What a search's caller says of one blob.
@@ -174,13 +179,25 @@ pub struct RunnerUp {
 }
 
 impl Centres {
-    /// With no guided centre, the blind one, if `guided_accepts` it (the guided search's size
-    /// check, against the annotated diameter): a less assisted centre than the guided search's
-    /// own, taken only where that search found nothing. Nothing changes otherwise.
-    pub fn fall_back_to_blind(&mut self, guided_accepts: impl Fn(&Centre) -> Weighed) {
-        let Some(blind) = self.blind.as_ref().filter(|_| self.guided.is_none()) else { return };
+    /// The blind centre in place of the guided one, if `guided_accepts` it (the guided search's
+    /// size check, against the annotated diameter), where the guided search found no centre or
+    /// one whose region peaks below `faint_ratio` × the blind region's local contrast: a blob
+    /// of the annotated size that barely stands out is weaker evidence than a contrasted one
+    /// of a size the check allows (`faint_ratio` 0: only where it found none). Nothing changes
+    /// otherwise.
+    pub fn fall_back_to_blind(&mut self, faint_ratio: f64, guided_accepts: impl Fn(&Centre) -> Weighed) {
+        let Some(blind) = self.blind.as_ref() else { return };
+        let replaced_guided_peak = match &self.guided {
+            None => None,
+            Some(guided) => match (guided.region, blind.region) {
+                (Some(own), Some(theirs)) if (own.peak_score as f64) < faint_ratio * theirs.peak_score as f64 => {
+                    Some(own.peak_score)
+                }
+                _ => return,
+            },
+        };
         if let Weighed::Accepted { region } = guided_accepts(blind) {
-            self.guided = Some(Centre { region, from_blind: true, ..blind.clone() });
+            self.guided = Some(Centre { region, from_blind: true, replaced_guided_peak, ..blind.clone() });
         }
     }
 
@@ -297,6 +314,7 @@ pub fn centres(
         region: None,
         depth_mm: None,
         from_blind: false,
+        replaced_guided_peak: None,
     };
     match localize {
         Localize::None => Centres::default(),

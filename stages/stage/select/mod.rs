@@ -120,6 +120,9 @@ pub struct Params {
     /// it can size, the guided rule takes the blind centre if it passes the guided size check
     /// ([`Centres::fall_back_to_blind`]).
     pub guided_fallback: bool,
+    /// `guided_fallback`: the guided rule also takes the blind centre where its own centre's
+    /// region peaks below this fraction of the blind centre's local contrast (0: never).
+    pub guided_faint_ratio: f64,
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
@@ -165,6 +168,7 @@ impl Default for Params {
             score_roundness: 3.0,
             score_top: 5,
             guided_fallback: false,
+            guided_faint_ratio: 0.0,
         }
     }
 }
@@ -220,6 +224,9 @@ impl Params {
                      \"half_max\" or \"shadows\""
                 );
             }
+        }
+        if !(self.guided_faint_ratio.is_finite() && (0.0..=1.0).contains(&self.guided_faint_ratio)) {
+            bail!("[select] guided_faint_ratio must be a number from 0 to 1 (got {})", self.guided_faint_ratio);
         }
         if !(self.score_roundness.is_finite() && self.score_roundness >= 0.0) {
             bail!("[select] score_roundness must be a number ≥ 0 (got {})", self.score_roundness);
@@ -441,7 +448,7 @@ impl Select {
             &accept,
         );
         if p.guided_fallback && p.localize == Localize::Blob && annotated.is_some() {
-            centres.fall_back_to_blind(|blind| accept(Search::Guided, blind));
+            centres.fall_back_to_blind(p.guided_faint_ratio, |blind| accept(Search::Guided, blind));
         }
         let dims = density.geometry.dims;
         // Some(None): any candidate; Some(Some(cell)): those holding the centre; None: the
@@ -612,11 +619,15 @@ fn rival_note(centre: &Centre) -> Option<String> {
 }
 
 fn fallback_note(centre: &Centre) -> Option<String> {
-    centre.from_blind.then(|| {
-        "the guided search found no blob of the annotated size: this is the blind search's centre \
-         ([select] guided_fallback)"
-            .to_string()
-    })
+    let why = match (centre.from_blind, centre.replaced_guided_peak) {
+        (false, _) => return None,
+        (true, None) => "the guided search found no blob of the annotated size".to_string(),
+        (true, Some(peak)) => format!(
+            "the guided search's blob barely stands out (peak contrast {peak:.3}, under [select] \
+             guided_faint_ratio of this one's)"
+        ),
+    };
+    Some(format!("{why}: this is the blind search's centre ([select] guided_fallback)"))
 }
 
 /// One line saying whether `primary` can be trusted: "hit", or why not ("MISS: …").

@@ -136,6 +136,7 @@ mod tests {
             region: None,
             depth_mm,
             from_blind: false,
+            replaced_guided_peak: None,
         }
     }
 
