@@ -168,6 +168,18 @@ impl World {
         Store::open(&self.dir.path().join("cache")).unwrap()
     }
 
+    /// Options with one worker per stage: units pass each stage strictly in order.
+    fn one_worker_each(&self) -> RunOptions {
+        RunOptions {
+            verify: false,
+            force: vec![],
+            workers: Default::default(),
+            default_workers: 1,
+            out_dir: self.path("out"),
+            stop: self.stop.clone(),
+        }
+    }
+
     fn run(&self, graph: &StageGraph, force: &[&str], verify: bool) -> RunSummary {
         let options = RunOptions {
             verify,
@@ -318,15 +330,7 @@ fn a_missing_patient_folder_is_a_failure_of_that_patient() {
     let w = two_patients();
     let mut units = w.units();
     units.push(Unit::folder("P9", w.path("data/P9")));
-    let options = RunOptions {
-        verify: false,
-        force: vec![],
-        workers: Default::default(),
-        default_workers: 1,
-        out_dir: w.path("out"),
-        stop: w.stop.clone(),
-    };
-    let s = run::run(&w.graph("", false), &w.store(), &units, &options, &Progress::hidden(&[]));
+    let s = run::run(&w.graph("", false), &w.store(), &units, &w.one_worker_each(), &Progress::hidden(&[]));
     let failures: Vec<_> = s.failures().collect();
     assert_eq!(failures.len(), 1);
     assert_eq!(failures[0].unit, "P9");
@@ -378,15 +382,7 @@ fn a_stop_request_starts_no_further_stage_and_the_next_run_goes_on() {
         World::new(&[("a", &[("1.txt", "x"), ("stop", "")]), ("b", &[("1.txt", "y")]), ("c", &[("1.txt", "z")])]);
     let graph = w.graph("+", false);
     // One worker a stage: the request comes while a's concat works and before anything else starts.
-    let options = |w: &World| RunOptions {
-        verify: false,
-        force: vec![],
-        workers: Default::default(),
-        default_workers: 1,
-        out_dir: w.path("out"),
-        stop: w.stop.clone(),
-    };
-    let s = run::run(&graph, &w.store(), &w.units(), &options(&w), &Progress::hidden(&[]));
+    let s = run::run(&graph, &w.store(), &w.units(), &w.one_worker_each(), &Progress::hidden(&[]));
     assert!(s.interrupted() && s.failures().next().is_none());
     let outcome = |s: &RunSummary, unit: &str, stage: &str| {
         s.records.iter().find(|r| r.unit == unit && r.stage == stage).map(|r| r.outcome.clone()).unwrap()
@@ -407,7 +403,7 @@ fn a_stop_request_starts_no_further_stage_and_the_next_run_goes_on() {
     // The same command again, unasked to stop, goes on from the cache.
     w.stop = StopRequest::default();
     let graph = w.graph("+", false);
-    let s = run::run(&graph, &w.store(), &w.units(), &options(&w), &Progress::hidden(&[]));
+    let s = run::run(&graph, &w.store(), &w.units(), &w.one_worker_each(), &Progress::hidden(&[]));
     assert!(!s.interrupted() && s.failures().next().is_none());
     assert!(matches!(outcome(&s, "a", "concat"), Outcome::Cached { .. }));
     assert_eq!(w.counters.take(), [2, 3, 1]);
