@@ -53,8 +53,15 @@ impl Project {
         self.dir.path().join(rel)
     }
 
+    /// `aret-pipe ARGS` in the project's folder, quiet as in CI.
+    fn command(&self, args: &[&str]) -> Command {
+        let mut command = Command::new(BIN);
+        command.args(args).current_dir(self.dir.path()).env("CI", "true");
+        command
+    }
+
     fn aret(&self, args: &[&str]) -> Output {
-        Command::new(BIN).args(args).current_dir(self.dir.path()).env("CI", "true").output().unwrap()
+        self.command(args).output().unwrap()
     }
 
     fn run(&self, args: &[&str]) -> Value {
@@ -219,15 +226,7 @@ fn concurrent_runs_on_one_cache_both_finish_and_compute_each_stage_once() {
     let p = Project::new(&["P1", "P2", "P3", "P4"], 6);
     p.write_config("a.toml", "cache", "out_a", "");
     p.write_config("b.toml", "cache", "out_b", "");
-    let spawn = |cfg: &str| {
-        Command::new(BIN)
-            .args(["run", cfg])
-            .current_dir(p.dir.path())
-            .env("CI", "true")
-            .stdout(std::process::Stdio::null())
-            .spawn()
-            .unwrap()
-    };
+    let spawn = |cfg: &str| p.command(&["run", cfg]).stdout(std::process::Stdio::null()).spawn().unwrap();
     let (mut a, mut b) = (spawn("a.toml"), spawn("b.toml"));
     assert!(a.wait().unwrap().success() && b.wait().unwrap().success());
     let (ra, rb) = (p.report("out_a"), p.report("out_b"));
@@ -269,10 +268,8 @@ fn a_run_killed_at_any_moment_leaves_nothing_a_later_run_trusts() {
     let out = p.aret(&["run", "reference.toml"]);
     assert!(out.status.success(), "{}", text(&out.stderr));
     for delay_ms in [5u64, 30, 60, 100, 150, 250, 400] {
-        let mut child = Command::new(BIN)
-            .args(["run", "pipeline.toml", "--force", "ingest,hu"])
-            .current_dir(p.dir.path())
-            .env("CI", "true")
+        let mut child = p
+            .command(&["run", "pipeline.toml", "--force", "ingest,hu"])
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .spawn()
@@ -295,10 +292,8 @@ fn sigterm_lets_the_stages_in_progress_finish_and_the_next_run_goes_on() {
     for id in ["P1", "P2", "P3", "P4", "P5", "P6"] {
         p.write_patient(id, &big_series(24));
     }
-    let child = Command::new(BIN)
-        .args(["run", "pipeline.toml"])
-        .current_dir(p.dir.path())
-        .env("CI", "true")
+    let child = p
+        .command(&["run", "pipeline.toml"])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()

@@ -14,8 +14,6 @@ struct Counts {
     computed: u64,
     cached: u64,
     failed: u64,
-    skipped: u64,
-    interrupted: u64,
 }
 
 enum Mode {
@@ -79,8 +77,8 @@ impl Progress {
                 Outcome::Cached { .. } => c.cached += 1,
                 Outcome::Computed { .. } => c.computed += 1,
                 Outcome::Failed { .. } => c.failed += 1,
-                Outcome::Skipped { .. } => c.skipped += 1,
-                Outcome::Interrupted => c.interrupted += 1,
+                // The tally names computed, cached and failed; the end table lists the rest.
+                Outcome::Skipped { .. } | Outcome::Interrupted => {}
             }
         }
         match &self.mode {
