@@ -7,11 +7,12 @@ use crate::engine::preview::{self, State};
 use crate::engine::progress::{self, Progress};
 use crate::engine::run::{self, RunOptions, RunSummary, StopRequest, Unit};
 use crate::engine::store::{write_atomic, Store};
-use crate::engine::StageGraph;
+use crate::engine::{Hash, StageGraph};
 use crate::formats::vdb::{self, FloatGrid, GridClass};
 use crate::volume::Volume;
 use crate::{dataset, stage};
 use anyhow::{bail, Context as _};
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Default, Clone)]
@@ -132,7 +133,7 @@ pub fn status(config_path: &Path, patients: Option<&[String]>, verify: bool) -> 
     let mut notes = String::new();
     for r in &rows {
         let (cell, why) = match &r.state {
-            State::Cached => ("cached", None),
+            State::Cached { .. } => ("cached", None),
             State::Compute(reasons) if reasons == &["never run"] => ("new", None),
             State::Compute(reasons) => ("stale", Some(reasons.join("; "))),
             State::AfterUpstream { own, .. } if own == &["never run"] => ("new", None),
@@ -150,19 +151,88 @@ pub fn status(config_path: &Path, patients: Option<&[String]>, verify: bool) -> 
     Ok(format!("{}{notes}", progress::grid(&cells, &p.graph.names())))
 }
 
-/// `aret-pipe gc`: deletes blobs no manifest references. Returns a one-line report.
-pub fn gc(config_path: &Path) -> anyhow::Result<String> {
-    let config = Config::load(config_path)?;
-    let store = Store::open(&config.cache_dir())?;
-    let Some(_exclusive) = FileLock::try_exclusive(&store.global_lock_path())? else {
-        bail!("another aret-pipe process is using the cache {}; run gc when it has finished", store.root().display());
+/// `aret-pipe gc`: deletes blobs no manifest references; with `prune`, first forgets every
+/// stage result that none of `config_paths` uses now (all must share one cache). With `dry_run`
+/// it only reports what it would delete. Returns a one-line report.
+pub fn gc(config_paths: &[PathBuf], prune: bool, dry_run: bool) -> anyhow::Result<String> {
+    let Some(first) = config_paths.first() else { bail!("gc needs a configuration file") };
+    if config_paths.len() > 1 && !prune {
+        bail!("gc reads only the cache of its configuration; more than one matters only with --prune");
+    }
+    let cache_dir = Config::load(first)?.cache_dir();
+    let store = Store::open(&cache_dir)?;
+    // A dry run deletes nothing, so it may run beside a run; a real one must not.
+    let _lock = if dry_run {
+        FileLock::shared(&store.global_lock_path())?
+    } else {
+        match FileLock::try_exclusive(&store.global_lock_path())? {
+            Some(lock) => lock,
+            None => bail!(
+                "another aret-pipe process is using the cache {}; run gc when it has finished",
+                store.root().display()
+            ),
+        }
     };
-    let (files, bytes) = store.collect_garbage()?;
-    Ok(format!(
-        "gc: deleted {files} unreferenced file(s), freed {:.1} MiB in {}",
-        bytes as f64 / (1024.0 * 1024.0),
-        store.root().display()
-    ))
+    let keep = if prune { Some(results_in_use(config_paths, &cache_dir)?) } else { None };
+    let garbage = store.garbage(keep.as_ref())?;
+    if !dry_run {
+        garbage.delete()?;
+    }
+    let mib = |bytes: u64| bytes as f64 / (1024.0 * 1024.0);
+    let (freed, linked) = garbage.bytes();
+    let (verb, forgot, deleted, frees) = if dry_run {
+        ("gc --dry-run: would", "forget", "delete", "freeing")
+    } else {
+        ("gc:", "forgot", "deleted", "freed")
+    };
+    let mut line = if prune {
+        let names: Vec<String> = config_paths.iter().map(|p| p.display().to_string()).collect();
+        format!(
+            "{verb} {forgot} {} stage result(s) not used now by {}; {deleted} {} file(s) no kept result references",
+            garbage.manifests.len(),
+            names.join(", "),
+            garbage.files.len()
+        )
+    } else {
+        format!("{verb} {deleted} {} unreferenced file(s)", garbage.files.len())
+    };
+    line.push_str(&format!(", {frees} {:.1} MiB in {}", mib(freed), store.root().display()));
+    if linked > 0 {
+        line.push_str(&format!(" ({:.1} MiB more stays on disk until the out dirs linking it go)", mib(linked)));
+    }
+    Ok(line)
+}
+
+/// The (stage, key) of every result the configurations at `config_paths` would take from the
+/// cache now: what `gc --prune` keeps. Refuses a configuration with another cache.
+fn results_in_use(config_paths: &[PathBuf], cache_dir: &Path) -> anyhow::Result<HashSet<(String, Hash)>> {
+    let mut keep = HashSet::new();
+    for path in config_paths {
+        let p = prepare(path, None, None)?;
+        if !same_dir(&p.config.cache_dir(), cache_dir) {
+            bail!(
+                "{} uses the cache {}, not {} like {}: prune one cache at a time",
+                path.display(),
+                p.config.cache_dir().display(),
+                cache_dir.display(),
+                config_paths[0].display()
+            );
+        }
+        for row in preview::preview(&p.graph, &p.store, &p.units, false, &[]) {
+            if let State::Cached { key } = row.state {
+                keep.insert((row.stage, key));
+            }
+        }
+    }
+    Ok(keep)
+}
+
+/// Whether two paths name one directory (`presets/../cache` and `cache` do).
+fn same_dir(a: &Path, b: &Path) -> bool {
+    match (std::fs::canonicalize(a), std::fs::canonicalize(b)) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => a == b,
+    }
 }
 
 /// `aret-pipe phantom`: writes each cohort patient's synthetic CT series, its LIDC XML and PNG

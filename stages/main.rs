@@ -44,7 +44,22 @@ enum Command {
         verify: bool,
     },
     /// Delete cache blobs that no manifest references; report the bytes freed.
-    Gc { config: PathBuf },
+    ///
+    /// With --prune, first forget every cached stage result that none of the given
+    /// configurations uses now (results of old parameters, other presets, other patients), so
+    /// their blobs go too. Try --dry-run first: a forgotten result must be computed again.
+    Gc {
+        /// The configuration whose cache to clean; with --prune, every configuration whose
+        /// current results to keep (all sharing one cache).
+        #[arg(required = true)]
+        configs: Vec<PathBuf>,
+        /// Keep only the results these configurations use now.
+        #[arg(long)]
+        prune: bool,
+        /// Report what would be deleted; delete nothing.
+        #[arg(long)]
+        dry_run: bool,
+    },
     /// Write synthetic CT series around a cohort's real LIDC annotations (DICOM + XML + previews).
     Phantom {
         /// The cohort folder: <patient>.scan.json + <patient>.xml per patient.
@@ -102,7 +117,7 @@ fn main() -> ExitCode {
                 0
             })
         }
-        Command::Gc { config } => commands::gc(&config).map(|line| {
+        Command::Gc { configs, prune, dry_run } => commands::gc(&configs, prune, dry_run).map(|line| {
             println!("{line}");
             0
         }),

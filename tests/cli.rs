@@ -368,6 +368,38 @@ fn gc_deletes_orphan_blobs_and_reports_what_it_frees() {
     assert_eq!(count(&r, "hu", "cached"), 1, "gc keeps what manifests reference");
 }
 
+#[test]
+fn gc_prune_forgets_what_no_given_configuration_uses_and_a_dry_run_deletes_nothing() {
+    let p = Project::new(&["P1"], 2);
+    p.run(&[]);
+    // Another configuration on the same cache: a different bootstrap, so its own metrics.
+    p.write_config("other.toml", "cache", "out-other", "[metrics]\nbootstrap_resamples = 50\n");
+    assert!(p.aret(&["run", "other.toml"]).status.success());
+    let manifests = || walkdir::WalkDir::new(p.path("cache/manifests")).min_depth(2).into_iter().count();
+    let before = manifests();
+
+    let dry = p.aret(&["gc", "pipeline.toml", "--prune", "--dry-run"]);
+    let line = text(&dry.stdout);
+    assert!(dry.status.success() && line.starts_with("gc --dry-run: would forget 1 stage result(s)"), "{line}");
+    assert_eq!(manifests(), before, "a dry run deletes nothing");
+
+    let both = p.aret(&["gc", "pipeline.toml", "other.toml", "--prune"]);
+    assert!(text(&both.stdout).starts_with("gc: forgot 0 stage result(s)"), "{}", text(&both.stdout));
+
+    let pruned = p.aret(&["gc", "pipeline.toml", "--prune"]);
+    assert!(text(&pruned.stdout).starts_with("gc: forgot 1 stage result(s)"), "{}", text(&pruned.stdout));
+    assert_eq!(manifests(), before - 1);
+    let r = p.run(&[]);
+    assert_eq!(count(&r, "metrics", "cached"), 1, "what pipeline.toml uses stays");
+    assert!(p.aret(&["run", "other.toml"]).status.success());
+    assert_eq!(count(&p.report("out-other"), "metrics", "computed"), 1, "the other's metrics went");
+
+    p.write_config("elsewhere.toml", "cache-elsewhere", "out-elsewhere", "");
+    let refused = p.aret(&["gc", "pipeline.toml", "elsewhere.toml", "--prune"]);
+    assert!(!refused.status.success());
+    assert!(text(&refused.stderr).contains("prune one cache at a time"), "{}", text(&refused.stderr));
+}
+
 /// A one-reader LIDC XML with one nodule: a square contour on the slice at `z_mm`.
 fn lidc_xml(z_mm: f64) -> String {
     let points: String = [

@@ -1,10 +1,12 @@
 //! The engine on toy stages (it knows nothing about CT): caching, invalidation, early cutoff,
-//! forced runs, corrupt blobs, failure isolation, cohort fan-in and stopping a run.
+//! forced runs, corrupt blobs, failure isolation, cohort fan-in, stopping a run and pruning.
 
+use aret_pipe::engine::preview::{self, State};
 use aret_pipe::engine::progress::Progress;
 use aret_pipe::engine::run::{self, Outcome, RunOptions, RunSummary, StopRequest, Unit};
 use aret_pipe::engine::store::Store;
-use aret_pipe::engine::{Context, Output, Stage, StageGraph, SOURCE};
+use aret_pipe::engine::{Context, Hash, Output, Stage, StageGraph, SOURCE};
+use std::collections::HashSet;
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -351,6 +353,38 @@ fn gc_deletes_only_unreferenced_blobs() {
     w.counters.take();
     w.run(&g, &[], false);
     assert_eq!(w.counters.take(), [0, 0, 0], "gc kept everything manifests reference");
+}
+
+#[test]
+fn pruning_keeps_exactly_the_results_a_configuration_uses_now() {
+    let w = two_patients();
+    let (old, new) = (w.graph("", false), w.graph("-", false));
+    w.run(&old, &[], false);
+    w.run(&new, &[], false);
+    w.counters.take();
+    let store = w.store();
+    let keep: HashSet<(String, Hash)> = preview::preview(&new, &store, &w.units(), false, &[])
+        .into_iter()
+        .filter_map(|row| match row.state {
+            State::Cached { key } => Some((row.stage, key)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(keep.len(), 5, "two concat, two length, one report");
+    let garbage = store.garbage(Some(&keep)).unwrap();
+    // The old separator's concat for both patients, P1's length of "abcde" and the old report;
+    // P2's length reads the same "xyz" under both, so both configurations use it.
+    assert_eq!(garbage.manifests.len(), 4, "{:?}", garbage.manifests);
+    assert!(garbage.manifests.iter().all(|m| m.exists()), "listing deletes nothing");
+    let old_text = store.blob_path(&Hash::of(b"abcde"));
+    assert!(garbage.files.iter().any(|f| f.path == old_text), "the old concat's output goes too");
+    assert!(garbage.files.iter().all(|f| f.path != store.blob_path(&Hash::of(b"xyz"))), "a kept result's blob stays");
+    garbage.delete().unwrap();
+    assert!(!old_text.exists() && garbage.manifests.iter().all(|m| !m.exists()));
+    w.run(&new, &[], false);
+    assert_eq!(w.counters.take(), [0, 0, 0], "the kept configuration is wholly cached");
+    w.run(&old, &[], false);
+    assert_eq!(w.counters.take(), [2, 1, 1], "the forgotten results are computed again");
 }
 
 #[test]

@@ -1,5 +1,6 @@
 //! What a run would do, without running anything: for `run --dry-run` and `status`.
 
+use super::key::Hash;
 use super::plan::{self, Decision};
 use super::run::{Unit, COHORT};
 use super::source;
@@ -10,15 +11,13 @@ use std::collections::BTreeMap;
 /// The fate of one (unit, stage) if the pipeline ran now.
 #[derive(Debug, Clone, PartialEq)]
 pub enum State {
-    Cached,
+    /// Served from the cache: the manifest of (stage, key).
+    Cached { key: Hash },
     /// Would compute, for these reasons.
     Compute(Vec<String>),
     /// Depends on an upstream stage that would compute first; whether this one then recomputes
     /// depends on whether that output's bytes change (early cutoff). Own reasons listed if any.
-    AfterUpstream {
-        upstream: String,
-        own: Vec<String>,
-    },
+    AfterUpstream { upstream: String, own: Vec<String> },
     /// Its inputs cannot be read (e.g. the patient's folder is gone).
     Blocked(String),
 }
@@ -77,13 +76,13 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
                         match plan::decide(store, stage, &lane.unit, &keyed, verify, forced) {
                             Decision::Cached(m) => {
                                 lane.finished.insert(stage.name(), m.outputs);
-                                State::Cached
+                                State::Cached { key: keyed.key }
                             }
                             Decision::Compute(reasons) => State::Compute(reasons),
                         }
                     }
                 };
-                if !matches!(state, State::Cached) && lane.pending.is_none() {
+                if !matches!(state, State::Cached { .. }) && lane.pending.is_none() {
                     lane.pending = Some(stage.name().to_string());
                 }
                 rows.push(Row { unit: lane.unit.clone(), stage: stage.name().into(), state });
@@ -109,7 +108,7 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
             match plan::decide(store, stage, COHORT, &keyed, verify, forced) {
                 Decision::Cached(m) => {
                     cohort_finished.insert(stage.name(), m.outputs);
-                    State::Cached
+                    State::Cached { key: keyed.key }
                 }
                 Decision::Compute(reasons) => {
                     cohort_blocker = Some(stage.name().to_string());
@@ -141,7 +140,7 @@ pub fn describe(rows: &[Row]) -> String {
     let mut out = String::new();
     for r in rows {
         let what = match &r.state {
-            State::Cached => "cached".to_string(),
+            State::Cached { .. } => "cached".to_string(),
             State::Compute(reasons) => format!("would run: {}", reasons.join("; ")),
             State::AfterUpstream { upstream, own } if own.is_empty() => {
                 format!("would run after `{upstream}` unless its outputs come out unchanged")

@@ -15,6 +15,7 @@ use super::key::Hash;
 use super::stage::OutputRef;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
 use std::fs;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
@@ -174,28 +175,30 @@ impl Store {
         write_atomic(&self.latest_path(&manifest.stage, &manifest.unit), &bytes, false)
     }
 
-    /// Every manifest in the cache.
-    pub fn all_manifests(&self) -> anyhow::Result<Vec<Manifest>> {
-        let mut out = Vec::new();
+    /// What `gc` deletes: with `keep`, first every manifest whose (stage, key) `keep` lacks
+    /// (results no configuration uses now); then every blob no remaining manifest references,
+    /// leftover temporary files and lock files. Deletes nothing itself.
+    pub fn garbage(&self, keep: Option<&HashSet<(String, Hash)>>) -> anyhow::Result<Garbage> {
+        let mut garbage = Garbage::default();
+        let mut referenced = HashSet::new();
         for entry in walkdir::WalkDir::new(self.root.join("manifests")).min_depth(2).max_depth(2) {
             let entry = entry?;
             let name = entry.file_name().to_string_lossy();
-            if name.starts_with(".tmp-") || !name.ends_with(".json") {
+            let Some(stem) = name.strip_suffix(".json").filter(|_| !name.starts_with(".tmp-")) else {
                 continue;
-            }
-            if let Ok(m) = serde_json::from_slice::<Manifest>(&fs::read(entry.path())?) {
-                out.push(m);
+            };
+            let stage = entry.path().parent().and_then(|d| d.file_name()).map(|d| d.to_string_lossy().to_string());
+            let live = match (keep, stage, Hash::from_hex(stem)) {
+                (None, ..) => true,
+                (Some(keep), Some(stage), Some(key)) => keep.contains(&(stage, key)),
+                (Some(_), ..) => false,
+            };
+            if !live {
+                garbage.manifests.push(entry.path().to_path_buf());
+            } else if let Ok(m) = serde_json::from_slice::<Manifest>(&fs::read(entry.path())?) {
+                referenced.extend(m.outputs.iter().map(|o| o.hash));
             }
         }
-        Ok(out)
-    }
-
-    /// Deletes blobs no manifest references, leftover temporary files and lock files.
-    /// Call only while holding the cache's exclusive lock. Returns (files, bytes) freed.
-    pub fn collect_garbage(&self) -> anyhow::Result<(u64, u64)> {
-        let referenced: std::collections::HashSet<Hash> =
-            self.all_manifests()?.iter().flat_map(|m| m.outputs.iter().map(|o| o.hash)).collect();
-        let (mut files, mut bytes) = (0u64, 0u64);
         for entry in walkdir::WalkDir::new(&self.root).min_depth(1) {
             let entry = entry?;
             if !entry.file_type().is_file() {
@@ -204,18 +207,78 @@ impl Store {
             let name = entry.file_name().to_string_lossy().to_string();
             let rel = entry.path().strip_prefix(&self.root).unwrap_or(entry.path());
             let in_blobs = rel.starts_with("blobs");
-            let garbage = name.starts_with(".tmp-")
+            if name.starts_with(".tmp-")
                 || rel.starts_with("locks")
-                || (in_blobs && Hash::from_hex(&name).is_none_or(|h| !referenced.contains(&h)));
-            if garbage {
-                let size = entry.metadata().map(|m| m.len()).unwrap_or(0);
-                fs::remove_file(entry.path()).with_context(|| format!("deleting {}", entry.path().display()))?;
-                files += 1;
-                bytes += size;
+                || (in_blobs && Hash::from_hex(&name).is_none_or(|h| !referenced.contains(&h)))
+            {
+                let meta = entry.metadata()?;
+                garbage.files.push(Doomed {
+                    path: entry.path().to_path_buf(),
+                    bytes: meta.len(),
+                    linked: links(&meta) > 1,
+                });
             }
         }
-        Ok((files, bytes))
+        Ok(garbage)
     }
+
+    /// Deletes blobs no manifest references, leftover temporary files and lock files.
+    /// Call only while holding the cache's exclusive lock. Returns (files, bytes) deleted.
+    pub fn collect_garbage(&self) -> anyhow::Result<(u64, u64)> {
+        let garbage = self.garbage(None)?;
+        garbage.delete()?;
+        Ok((garbage.files.len() as u64, garbage.files.iter().map(|f| f.bytes).sum()))
+    }
+}
+
+/// What `gc` would delete (see [`Store::garbage`]).
+#[derive(Debug, Default)]
+pub struct Garbage {
+    /// Manifests of results no kept configuration uses.
+    pub manifests: Vec<PathBuf>,
+    /// Blobs nothing references, temporary and lock files.
+    pub files: Vec<Doomed>,
+}
+
+/// One file `gc` deletes.
+#[derive(Debug)]
+pub struct Doomed {
+    pub path: PathBuf,
+    pub bytes: u64,
+    /// Another name (an out dir's hard link) still holds its bytes, so deleting it frees none.
+    pub linked: bool,
+}
+
+impl Garbage {
+    /// Deletes it: manifests first, so no manifest ever names a deleted blob.
+    /// Call only while holding the cache's exclusive lock.
+    pub fn delete(&self) -> anyhow::Result<()> {
+        for path in self.manifests.iter().chain(self.files.iter().map(|f| &f.path)) {
+            match fs::remove_file(path) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    return Err(e).with_context(|| format!("deleting {}", path.display()))
+                }
+                _ => {}
+            }
+        }
+        Ok(())
+    }
+
+    /// Bytes deleting it frees on disk, and bytes it unlinks that out dirs still hold.
+    pub fn bytes(&self) -> (u64, u64) {
+        let sum = |linked: bool| self.files.iter().filter(|f| f.linked == linked).map(|f| f.bytes).sum();
+        (sum(false), sum(true))
+    }
+}
+
+#[cfg(unix)]
+fn links(meta: &fs::Metadata) -> u64 {
+    std::os::unix::fs::MetadataExt::nlink(meta)
+}
+
+#[cfg(not(unix))]
+fn links(_meta: &fs::Metadata) -> u64 {
+    1
 }
 
 /// Writes `bytes` to `path` atomically: a temporary file in the same directory, flushed to
