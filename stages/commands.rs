@@ -151,15 +151,34 @@ pub fn status(config_path: &Path, patients: Option<&[String]>, verify: bool) -> 
     Ok(format!("{}{notes}", progress::grid(&cells, &p.graph.names())))
 }
 
+/// What `aret-pipe gc` forgets besides what no manifest references.
+#[derive(Debug, Default, Clone)]
+pub struct GcArgs {
+    /// Keep only the results the configurations use now.
+    pub prune: bool,
+    /// Forget every result of these stages (cheap to compute again; early cutoff then serves
+    /// what follows them from the cache).
+    pub forget: Vec<String>,
+    /// Report; delete nothing.
+    pub dry_run: bool,
+}
+
 /// `aret-pipe gc`: deletes blobs no manifest references; with `prune`, first forgets every
-/// stage result that none of `config_paths` uses now (all must share one cache). With `dry_run`
-/// it only reports what it would delete. Returns a one-line report.
-pub fn gc(config_paths: &[PathBuf], prune: bool, dry_run: bool) -> anyhow::Result<String> {
+/// stage result that none of `config_paths` uses now (all must share one cache), and every
+/// result of the stages in `forget`. With `dry_run` it only reports what it would delete.
+/// Returns a one-line report.
+pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
+    let GcArgs { prune, ref forget, dry_run } = *args;
     let Some(first) = config_paths.first() else { bail!("gc needs a configuration file") };
     if config_paths.len() > 1 && !prune {
         bail!("gc reads only the cache of its configuration; more than one matters only with --prune");
     }
-    let cache_dir = Config::load(first)?.cache_dir();
+    let config = Config::load(first)?;
+    let stages = stage::graph(&config)?.names();
+    if let Some(unknown) = forget.iter().find(|f| !stages.contains(&f.as_str())) {
+        bail!("--forget {unknown}: no such stage in {} (stages: {})", first.display(), stages.join(", "));
+    }
+    let cache_dir = config.cache_dir();
     let store = Store::open(&cache_dir)?;
     // A dry run deletes nothing, so it may run beside a run; a real one must not.
     let _lock = if dry_run {
@@ -174,7 +193,7 @@ pub fn gc(config_paths: &[PathBuf], prune: bool, dry_run: bool) -> anyhow::Resul
         }
     };
     let keep = if prune { Some(results_in_use(config_paths, &cache_dir)?) } else { None };
-    let garbage = store.garbage(keep.as_ref())?;
+    let garbage = store.garbage(keep.as_ref(), forget)?;
     if !dry_run {
         garbage.delete()?;
     }
@@ -185,12 +204,16 @@ pub fn gc(config_paths: &[PathBuf], prune: bool, dry_run: bool) -> anyhow::Resul
     } else {
         ("gc:", "forgot", "deleted", "freed")
     };
-    let mut line = if prune {
-        let names: Vec<String> = config_paths.iter().map(|p| p.display().to_string()).collect();
+    let mut line = if prune || !forget.is_empty() {
+        let why = match (prune, config_paths) {
+            (false, _) => format!("of {}", forget.join(", ")),
+            (true, [one]) => format!("not used now by {}", one.display()),
+            (true, many) => format!("not used now by the {} configurations given", many.len()),
+        };
+        let why = if prune && !forget.is_empty() { format!("{why} or of {}", forget.join(", ")) } else { why };
         format!(
-            "{verb} {forgot} {} stage result(s) not used now by {}; {deleted} {} file(s) no kept result references",
+            "{verb} {forgot} {} stage result(s) {why}; {deleted} {} file(s) no kept result references",
             garbage.manifests.len(),
-            names.join(", "),
             garbage.files.len()
         )
     } else {

@@ -56,6 +56,11 @@ enum Command {
         /// Keep only the results these configurations use now.
         #[arg(long)]
         prune: bool,
+        /// Also forget every result of these stages (comma-separated), e.g. `ingest,hu`: the
+        /// CT volumes, most of a cache's bytes and seconds to compute again from the DICOM; the
+        /// stages after them stay cached, as their bytes come out the same.
+        #[arg(long, value_delimiter = ',')]
+        forget: Vec<String>,
         /// Report what would be deleted; delete nothing.
         #[arg(long)]
         dry_run: bool,
@@ -117,10 +122,12 @@ fn main() -> ExitCode {
                 0
             })
         }
-        Command::Gc { configs, prune, dry_run } => commands::gc(&configs, prune, dry_run).map(|line| {
-            println!("{line}");
-            0
-        }),
+        Command::Gc { configs, prune, forget, dry_run } => {
+            commands::gc(&configs, &commands::GcArgs { prune, forget, dry_run }).map(|line| {
+                println!("{line}");
+                0
+            })
+        }
         Command::Phantom { cohort, out, patients, seed } => {
             let defaults = aret_pipe::phantom::PhantomParams::default();
             let params = aret_pipe::phantom::PhantomParams { seed: seed.unwrap_or(defaults.seed), ..defaults };

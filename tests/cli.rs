@@ -369,7 +369,7 @@ fn gc_deletes_orphan_blobs_and_reports_what_it_frees() {
 }
 
 #[test]
-fn gc_prune_forgets_what_no_given_configuration_uses_and_a_dry_run_deletes_nothing() {
+fn gc_prune_and_forget_drop_only_what_they_name_and_a_dry_run_deletes_nothing() {
     let p = Project::new(&["P1"], 2);
     p.run(&[]);
     // Another configuration on the same cache: a different bootstrap, so its own metrics.
@@ -393,6 +393,14 @@ fn gc_prune_forgets_what_no_given_configuration_uses_and_a_dry_run_deletes_nothi
     assert_eq!(count(&r, "metrics", "cached"), 1, "what pipeline.toml uses stays");
     assert!(p.aret(&["run", "other.toml"]).status.success());
     assert_eq!(count(&p.report("out-other"), "metrics", "computed"), 1, "the other's metrics went");
+
+    // The CT volumes go, and come back in seconds; nothing after them recomputes.
+    let forgot = p.aret(&["gc", "pipeline.toml", "--forget", "hu"]);
+    assert!(text(&forgot.stdout).starts_with("gc: forgot 1 stage result(s) of hu"), "{}", text(&forgot.stdout));
+    let r = p.run(&[]);
+    assert_eq!((count(&r, "hu", "computed"), count(&r, "drr", "cached"), count(&r, "train", "cached")), (1, 1, 1));
+    let unknown = p.aret(&["gc", "pipeline.toml", "--forget", "hue"]);
+    assert!(!unknown.status.success() && text(&unknown.stderr).contains("--forget hue: no such stage"));
 
     p.write_config("elsewhere.toml", "cache-elsewhere", "out-elsewhere", "");
     let refused = p.aret(&["gc", "pipeline.toml", "elsewhere.toml", "--prune"]);

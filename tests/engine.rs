@@ -371,7 +371,7 @@ fn pruning_keeps_exactly_the_results_a_configuration_uses_now() {
         })
         .collect();
     assert_eq!(keep.len(), 5, "two concat, two length, one report");
-    let garbage = store.garbage(Some(&keep)).unwrap();
+    let garbage = store.garbage(Some(&keep), &[]).unwrap();
     // The old separator's concat for both patients, P1's length of "abcde" and the old report;
     // P2's length reads the same "xyz" under both, so both configurations use it.
     assert_eq!(garbage.manifests.len(), 4, "{:?}", garbage.manifests);
@@ -385,6 +385,22 @@ fn pruning_keeps_exactly_the_results_a_configuration_uses_now() {
     assert_eq!(w.counters.take(), [0, 0, 0], "the kept configuration is wholly cached");
     w.run(&old, &[], false);
     assert_eq!(w.counters.take(), [2, 1, 1], "the forgotten results are computed again");
+}
+
+#[test]
+fn forgetting_a_stage_recomputes_it_alone_when_its_bytes_come_out_the_same() {
+    let w = two_patients();
+    let g = w.graph("", false);
+    w.run(&g, &[], false);
+    w.counters.take();
+    let store = w.store();
+    let garbage = store.garbage(None, &["concat".to_string()]).unwrap();
+    assert_eq!(garbage.manifests.len(), 2, "both patients' concat: {:?}", garbage.manifests);
+    garbage.delete().unwrap();
+    assert!(!store.blob_path(&Hash::of(b"abcde")).exists());
+    w.run(&g, &[], false);
+    assert_eq!(w.counters.take(), [2, 0, 0], "length and report keep their keys: early cutoff");
+    assert_eq!(w.out("P1/all.txt"), "abcde");
 }
 
 #[test]

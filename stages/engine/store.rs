@@ -175,10 +175,11 @@ impl Store {
         write_atomic(&self.latest_path(&manifest.stage, &manifest.unit), &bytes, false)
     }
 
-    /// What `gc` deletes: with `keep`, first every manifest whose (stage, key) `keep` lacks
-    /// (results no configuration uses now); then every blob no remaining manifest references,
-    /// leftover temporary files and lock files. Deletes nothing itself.
-    pub fn garbage(&self, keep: Option<&HashSet<(String, Hash)>>) -> anyhow::Result<Garbage> {
+    /// What `gc` deletes: first every manifest of a stage in `forget`, and with `keep` every
+    /// manifest whose (stage, key) `keep` lacks (results no configuration uses now); then every
+    /// blob no remaining manifest references, leftover temporary files and lock files. Deletes
+    /// nothing itself.
+    pub fn garbage(&self, keep: Option<&HashSet<(String, Hash)>>, forget: &[String]) -> anyhow::Result<Garbage> {
         let mut garbage = Garbage::default();
         let mut referenced = HashSet::new();
         for entry in walkdir::WalkDir::new(self.root.join("manifests")).min_depth(2).max_depth(2) {
@@ -189,6 +190,7 @@ impl Store {
             };
             let stage = entry.path().parent().and_then(|d| d.file_name()).map(|d| d.to_string_lossy().to_string());
             let live = match (keep, stage, Hash::from_hex(stem)) {
+                (_, Some(stage), _) if forget.contains(&stage) => false,
                 (None, ..) => true,
                 (Some(keep), Some(stage), Some(key)) => keep.contains(&(stage, key)),
                 (Some(_), ..) => false,
@@ -225,7 +227,7 @@ impl Store {
     /// Deletes blobs no manifest references, leftover temporary files and lock files.
     /// Call only while holding the cache's exclusive lock. Returns (files, bytes) deleted.
     pub fn collect_garbage(&self) -> anyhow::Result<(u64, u64)> {
-        let garbage = self.garbage(None)?;
+        let garbage = self.garbage(None, &[])?;
         garbage.delete()?;
         Ok((garbage.files.len() as u64, garbage.files.iter().map(|f| f.bytes).sum()))
     }
