@@ -57,7 +57,7 @@ enum Command {
         #[arg(long)]
         prune: bool,
         /// Also forget every result of these stages (comma-separated), e.g. `ingest,hu`: the
-        /// CT volumes, most of a cache's bytes and seconds to compute again from the DICOM; the
+        /// CT volumes, the largest part of a cache and seconds to compute again from the DICOM; the
         /// stages after them stay cached, as their bytes come out the same.
         #[arg(long, value_delimiter = ',')]
         forget: Vec<String>,

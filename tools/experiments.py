@@ -86,6 +86,8 @@ ROWS = [
      "the default on a third anatomy (phantom seed 3), first trained after the roundness tie-break was fixed"),
     ("default-seed4", "presets/default_seed4.toml", "B", "C*",
      "the default on a fourth anatomy (phantom seed 4), first trained after the roundness tie-break was fixed"),
+    ("default-seed5", "presets/default_seed5.toml", "B", "C*",
+     "the default on a fifth anatomy (phantom seed 5), first trained after every rule of the shipped select was fixed"),
     ("bregman", "presets/bregman.toml", "B", "C*",
      "the default with one Bregman step on its dense fit (dense_tv_bregman_steps = 1): a second solve from the"
      " first σ, fitting the depths plus the views' residual"),
