@@ -207,6 +207,15 @@ fn two_patients() -> World {
     World::new(&[("P1", &[("a.txt", "ab"), ("b.txt", "cde")]), ("P2", &[("x.txt", "xyz")])])
 }
 
+/// Two patients after one full run of the plain graph, its counters reset.
+fn two_patients_cached() -> (World, StageGraph) {
+    let w = two_patients();
+    let g = w.graph("", false);
+    w.run(&g, &[], false);
+    w.counters.take();
+    (w, g)
+}
+
 #[test]
 fn first_run_computes_everything_and_publishes() {
     let w = two_patients();
@@ -220,10 +229,7 @@ fn first_run_computes_everything_and_publishes() {
 
 #[test]
 fn unchanged_inputs_recompute_nothing() {
-    let w = two_patients();
-    let g = w.graph("", false);
-    w.run(&g, &[], false);
-    w.counters.take();
+    let (w, g) = two_patients_cached();
     let s = w.run(&g, &[], false);
     assert_eq!(w.counters.take(), [0, 0, 0]);
     assert!(s.records.iter().all(|r| matches!(r.outcome, Outcome::Cached { .. })));
@@ -267,10 +273,7 @@ fn force_recomputes_only_the_forced_stage() {
 
 #[test]
 fn truncated_or_corrupt_blob_is_recomputed_never_used() {
-    let w = two_patients();
-    let g = w.graph("", false);
-    w.run(&g, &[], false);
-    w.counters.take();
+    let (w, g) = two_patients_cached();
     let store = w.store();
     let blob = |text: &str| store.blob_path(&aret_pipe::engine::Hash::of(text.as_bytes()));
     // Truncate P1's concat output: the size check catches it on the next run.
@@ -340,9 +343,7 @@ fn a_missing_patient_folder_is_a_failure_of_that_patient() {
 
 #[test]
 fn gc_deletes_only_unreferenced_blobs() {
-    let w = two_patients();
-    let g = w.graph("", false);
-    w.run(&g, &[], false);
+    let (w, g) = two_patients_cached();
     let store = w.store();
     let stray = store.blob_path(&aret_pipe::engine::Hash::of(b"orphan"));
     std::fs::create_dir_all(stray.parent().unwrap()).unwrap();
@@ -389,10 +390,7 @@ fn pruning_keeps_exactly_the_results_a_configuration_uses_now() {
 
 #[test]
 fn forgetting_a_stage_recomputes_it_alone_when_its_bytes_come_out_the_same() {
-    let w = two_patients();
-    let g = w.graph("", false);
-    w.run(&g, &[], false);
-    w.counters.take();
+    let (w, g) = two_patients_cached();
     let store = w.store();
     let garbage = store.garbage(None, &["concat".to_string()]).unwrap();
     assert_eq!(garbage.manifests.len(), 2, "both patients' concat: {:?}", garbage.manifests);
@@ -415,10 +413,7 @@ fn graph_rejects_inputs_declared_later() {
 
 #[test]
 fn outputs_a_stage_does_not_read_do_not_invalidate_it() {
-    let w = two_patients();
-    let g = w.graph("", false);
-    w.run(&g, &[], false);
-    w.counters.take();
+    let (w, g) = two_patients_cached();
     // An empty extra file: concat's all.txt is unchanged, its files.txt is not.
     std::fs::write(w.path("data/P1/c.txt"), "").unwrap();
     w.run(&g, &[], false);
