@@ -223,14 +223,6 @@ impl Store {
         }
         Ok(garbage)
     }
-
-    /// Deletes blobs no manifest references, leftover temporary files and lock files.
-    /// Call only while holding the cache's exclusive lock. Returns (files, bytes) deleted.
-    pub fn collect_garbage(&self) -> anyhow::Result<(u64, u64)> {
-        let garbage = self.garbage(None, &[])?;
-        garbage.delete()?;
-        Ok((garbage.files.len() as u64, garbage.files.iter().map(|f| f.bytes).sum()))
-    }
 }
 
 /// What `gc` would delete (see [`Store::garbage`]).
