@@ -408,6 +408,30 @@ fn gc_prune_and_forget_drop_only_what_they_name_and_a_dry_run_deletes_nothing() 
     assert!(text(&refused.stderr).contains("prune one cache at a time"), "{}", text(&refused.stderr));
 }
 
+#[test]
+fn gc_deletes_nothing_while_a_run_holds_the_cache_but_a_dry_run_may_look() {
+    let p = Project::new(&["P1"], 2);
+    p.run(&[]);
+    // A run in progress holds the cache's lock shared.
+    let running = aret_pipe::engine::lock::FileLock::shared(&p.path("cache/.lock")).unwrap();
+    let refused = p.aret(&["gc", "pipeline.toml", "--forget", "hu"]);
+    assert!(!refused.status.success());
+    assert!(
+        text(&refused.stderr).contains("another aret-pipe process is using the cache"),
+        "{}",
+        text(&refused.stderr)
+    );
+    let dry = p.aret(&["gc", "pipeline.toml", "--forget", "hu", "--dry-run"]);
+    assert!(
+        dry.status.success() && text(&dry.stdout).contains("would forget 1 stage result(s) of hu"),
+        "{}",
+        text(&dry.stdout)
+    );
+    drop(running);
+    let r = p.run(&[]);
+    assert_eq!(count(&r, "hu", "cached"), 1, "neither deleted anything");
+}
+
 /// A one-reader LIDC XML with one nodule: a square contour on the slice at `z_mm`.
 fn lidc_xml(z_mm: f64) -> String {
     let points: String = [
