@@ -204,20 +204,25 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
     } else {
         ("gc:", "forgot", "deleted", "freed")
     };
-    let mut line = if prune || !forget.is_empty() {
-        let why = match (prune, config_paths) {
-            (false, _) => format!("of {}", forget.join(", ")),
-            (true, [one]) => format!("not used now by {}", one.display()),
-            (true, many) => format!("not used now by the {} configurations given", many.len()),
-        };
-        let why = if prune && !forget.is_empty() { format!("{why} or of {}", forget.join(", ")) } else { why };
+    // Why results were forgotten: not in use, of a forgotten stage, or both.
+    let mut why = Vec::new();
+    match config_paths {
+        _ if !prune => {}
+        [one] => why.push(format!("not used now by {}", one.display())),
+        many => why.push(format!("not used now by the {} configurations given", many.len())),
+    }
+    if !forget.is_empty() {
+        why.push(format!("of {}", forget.join(", ")));
+    }
+    let mut line = if why.is_empty() {
+        format!("{verb} {deleted} {} unreferenced file(s)", garbage.files.len())
+    } else {
         format!(
-            "{verb} {forgot} {} stage result(s) {why}; {deleted} {} file(s) no kept result references",
+            "{verb} {forgot} {} stage result(s) {}; {deleted} {} file(s) no kept result references",
             garbage.manifests.len(),
+            why.join(" or "),
             garbage.files.len()
         )
-    } else {
-        format!("{verb} {deleted} {} unreferenced file(s)", garbage.files.len())
     };
     line.push_str(&format!(", {frees} {:.1} MiB in {}", mib(freed), store.root().display()));
     if linked > 0 {
