@@ -285,3 +285,81 @@ fn bregman_steps_enter_the_cache_key_only_when_set() {
     let back: TrainParams = serde_json::from_value(plain).unwrap();
     assert_eq!(back, TrainParams::default());
 }
+
+/// `model = "truth"`: each node is its cell's mean of the CT in the fit's units, and air
+/// outside the CT. A constant CT gives exactly v · attenuation / s inside it.
+#[test]
+fn the_perfect_field_is_the_cts_cell_means_in_the_fits_units() {
+    use aret_pipe::geometry::SceneFrame;
+    use aret_pipe::kernels::raymarch::VolumeField;
+    use aret_pipe::train::truth::cell_means;
+    use aret_pipe::volume::{Geometry, Volume};
+    // A CT of v = 0.5 over x ∈ [−100, 0) mm: the left half of a box 200 mm wide (scene units of 40 mm).
+    let geometry = Geometry {
+        dims: [20, 10, 10],
+        spacing_mm: [5.0, 12.0, 12.0],
+        origin_mm: [-97.5, -54.0, -54.0],
+        direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+    };
+    let ct = Volume { data: vec![0.5f32; geometry.len()], geometry };
+    let frame = SceneFrame { roi_center_mm: [0.0; 3], mm_per_unit: 40.0 };
+    let lattice = Lattice { n: 8, aabb: Aabb { min: [-2.5, -1.0, -1.0], max: [2.5, 1.0, 1.0] } };
+    let sigma = cell_means(&VolumeField::new(&ct, &frame), &lattice, 3.0);
+    for z in 0..8 {
+        for y in 0..8 {
+            for x in 0..8 {
+                let v = sigma[x + 8 * (y + 8 * z)];
+                // Cells are 25 mm wide in x: 0–3 lie inside the CT (x < 0), 4–7 outside.
+                let want = if x < 4 { 1.5 } else { 0.0 };
+                assert!((v - want).abs() < 1e-6, "node ({x}, {y}, {z}): σ = {v}, want {want}");
+            }
+        }
+    }
+}
+
+/// The perfect field renders the views it was not fitted to, the closer the finer its lattice,
+/// and in the right units: σ scaled by 0.9 or 1.1 renders them worse.
+#[test]
+fn the_perfect_field_reproduces_the_views() {
+    use aret_pipe::kernels::raymarch::VolumeField;
+    use aret_pipe::train::dense_tv::evaluate_views;
+    use aret_pipe::train::fit::FieldModel;
+    use aret_pipe::train::truth::cell_means;
+    let drr = DrrParams { width_px: 48, height_px: 48, roi_center: RoiCenter::Mm([0.0; 3]), ..DrrParams::default() };
+    let ct = chest_ct(false);
+    let (set, images) = render_views(&drr, &ct, [0.0; 3], "explicit").unwrap();
+    let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
+    let psnr_db = |grid: usize, factor: f32| {
+        let params = TrainParams { model: FieldModel::Truth, grid, scale: 2.0, ..TrainParams::default() };
+        let r = renderer(&params, set.aabb);
+        let sigma = cell_means(&VolumeField::new(&ct, &set.frame), &r.lattice, set.attenuation_scale / params.scale);
+        let scaled: Vec<f32> = sigma.iter().map(|v| v * factor).collect();
+        evaluate_views(&params, &views, &r, &scaled).psnr_db
+    };
+    let (coarse, fine) = (psnr_db(24, 1.0), psnr_db(48, 1.0));
+    let (low, high) = (psnr_db(48, 0.9), psnr_db(48, 1.1));
+    for view in 0..3 {
+        assert!(fine[view] > 34.0, "view {view}: the CT on a 48³ lattice renders at {:.1} dB", fine[view]);
+        assert!(fine[view] > coarse[view] + 5.0, "view {view}: 24³ {:.1} dB, 48³ {:.1} dB", coarse[view], fine[view]);
+        assert!(fine[view] > low[view].max(high[view]), "view {view}: {fine:?} against ×0.9 {low:?}, ×1.1 {high:?}");
+    }
+}
+/// The fits' cache keys do not depend on the CT (only the ceiling reads it), and the
+/// ceiling's key holds only what it depends on: the lattice and s.
+#[test]
+fn only_the_perfect_field_reads_the_ct_and_its_key_ignores_the_fits_keys() {
+    use aret_pipe::engine::Stage;
+    use aret_pipe::stage::train::Train;
+    use aret_pipe::train::fit::FieldModel;
+    let stage = |model, iterations| Train { params: TrainParams { model, iterations, ..TrainParams::default() } };
+    for model in [FieldModel::Vm, FieldModel::DenseTv] {
+        assert!(!stage(model, 10).reads("hu", "ct_unit.raw"), "{model:?} reads the CT");
+        assert!(stage(model, 10).reads("drr", "drr_axial.exr"));
+    }
+    let truth = stage(FieldModel::Truth, 10);
+    assert!(truth.reads("hu", "ct_unit.raw") && truth.reads("hu", "ct_unit.mhd"));
+    assert_eq!(truth.params(), stage(FieldModel::Truth, 99).params());
+    let keys: Vec<String> = truth.params().as_object().unwrap().keys().cloned().collect();
+    assert_eq!(keys, ["grid", "model", "scale"]);
+    assert_ne!(stage(FieldModel::Vm, 10).params(), stage(FieldModel::Vm, 99).params());
+}

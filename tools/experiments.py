@@ -80,6 +80,9 @@ ROWS = [
      " (blind_tie_break = \"score\"): the default"),
     ("default-A", "presets/default_origin.toml", "A", "A",
      "the default centred on the scene origin (= the nodule with roi_center = \"nodule\")"),
+    ("perfect-field", "presets/perfect_field.toml", "B", "C*",
+     "a ceiling, not a method: the default with its fit replaced by the true CT averaged over each cell of"
+     " the same lattice ([train] model = \"truth\"), the field a perfect fit would reach"),
     ("default-seed2", "presets/default_seed2.toml", "B", "C*",
      "the default on a second anatomy of the same patients (phantom seed 2)"),
     ("default-seed3", "presets/default_seed3.toml", "B", "C*",

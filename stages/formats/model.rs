@@ -4,7 +4,7 @@
 //! Tensors (float32, row-major): `plane_xy`, `plane_xz`, `plane_yz` of shape `[R, N, N]`
 //! (index `[r, v, u]`: u = the plane's first axis, fastest), `line_z`, `line_y`, `line_x` of shape
 //! `[R, N]`, and optionally `alpha_mask` (uint8 `[N, N, N]`, index `[z, y, x]`). A dense model
-//! (`"model": "dense_tv"` in the metadata) holds one tensor instead, `density` (float32
+//! (`"model": "dense_tv"` or `"truth"` in the metadata) holds one tensor instead, `density` (float32
 //! `[N, N, N]`, index `[z, y, x]`): σ at the lattice nodes. The metadata has
 //! one key, `aret_pipe`, whose value is the JSON of [`ModelMeta`] (one key keeps the bytes
 //! deterministic).
@@ -116,7 +116,7 @@ pub fn decode(data: &[u8]) -> anyhow::Result<(Field, Option<Vec<bool>>, ModelMet
         Ok(t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
     };
     let (n, r) = (meta.grid, meta.rank);
-    if meta.model == FieldModel::DenseTv {
+    if meta.model != FieldModel::Vm {
         return Ok((Field::Dense(floats("density", n * n * n)?), None, meta));
     }
     let mut field = VmField::zeros(n, r);

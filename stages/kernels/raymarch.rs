@@ -50,6 +50,18 @@ impl<'a> VolumeField<'a> {
     pub fn data(&self) -> &[f32] {
         self.data
     }
+
+    /// The value at scene point `p` (trilinear), and 0 (air) outside the volume's faces, where
+    /// the ray march's [support](Field::support) ends too.
+    pub fn value_at(&self, p: DVec3) -> f64 {
+        let q = self.to_index * p + self.offset;
+        let inside = (0..3).all(|a| (-0.5..=self.dims[a] as f64 - 0.5).contains(&q[a]));
+        if inside {
+            trilinear(self.data, self.dims, q)
+        } else {
+            0.0
+        }
+    }
 }
 
 impl Field for VolumeField<'_> {

@@ -1,17 +1,21 @@
 //! `train`: fits the VM attenuation field to the three DRRs (SPEC §3 train).
 //!
 //! Inputs: `drr/cameras.json` (the nominal cameras: poses are read, never recomputed) and
-//! `drr/drr_<view>.exr`. Outputs: `model.safetensors` (factors, alpha mask, metadata),
+//! `drr/drr_<view>.exr`; with `model = "truth"` (a ceiling, no fit) `hu/ct_unit` instead of the
+//! images' content, which then only score it. Outputs: `model.safetensors` (factors, alpha mask, metadata),
 //! `train_log.csv` (iteration, loss, photo, L1, TV, PSNR per view, lr, seconds) and `loss.svg`.
 
 use crate::engine::{Context, Output, Stage};
 use crate::formats::model::{self, ModelMeta};
 use crate::formats::{exr_image, svg};
 use crate::gpu;
+use crate::kernels::raymarch::VolumeField;
 use crate::stage::drr::CameraSet;
 use crate::train::dense_tv::{self, DenseFitted};
 use crate::train::fit::{fit, renderer, FieldModel, Fitted, LogRow, Views};
 use crate::train::render::Renderer;
+use crate::train::truth;
+use crate::volume::Volume;
 use anyhow::bail;
 use std::fmt::Write as _;
 
@@ -35,6 +39,11 @@ const VM_ONLY_KEYS: [&str; 15] = [
     "alpha_threshold",
     "seed",
 ];
+
+/// The `[train]` keys only the dense fit reads (`model` too: absent, the VM fit's keys stay as
+/// they were before dense models).
+const DENSE_ONLY_KEYS: [&str; 5] =
+    ["model", "dense_tv_iterations", "dense_tv_lambda", "dense_tv_epsilon", "dense_tv_bregman_steps"];
 
 /// `[train]` is the fit's own parameter table.
 pub use crate::train::fit::{Backend, TrainParams as Params};
@@ -66,32 +75,39 @@ impl Stage for Train {
         VERSION
     }
     fn inputs(&self) -> &'static [&'static str] {
-        &["drr"]
+        &["drr", "hu"]
     }
     fn params(&self) -> serde_json::Value {
         let resolved = Params { backend: self.backend(), ..self.params.clone() };
         let mut json = super::params_json(&resolved);
         let table = json.as_object_mut().expect("params are a table");
         // Only what the chosen model reads is part of its key (so VM fits keep their keys).
+        if self.params.model == FieldModel::Truth {
+            // The CT on the lattice depends on the lattice and s alone.
+            table.retain(|key, _| ["model", "grid", "scale"].contains(&key.as_str()));
+            return json;
+        }
         let unread: &[&str] = match self.params.model {
-            FieldModel::Vm => {
-                &["model", "dense_tv_iterations", "dense_tv_lambda", "dense_tv_epsilon", "dense_tv_bregman_steps"]
-            }
-            FieldModel::DenseTv => &VM_ONLY_KEYS,
+            FieldModel::Vm => &DENSE_ONLY_KEYS,
+            _ => &VM_ONLY_KEYS,
         };
         for key in unread.iter().chain(&["threads"]) {
             table.remove(*key);
         }
         json
     }
-    fn reads(&self, _stage: &str, output: &str) -> bool {
-        output == "cameras.json" || output.ends_with(".exr")
+    fn reads(&self, stage: &str, output: &str) -> bool {
+        match stage {
+            // Only the ceiling reads the CT, so the fits' keys do not depend on it.
+            "hu" => self.params.model == FieldModel::Truth && output.starts_with("ct_unit."),
+            _ => output == "cameras.json" || output.ends_with(".exr"),
+        }
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let backend = self.backend();
         // Before reading anything: a missing adapter or an option the shaders lack fails fast.
         let device = match backend {
-            Backend::Gpu => {
+            Backend::Gpu if self.params.model != FieldModel::Truth => {
                 gpu::fit::check_supported(&self.params)?;
                 Some(gpu::require("[train]")?)
             }
@@ -115,6 +131,7 @@ impl Stage for Train {
         }
         let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
         let (model_bytes, log) = match (self.params.model, device) {
+            (FieldModel::Truth, _) => self.truth(ctx, &set, &views)?,
             (FieldModel::DenseTv, Some(device)) => self.fit_dense(&views, |params, views, renderer| {
                 gpu::dense_fit::fit(&device, params, views, renderer, |_| {})
             })?,
@@ -187,6 +204,33 @@ impl Train {
             parameters: fitted.sigma.len(),
         };
         Ok((model::encode_dense(&fitted.sigma, &meta)?, fitted.log))
+    }
+}
+
+impl Train {
+    /// The ceiling, `model = "truth"`: the CT averaged over each lattice cell (no fit), scored
+    /// against the views as a fit's log row is. The model file is a dense one.
+    fn truth(&self, ctx: &Context, set: &CameraSet, views: &Views) -> anyhow::Result<(Vec<u8>, Vec<LogRow>)> {
+        let params = &self.params;
+        let ct_unit: Volume<f32> = super::read_volume(ctx, "hu", "ct_unit")?;
+        let renderer = renderer(params, views.aabb);
+        let ct = VolumeField::new(&ct_unit, &set.frame);
+        let sigma = self.in_pool(|| truth::cell_means(&ct, &renderer.lattice, set.attenuation_scale / params.scale))?;
+        let row = self.in_pool(|| dense_tv::evaluate_views(params, views, &renderer, &sigma))?;
+        let meta = ModelMeta {
+            model: FieldModel::Truth,
+            grid: params.grid,
+            rank: 0,
+            aabb: views.aabb,
+            shift: 0.0,
+            scale: params.scale,
+            step: renderer.step,
+            seed: 0,
+            iterations: 0,
+            backend: Backend::Cpu.name().into(),
+            parameters: sigma.len(),
+        };
+        Ok((model::encode_dense(&sigma, &meta)?, vec![row]))
     }
 }
 

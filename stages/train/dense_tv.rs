@@ -229,6 +229,21 @@ impl DenseProblem {
         depths.iter().zip(target).zip(&self.seen).map(|((d, m), &s)| if s { d - m } else { 0.0 }).collect()
     }
 
+    /// The log row of an evaluation: E's terms and each view's PSNR.
+    fn log_row(&self, per_view: &[Vec<Ray>], iteration: usize, e: &Evaluation, seconds: f64) -> LogRow {
+        LogRow {
+            iteration,
+            loss: e.data + self.lambda * e.tv,
+            photo: e.data,
+            l1: 0.0,
+            tv: 0.0,
+            tv3d: e.tv,
+            psnr_db: view_mse(per_view, &e.depths).into_iter().map(psnr_db).collect(),
+            lr: self.step,
+            seconds,
+        }
+    }
+
     fn evaluate(&self, sigma: &[f64]) -> Evaluation {
         let depths = self.projector.depths(sigma);
         let data = self.residual(&depths, &self.measured).iter().map(|r| r * r).sum::<f64>() / (2.0 * self.rays_seen);
@@ -332,17 +347,7 @@ pub fn fit_with<S: FistaSolver>(
     let problem = DenseProblem::new(params, &rays, renderer);
     let mut log = Vec::new();
     let mut record = |iteration: usize, e: &Evaluation| {
-        let row = LogRow {
-            iteration,
-            loss: e.data + problem.lambda * e.tv,
-            photo: e.data,
-            l1: 0.0,
-            tv: 0.0,
-            tv3d: e.tv,
-            psnr_db: view_mse(&per_view, &e.depths).into_iter().map(psnr_db).collect(),
-            lr: problem.step,
-            seconds: started.elapsed().as_secs_f64(),
-        };
+        let row = problem.log_row(&per_view, iteration, e, started.elapsed().as_secs_f64());
         on_log(&row);
         log.push(row);
     };
@@ -366,6 +371,17 @@ pub fn fit_with<S: FistaSolver>(
         })?;
     }
     Ok(DenseFitted { sigma: sigma.iter().map(|&v| v as f32).collect(), log })
+}
+
+/// How closely a given σ on the lattice reproduces `views`, as the row a fit logs: E's terms
+/// under `params`' TV and each view's PSNR (`[train] model = "truth"` logs its one row so).
+pub fn evaluate_views(params: &TrainParams, views: &Views, renderer: &Renderer, sigma: &[f32]) -> LogRow {
+    let started = Instant::now();
+    let per_view = views.rays();
+    let rays: Vec<Ray> = per_view.iter().flatten().copied().collect();
+    let problem = DenseProblem::new(params, &rays, renderer);
+    let sigma: Vec<f64> = sigma.iter().map(|&v| f64::from(v)).collect();
+    problem.log_row(&per_view, 0, &problem.evaluate(&sigma), started.elapsed().as_secs_f64())
 }
 
 /// A bound on the curvature of E: the largest eigenvalue of `AᵀA/B` by power iteration (from

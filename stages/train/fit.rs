@@ -17,7 +17,8 @@ use std::time::Instant;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrainParams {
-    /// What is fitted: TensoRF's VM factors (SPEC §3) or a dense lattice under 3-D TV.
+    /// What is fitted: TensoRF's VM factors (SPEC §3) or a dense lattice under 3-D TV (or, as a
+    /// ceiling, nothing: the true CT on the lattice).
     pub model: FieldModel,
     /// Lattice nodes per axis (N); planes are N×N, lines N.
     pub grid: usize,
@@ -81,6 +82,9 @@ pub enum FieldModel {
     /// convex solver ([`super::dense_tv`]; its steps on the CPU or the GPU). `pipeline.toml` ships
     /// it, on 128³.
     DenseTv,
+    /// No fit: the true CT averaged over each lattice cell ([`super::truth`]), the field a
+    /// perfect fit would reach on that lattice. A ceiling for measuring `select`, not a method.
+    Truth,
 }
 
 impl FieldModel {
@@ -131,6 +135,7 @@ impl TrainParams {
         match self.model {
             FieldModel::Vm => self.iterations,
             FieldModel::DenseTv => self.dense_tv_iterations * (self.dense_tv_bregman_steps + 1),
+            FieldModel::Truth => 0,
         }
     }
 

@@ -3,7 +3,8 @@
 //! and render a ray batch with its loss and the scatter of `dL/dF` ([`render`]), contract to
 //! the factors ([`field`]; in f32, [`compose`] and [`contract`]), regularisers
 //! ([`regularize`]), Adam ([`adam`]). The step's randomly read buffers live on huge pages
-//! ([`huge_pages`]).
+//! ([`huge_pages`]). A dense lattice under 3-D TV is fitted by [`dense_tv`]; [`truth`] puts the
+//! true CT on the lattice instead, as a ceiling.
 
 pub mod adam;
 #[cfg(target_arch = "x86_64")]
@@ -16,3 +17,4 @@ pub mod gemm;
 pub mod huge_pages;
 pub mod regularize;
 pub mod render;
+pub mod truth;
