@@ -114,6 +114,13 @@ pub struct Params {
     pub blind_tie_break: Option<TieBreak>,
     /// `tie_break = "score"`: the weight of roundness beside ln(response / peak score).
     pub score_roundness: f64,
+    /// The guided search measures roundness on the largest part of a blob's region that
+    /// survives an opening by a ball of this many lattice steps ([`half_max::opened`]; 0: the
+    /// region itself), so that vessels attached to a nodule do not make it look drawn out. The
+    /// blind search keeps the region as cut. Left out of the cache key at 0, so selections made
+    /// before it existed stay cached.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub roundness_opening: usize,
     /// `tie_break = "score"`: how many of the strongest accepted blobs it ranks.
     pub score_top: usize,
     /// `localize = "blob"`, with an annotated diameter: where the guided search finds no blob
@@ -123,6 +130,10 @@ pub struct Params {
     /// `guided_fallback`: the guided rule also takes the blind centre where its own centre's
     /// region peaks below this fraction of the blind centre's local contrast (0: never).
     pub guided_faint_ratio: f64,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
@@ -166,6 +177,7 @@ impl Default for Params {
             tie_break: TieBreak::default(),
             blind_tie_break: None,
             score_roundness: 3.0,
+            roundness_opening: 0,
             score_top: 5,
             guided_fallback: false,
             guided_faint_ratio: 0.0,
@@ -432,7 +444,9 @@ impl Select {
             Sizing::Candidates => Weighed::Accepted { region: None },
             Sizing::HalfMax | Sizing::Shadows => {
                 let (cut, range) = blob_check(search, p, annotated);
-                match half_max::plausible(&scored, &sweep.params, centre, cut, range) {
+                // The blind score's roundness weight was chosen on regions as cut (stop 49).
+                let opening = if search == Search::Guided { p.roundness_opening } else { 0 };
+                match half_max::plausible(&scored, &sweep.params, centre, cut, range, opening) {
                     Some(region) => Weighed::Accepted { region: Some(region) },
                     None => Weighed::PassedOver,
                 }
