@@ -534,3 +534,32 @@ fn stages_rerun_only_for_the_outputs_they_read() {
     assert_eq!(count(&r, "ingest", "computed"), 1);
     assert_eq!((count(&r, "hu", "cached"), count(&r, "drr", "cached"), count(&r, "train", "cached")), (1, 1, 1));
 }
+
+/// `[train] model = "truth"` through the engine: the CT on the lattice, one log row, and a key
+/// that the fit's own keys do not reach (changing `lr` keeps it cached).
+#[test]
+fn the_perfect_field_runs_through_the_engine_and_ignores_the_fits_keys() {
+    let p = Project::new(&["P1"], 6);
+    // The box around the small CT (the other tests' box at the origin misses it: their fits
+    // fit empty views, and the ceiling would be zero everywhere).
+    let with = |train: &str| {
+        let text = std::fs::read_to_string(p.path("pipeline.toml")).unwrap();
+        let text = text.replacen("[train]\n", &format!("[train]\n{train}"), 1).replacen(
+            "roi_center = [0.0, 0.0, 0.0]",
+            "roi_center = [-97.6, -78.3, 16.25]",
+            1,
+        );
+        std::fs::write(p.path("pipeline.toml"), text).unwrap();
+    };
+    with("model = \"truth\"\n");
+    let r = p.run(&[]);
+    assert_eq!((count(&r, "train", "computed"), count(&r, "grid", "computed")), (1, 1));
+    let log = std::fs::read_to_string(p.path("out/P1/train_log.csv")).unwrap();
+    assert_eq!(log.lines().count(), 2, "a header and one row: {log}");
+    let model = std::fs::read(p.path("out/P1/model.safetensors")).unwrap();
+    assert!(String::from_utf8_lossy(&model[..400.min(model.len())]).contains(r#"\"model\":\"truth\""#));
+    p.write_config("pipeline.toml", "cache", "out", "");
+    with("model = \"truth\"\nlr = 0.5\n");
+    let r = p.run(&[]);
+    assert_eq!(count(&r, "train", "cached"), 1, "lr is not the ceiling's key");
+}

@@ -304,7 +304,7 @@ fn the_perfect_field_is_the_cts_cell_means_in_the_fits_units() {
     let ct = Volume { data: vec![0.5f32; geometry.len()], geometry };
     let frame = SceneFrame { roi_center_mm: [0.0; 3], mm_per_unit: 40.0 };
     let lattice = Lattice { n: 8, aabb: Aabb { min: [-2.5, -1.0, -1.0], max: [2.5, 1.0, 1.0] } };
-    let sigma = cell_means(&VolumeField::new(&ct, &frame), &lattice, 3.0);
+    let sigma = cell_means(&VolumeField::new(&ct, &frame), 5.0 / 40.0, &lattice, 3.0);
     for z in 0..8 {
         for y in 0..8 {
             for x in 0..8 {
@@ -332,7 +332,9 @@ fn the_perfect_field_reproduces_the_views() {
     let psnr_db = |grid: usize, factor: f32| {
         let params = TrainParams { model: FieldModel::Truth, grid, scale: 2.0, ..TrainParams::default() };
         let r = renderer(&params, set.aabb);
-        let sigma = cell_means(&VolumeField::new(&ct, &set.frame), &r.lattice, set.attenuation_scale / params.scale);
+        let voxel = 4.0 / set.frame.mm_per_unit; // chest_ct's finest side, 4 mm
+        let sigma =
+            cell_means(&VolumeField::new(&ct, &set.frame), voxel, &r.lattice, set.attenuation_scale / params.scale);
         let scaled: Vec<f32> = sigma.iter().map(|v| v * factor).collect();
         evaluate_views(&params, &views, &r, &scaled).psnr_db
     };

@@ -215,7 +215,10 @@ impl Train {
         let ct_unit: Volume<f32> = super::read_volume(ctx, "hu", "ct_unit")?;
         let renderer = renderer(params, views.aabb);
         let ct = VolumeField::new(&ct_unit, &set.frame);
-        let sigma = self.in_pool(|| truth::cell_means(&ct, &renderer.lattice, set.attenuation_scale / params.scale))?;
+        let ct_voxel =
+            ct_unit.geometry.spacing_mm.iter().copied().fold(f64::INFINITY, f64::min) / set.frame.mm_per_unit;
+        let sigma_per_value = set.attenuation_scale / params.scale;
+        let sigma = self.in_pool(|| truth::cell_means(&ct, ct_voxel, &renderer.lattice, sigma_per_value))?;
         let row = self.in_pool(|| dense_tv::evaluate_views(params, views, &renderer, &sigma))?;
         let meta = ModelMeta {
             model: FieldModel::Truth,
