@@ -190,24 +190,28 @@ impl Train {
         let params = &self.params;
         let renderer = renderer(params, views.aabb);
         let fitted = self.in_pool(|| fit_on(params, views, &renderer))??;
-        let meta = ModelMeta {
-            model: FieldModel::DenseTv,
-            grid: params.grid,
-            rank: 0,
-            aabb: views.aabb,
-            shift: 0.0,
-            scale: params.scale,
-            step: renderer.step,
-            seed: 0,
-            iterations: params.dense_tv_iterations,
-            backend: self.backend().name().into(),
-            parameters: fitted.sigma.len(),
-        };
+        let meta = self.lattice_meta(FieldModel::DenseTv, &renderer, params.dense_tv_iterations, self.backend());
         Ok((model::encode_dense(&fitted.sigma, &meta)?, fitted.log))
     }
-}
 
-impl Train {
+    /// The metadata of σ held at the lattice's nodes (a dense fit or the ceiling).
+    fn lattice_meta(&self, model: FieldModel, renderer: &Renderer, iterations: usize, backend: Backend) -> ModelMeta {
+        let n = self.params.grid;
+        ModelMeta {
+            model,
+            grid: n,
+            rank: 0,
+            aabb: renderer.lattice.aabb,
+            shift: 0.0,
+            scale: self.params.scale,
+            step: renderer.step,
+            seed: 0,
+            iterations,
+            backend: backend.name().into(),
+            parameters: n * n * n,
+        }
+    }
+
     /// The ceiling, `model = "truth"`: the CT averaged over each lattice cell (no fit), scored
     /// against the views as a fit's log row is. The model file is a dense one.
     fn truth(&self, ctx: &Context, set: &CameraSet, views: &Views) -> anyhow::Result<(Vec<u8>, Vec<LogRow>)> {
@@ -220,19 +224,7 @@ impl Train {
         let sigma_per_value = set.attenuation_scale / params.scale;
         let sigma = self.in_pool(|| truth::cell_means(&ct, ct_voxel, &renderer.lattice, sigma_per_value))?;
         let row = self.in_pool(|| dense_tv::evaluate_views(params, views, &renderer, &sigma))?;
-        let meta = ModelMeta {
-            model: FieldModel::Truth,
-            grid: params.grid,
-            rank: 0,
-            aabb: views.aabb,
-            shift: 0.0,
-            scale: params.scale,
-            step: renderer.step,
-            seed: 0,
-            iterations: 0,
-            backend: Backend::Cpu.name().into(),
-            parameters: sigma.len(),
-        };
+        let meta = self.lattice_meta(FieldModel::Truth, &renderer, 0, Backend::Cpu);
         Ok((model::encode_dense(&sigma, &meta)?, vec![row]))
     }
 }
