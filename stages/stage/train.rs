@@ -1,9 +1,10 @@
 //! `train`: fits the VM attenuation field to the three DRRs (SPEC §3 train).
 //!
 //! Inputs: `drr/cameras.json` (the nominal cameras: poses are read, never recomputed) and
-//! `drr/drr_<view>.exr`; with `model = "truth"` (a ceiling, no fit) `hu/ct_unit` instead of the
-//! images' content, which then only score it. Outputs: `model.safetensors` (factors, alpha mask, metadata),
-//! `train_log.csv` (iteration, loss, photo, L1, TV, PSNR per view, lr, seconds) and `loss.svg`.
+//! `drr/drr_<view>.exr`; with `model = "truth"` (a ceiling, no fit) also `hu/ct_unit`, which it
+//! puts on the lattice, the images then only scoring it. Outputs: `model.safetensors` (factors,
+//! alpha mask, metadata), `train_log.csv` (iteration, loss, photo, L1, TV, PSNR per view, lr,
+//! seconds) and `loss.svg`.
 
 use crate::engine::{Context, Output, Stage};
 use crate::formats::model::{self, ModelMeta};
