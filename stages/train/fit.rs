@@ -59,16 +59,12 @@ pub struct TrainParams {
     /// residual back to the measured depths and solves again from the last σ, which returns the
     /// contrast the TV took from small objects. Left out of the cache key at 0, so the dense
     /// fits made before it existed stay cached.
-    #[serde(skip_serializing_if = "is_zero")]
+    #[serde(skip_serializing_if = "crate::is_zero")]
     pub dense_tv_bregman_steps: usize,
     /// Where the fit runs (part of the cache key: backends differ in rounding).
     pub backend: Backend,
     /// Worker threads (0: all cores). Results do not depend on it: not part of the cache key.
     pub threads: usize,
-}
-
-fn is_zero(n: &usize) -> bool {
-    *n == 0
 }
 
 /// What `train` fits.

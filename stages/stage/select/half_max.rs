@@ -79,36 +79,36 @@ pub fn plausible(
     let fits =
         within(diameter_mm, sweep.diameter_mm) && diameter_range_mm.is_none_or(|range| within(diameter_mm, range));
     fits.then(|| {
-        let shape = if roundness_opening > 0 { opened(&voxels, geometry.dims, roundness_opening) } else { voxels };
+        let shape = if roundness_opening > 0 { opened(&voxels, geometry, roundness_opening) } else { voxels };
         RegionShape { roundness: roundness(&shape, geometry), diameter_mm, peak_score: peak }
     })
 }
 
-/// The largest part of a region (voxel indices into `dims`) that survives an opening by a ball
-/// of `radius` lattice steps, ascending: strands thinner than the ball, like the vessels
-/// attached to a nodule, are cut off its core. Empty when nothing survives (the region is all
-/// strands). Works on the region's bounding box, padded by the radius.
-pub fn opened(voxels: &[usize], dims: [usize; 3], radius: usize) -> Vec<usize> {
-    let at = |i: usize| [i % dims[0], i / dims[0] % dims[1], i / (dims[0] * dims[1])];
+/// The largest part of a region (voxel indices into `geometry`'s lattice) that survives an
+/// opening by a ball of `radius` lattice steps, ascending: strands thinner than the ball, like
+/// the vessels attached to a nodule, are cut off its core. Empty when nothing survives (the
+/// region is all strands). Works on the region's bounding box, padded by the radius.
+pub fn opened(voxels: &[usize], geometry: &Geometry, radius: usize) -> Vec<usize> {
+    if voxels.is_empty() {
+        return Vec::new();
+    }
     let (mut lo, mut hi) = ([usize::MAX; 3], [0; 3]);
     for &i in voxels {
-        let v = at(i);
+        let v = geometry.voxel_at(i);
         for a in 0..3 {
             lo[a] = lo[a].min(v[a]);
             hi[a] = hi[a].max(v[a]);
         }
     }
-    if voxels.is_empty() {
-        return Vec::new();
-    }
     // The box, with `radius` empty voxels around it, so the erosion sees the region's own edge.
     let size: [usize; 3] = std::array::from_fn(|a| hi[a] - lo[a] + 1 + 2 * radius);
-    let local = |v: [usize; 3]| {
+    let local = |i: usize| {
+        let v = geometry.voxel_at(i);
         (v[0] + radius - lo[0]) + size[0] * ((v[1] + radius - lo[1]) + size[1] * (v[2] + radius - lo[2]))
     };
     let mut mask = vec![false; size.iter().product()];
     for &i in voxels {
-        mask[local(at(i))] = true;
+        mask[local(i)] = true;
     }
     let kept = dilate(&erode(&mask, size, radius), size, radius);
     let parts = label(&kept, size, Connectivity::Six);
@@ -116,7 +116,7 @@ pub fn opened(voxels: &[usize], dims: [usize; 3], radius: usize) -> Vec<usize> {
         return Vec::new();
     };
     let core = parts.mask_of(largest);
-    voxels.iter().copied().filter(|&i| core[local(at(i))]).collect()
+    voxels.iter().copied().filter(|&i| core[local(i)]).collect()
 }
 
 /// How round a region is: √(λ₃/λ₁) of the covariance of its voxels' positions (mm), 1 for a
@@ -500,16 +500,16 @@ mod tests {
         };
         let region: Vec<usize> = (0..g.len()).filter(|&i| core(i) || strand(i)).collect();
         let ball_only: Vec<usize> = (0..g.len()).filter(|&i| core(i)).collect();
-        let cut = opened(&region, g.dims, 1);
+        let cut = opened(&region, g, 1);
         assert!(cut.iter().all(|&i| core(i)), "nothing of the strand survives");
         assert!(cut.len() * 10 > ball_only.len() * 9, "the core does: {} of {}", cut.len(), ball_only.len());
         assert!(roundness(&region, g) < 0.8 && roundness(&cut, g) > 0.99);
         // Two balls joined by the strand: the larger one is kept; a bare strand leaves nothing.
         let small = ball([34.0, 20.0, 20.0], 3.0);
         let pair: Vec<usize> = (0..g.len()).filter(|&i| core(i) || strand(i) || small(i)).collect();
-        assert!(opened(&pair, g.dims, 1).iter().all(|&i| core(i)));
+        assert!(opened(&pair, g, 1).iter().all(|&i| core(i)));
         let bare: Vec<usize> = (0..g.len()).filter(|&i| strand(i)).collect();
-        assert!(opened(&bare, g.dims, 1).is_empty());
-        assert_eq!(opened(&ball_only, g.dims, 0), ball_only, "radius 0 keeps the region");
+        assert!(opened(&bare, g, 1).is_empty());
+        assert_eq!(opened(&ball_only, g, 0), ball_only, "radius 0 keeps the region");
     }
 }

@@ -119,7 +119,7 @@ pub struct Params {
     /// region itself), so that vessels attached to a nodule do not make it look drawn out. The
     /// blind search keeps the region as cut. Left out of the cache key at 0, so selections made
     /// before it existed stay cached.
-    #[serde(skip_serializing_if = "is_zero")]
+    #[serde(skip_serializing_if = "crate::is_zero")]
     pub roundness_opening: usize,
     /// `tie_break = "score"`: how many of the strongest accepted blobs it ranks.
     pub score_top: usize,
@@ -130,10 +130,6 @@ pub struct Params {
     /// `guided_fallback`: the guided rule also takes the blind centre where its own centre's
     /// region peaks below this fraction of the blind centre's local contrast (0: never).
     pub guided_faint_ratio: f64,
-}
-
-fn is_zero(n: &usize) -> bool {
-    *n == 0
 }
 
 /// How a rule sizes the nodule once it has chosen where it is.
