@@ -77,11 +77,16 @@ def responses(volume, s_mm, spacing):
     return {"laplacian": -eig.sum(-1), "hessian": np.maximum(0.0, -eig[..., -1])}
 
 
-def strongest(volume, field, spacing, scales_mm):
-    """The node of the strongest response per filter, over the scales, > INSIDE_MM inside field
-    and inside the lattice (its faces count as edges, as in the stage's `blob_sites`)."""
+def search_sites(field, spacing):
+    """The nodes a blob search may take: > INSIDE_MM inside the lung field and inside the lattice
+    (its faces count as edges, as in the stage's `blob_sites`)."""
     padded = np.pad(field, 1, constant_values=False)
-    sites = ndimage.distance_transform_edt(padded, sampling=spacing[::-1])[1:-1, 1:-1, 1:-1] > INSIDE_MM
+    return ndimage.distance_transform_edt(padded, sampling=spacing[::-1])[1:-1, 1:-1, 1:-1] > INSIDE_MM
+
+
+def strongest(volume, field, spacing, scales_mm):
+    """The node of the strongest response per filter, over the scales, at the `search_sites`."""
+    sites = search_sites(field, spacing)
     best = {}
     for s in scales_mm:
         for name, r in responses(volume, s, spacing).items():

@@ -17,11 +17,12 @@ every patient whose annotated diameter is at least `--min-diameter-mm`, on both 
   it can reach it: `reach` says whether any of the nodule's nodes lies in that search region;
 - **the fit's decoy**: what the truth holds within 3 nodes of the fit's strongest decoy, as a
   fraction of that decoy's response. At 0.5 or more it is `anatomy` (a vessel junction, the
-  hilum: present in the CT, and a better fit keeps it); below, an `artefact` of the fit.
+  hilum: present in the CT, and a better fit keeps it); below, an `artefact` of the fit
+  (`none`: no blob answers anywhere in the search region).
 
 So a reader can tell a fit that loses the nodule's contrast from one that makes decoys, on a
 continuous scale instead of hit counts. `--figure PNG` also draws, for the patients named in
-`--patients`, the axial, coronal and sagittal slices through the nodule's centre on the fit and
+`--patients` (which alone restricts the table), the axial, coronal and sagittal slices through the nodule's centre on the fit and
 on the truth, the consensus outline in green (needs matplotlib). Needs numpy and scipy.
 """
 import argparse
@@ -32,7 +33,7 @@ import sys
 import numpy as np
 from scipy import ndimage
 
-from blob_ceiling import BLIND_SCALES_MM, INSIDE_MM, hessian_eigenvalues, node_mm
+from blob_ceiling import BLIND_SCALES_MM, node_mm, responses, search_sites
 from metaimage import read_mhd
 
 SHELL_MM = (4.0, 10.0)
@@ -43,7 +44,7 @@ ANATOMY_FRACTION = 0.5
 
 def blob_response(volume, spacing):
     """The scale-normalised Hessian bright-blob response, the maximum over the blind scales."""
-    return np.max([np.maximum(0.0, -hessian_eigenvalues(volume, s, spacing)[..., -1]) for s in BLIND_SCALES_MM], 0)
+    return np.max([responses(volume, s, spacing)["hessian"] for s in BLIND_SCALES_MM], 0)
 
 
 def mask_on_lattice(mask, mask_spacing, mask_origin, nodes):
@@ -66,24 +67,26 @@ def compare(fit, truth, nodule, lung_field, spacing):
     sampling = spacing[::-1]
     outside = ndimage.distance_transform_edt(~nodule, sampling=sampling)
     shell = (outside > SHELL_MM[0]) & (outside < SHELL_MM[1])
-    padded = np.pad(lung_field, 1, constant_values=False)
-    sites = ndimage.distance_transform_edt(padded, sampling=sampling)[1:-1, 1:-1, 1:-1] > INSIDE_MM
+    sites = search_sites(lung_field, spacing)
     elsewhere = sites & (outside > DECOY_CLEARANCE_MM)
-    row, responses = {}, {}
+    row, fields_response = {}, {}
     for name, field in (("fit", fit), ("truth", truth)):
-        response = responses[name] = blob_response(field.astype(np.float64), spacing)
+        response = fields_response[name] = blob_response(field.astype(np.float64), spacing)
         row[f"{name}_contrast"] = float(field[nodule].mean() - np.median(field[shell]))
         row[f"{name}_nodule"] = float(response[nodule].max()) if nodule.any() else 0.0
         row[f"{name}_decoy"] = float(response[elsewhere].max()) if elsewhere.any() else 0.0
         row[f"{name}_margin"] = ratio(row[f"{name}_nodule"], row[f"{name}_decoy"])
-    decoy = np.unravel_index(np.argmax(np.where(elsewhere, responses["fit"], -np.inf)), fit.shape)
-    window = tuple(slice(max(0, i - DECOY_WINDOW_NODES), i + DECOY_WINDOW_NODES + 1) for i in decoy)
-    row["truth_at_fit_decoy"] = float(responses["truth"][window].max())
     row["reachable"] = bool((nodule & sites).any())
     row["kept"] = ratio(row["fit_contrast"], row["truth_contrast"])
     row["response_kept"] = ratio(row["fit_nodule"], row["truth_nodule"])
-    found = row["truth_at_fit_decoy"] >= ANATOMY_FRACTION * row["fit_decoy"]
-    row["decoy_kind"] = "anatomy" if found else "artefact"
+    if row["fit_decoy"] > 0:
+        decoy = np.unravel_index(np.argmax(np.where(elsewhere, fields_response["fit"], -np.inf)), fit.shape)
+        window = tuple(slice(max(0, i - DECOY_WINDOW_NODES), i + DECOY_WINDOW_NODES + 1) for i in decoy)
+        row["truth_at_fit_decoy"] = float(fields_response["truth"][window].max())
+        row["decoy_truth_ratio"] = row["truth_at_fit_decoy"] / row["fit_decoy"]
+        row["decoy_kind"] = "anatomy" if row["decoy_truth_ratio"] >= ANATOMY_FRACTION else "artefact"
+    else:  # no blob anywhere in the search region
+        row["truth_at_fit_decoy"], row["decoy_truth_ratio"], row["decoy_kind"] = 0.0, float("nan"), "none"
     return row
 
 
@@ -138,7 +141,7 @@ def main():
     ap.add_argument("truth_out", help="the same patients' out dir with [train] model = \"truth\"")
     ap.add_argument("--min-diameter-mm", type=float, default=10.0)
     ap.add_argument("--figure", metavar="PNG", help="draw slices through the nodules of --patients")
-    ap.add_argument("--patients", default="", help="comma-separated, for --figure (alone: no table)")
+    ap.add_argument("--patients", default="", help="comma-separated: only these (with --figure: the ones drawn)")
     args = ap.parse_args()
     if args.figure:
         if not args.patients:
@@ -147,6 +150,12 @@ def main():
         return 0
     patients = sorted(p for p in os.listdir(args.fit_out)
                       if os.path.exists(os.path.join(args.fit_out, p, "result.json")))
+    if args.patients:
+        wanted = args.patients.split(",")
+        missing = [p for p in wanted if p not in patients]
+        if missing:
+            sys.exit(f"{args.fit_out}: no result.json for {', '.join(missing)}")
+        patients = wanted
     if not patients:
         sys.exit(f"{args.fit_out}: no <patient>/result.json; run the pipeline first")
     print("patient         d mm  contrast fit / truth  kept | response kept | nodule/decoy fit  truth  reach"
@@ -164,7 +173,7 @@ def main():
         print(f"{patient}  {diameter:4.1f}   {r['fit_contrast']:.3f} / {r['truth_contrast']:.3f}     {r['kept']:.2f} |"
               f"          {r['response_kept']:.2f} |       {r['fit_margin']:5.2f}  {r['truth_margin']:5.2f}"
               f"  {'yes' if r['reachable'] else 'no ':5} | {r['decoy_kind']}"
-              f" (the truth answers {r['truth_at_fit_decoy'] / r['fit_decoy']:.2f} × as much there)", flush=True)
+              f" (the truth answers {r['decoy_truth_ratio']:.2f} × as much there)", flush=True)
     if not rows:
         sys.exit(f"{args.fit_out}: no patient with an annotated diameter ≥ {args.min_diameter_mm:g} mm")
     anatomy = [r for r in rows if r["decoy_kind"] == "anatomy"]
@@ -176,9 +185,9 @@ def main():
           f" on the fit in {sum(r['fit_margin'] > 1 for r in reachable)},"
           f" on the truth in {sum(r['truth_margin'] > 1 for r in reachable)};"
           f" the fit's strongest decoy is anatomy in {len(anatomy)}"
-          + (f" (median response kept {np.median([r['fit_decoy'] / r['truth_at_fit_decoy'] for r in anatomy]):.2f})"
+          + (f" (median response kept {np.median([1 / r['decoy_truth_ratio'] for r in anatomy]):.2f})"
              if anatomy else "")
-          + f", an artefact in {len(rows) - len(anatomy)}")
+          + f", an artefact in {sum(r['decoy_kind'] == 'artefact' for r in rows)}")
     return 0
 
 
