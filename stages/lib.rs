@@ -28,3 +28,8 @@ pub use stage::STAGE_NAMES;
 pub(crate) fn is_zero(n: &usize) -> bool {
     *n == 0
 }
+
+/// [`is_zero`] for a weight.
+pub(crate) fn is_zero_f64(x: &f64) -> bool {
+    *x == 0.0
+}

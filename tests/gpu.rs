@@ -248,7 +248,7 @@ fn a_batch_past_the_exact_scatter_limit_is_an_error_naming_the_key() {
 
 /// The dense model's FISTA on the device against the CPU's: in f32 against f64, the same
 /// steps give the same log within 1e-5 and σ within 1e-4 of its peak; the device repeats
-/// itself bit for bit; and its Bregman step continues from its own σ.
+/// itself bit for bit; and its Bregman step and reweighted-L1 solve continue from its own σ.
 #[test]
 fn the_dense_fit_on_the_device_follows_the_cpu_and_repeats_itself() {
     use aret_pipe::train::dense_tv;
@@ -294,6 +294,27 @@ fn the_dense_fit_on_the_device_follows_the_cpu_and_repeats_itself() {
     let (c, g) = (cpu_b.log.last().unwrap(), gpu_b.log.last().unwrap());
     assert_eq!((c.iteration, g.iteration), (300, 300));
     assert!((g.loss - c.loss).abs() < 1e-3 * c.loss, "after a Bregman step: {} (gpu) against {} (cpu)", g.loss, c.loss);
+    // A reweighted L1's solve after the first: its weights ride along into the device's step.
+    let reweighted = TrainParams {
+        dense_tv_reweight_steps: 1,
+        dense_tv_sparsity: 3e-2,
+        dense_tv_bregman_steps: 0,
+        ..params.clone()
+    };
+    let (cpu_r, gpu_r) = (
+        dense_tv::fit(&reweighted, &views, &r, |_| {}),
+        aret_pipe::gpu::dense_fit::fit(&gpu, &reweighted, &views, &r, |_| {}).unwrap(),
+    );
+    let (c, g) = (cpu_r.log.last().unwrap(), gpu_r.log.last().unwrap());
+    assert_eq!((c.iteration, g.iteration), (300, 300));
+    assert!(
+        (g.loss - c.loss).abs() < 1e-3 * c.loss,
+        "after a reweighted solve: {} (gpu) against {} (cpu)",
+        g.loss,
+        c.loss
+    );
+    let sigma_err = relative_to_max(&gpu_r.sigma, &cpu_r.sigma);
+    assert!(sigma_err < 1e-3, "reweighted σ differs by {sigma_err:.1e} of its peak");
 }
 
 #[test]

@@ -16,7 +16,7 @@
 use aret_pipe::gpu::dense_fit::DeviceFista;
 use aret_pipe::gpu::Gpu;
 use aret_pipe::stage::drr::CameraSet;
-use aret_pipe::train::dense_tv::{CpuFista, DenseProblem, FistaSolver};
+use aret_pipe::train::dense_tv::{CpuFista, DenseProblem, FistaSolver, Toward};
 use aret_pipe::train::fit::{renderer, FieldModel, TrainParams, Views};
 use aret_pipe::train::render::Ray;
 use std::path::PathBuf;
@@ -56,7 +56,14 @@ fn main() -> anyhow::Result<()> {
     let solve = |solver: &mut dyn FistaSolver| -> anyhow::Result<(f64, Vec<f64>)> {
         let mut sigma = vec![0.0; problem.nodes()];
         let t = Instant::now();
-        solver.solve(&problem, &mut sigma, &problem.measured, steps, &none, &mut |_, _| {})?;
+        solver.solve(
+            &problem,
+            &mut sigma,
+            &Toward { depths: &problem.measured, l1: &[] },
+            steps,
+            &none,
+            &mut |_, _| {},
+        )?;
         Ok((t.elapsed().as_secs_f64(), sigma))
     };
     let t = Instant::now();

@@ -95,6 +95,9 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         dense_tv_lambda: _,
         dense_tv_epsilon: _,
         dense_tv_bregman_steps: _,
+        dense_tv_reweight_steps: _,
+        dense_tv_sparsity: _,
+        dense_tv_sparsity_eta: _,
     } = params;
     Ok(())
 }

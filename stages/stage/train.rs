@@ -43,8 +43,16 @@ const VM_ONLY_KEYS: [&str; 15] = [
 
 /// The `[train]` keys only the dense fit reads (`model` too: absent, the VM fit's keys stay as
 /// they were before dense models).
-const DENSE_ONLY_KEYS: [&str; 5] =
-    ["model", "dense_tv_iterations", "dense_tv_lambda", "dense_tv_epsilon", "dense_tv_bregman_steps"];
+const DENSE_ONLY_KEYS: [&str; 8] = [
+    "model",
+    "dense_tv_iterations",
+    "dense_tv_lambda",
+    "dense_tv_epsilon",
+    "dense_tv_bregman_steps",
+    "dense_tv_reweight_steps",
+    "dense_tv_sparsity",
+    "dense_tv_sparsity_eta",
+];
 
 /// `[train]` is the fit's own parameter table.
 pub use crate::train::fit::{Backend, TrainParams as Params};

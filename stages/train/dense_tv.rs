@@ -252,16 +252,23 @@ impl DenseProblem {
     }
 }
 
+/// What one solve fits: the depths (the measured ones, or Bregman's), and the reweighted L1's
+/// per-node weights `l1[i]`, each adding `l1[i] · σ[i]` to E (empty: no L1).
+pub struct Toward<'a> {
+    pub depths: &'a [f64],
+    pub l1: &'a [f64],
+}
+
 /// FISTA on E toward given depths: [`CpuFista`] here, or the device's loop (`gpu::dense_fit`).
 pub trait FistaSolver {
     /// Runs `steps` FISTA steps on `problem` from `sigma` (restarting the momentum) toward
-    /// `target`, and leaves the last iterate in `sigma`. After each step `k` (from 1) for which
+    /// `toward`, and leaves the last iterate in `sigma`. After each step `k` (from 1) for which
     /// `wants(k)`, it hands σ to `checkpoint`.
     fn solve(
         &mut self,
         problem: &DenseProblem,
         sigma: &mut [f64],
-        target: &[f64],
+        toward: &Toward,
         steps: usize,
         wants: &dyn Fn(usize) -> bool,
         checkpoint: &mut dyn FnMut(usize, &[f64]),
@@ -294,12 +301,13 @@ impl FistaSolver for CpuFista {
         &mut self,
         problem: &DenseProblem,
         sigma: &mut [f64],
-        target: &[f64],
+        toward: &Toward,
         steps: usize,
         wants: &dyn Fn(usize) -> bool,
         checkpoint: &mut dyn FnMut(usize, &[f64]),
     ) -> anyhow::Result<()> {
         let (n, b, step, epsilon) = (problem.n, problem.rays_seen, problem.step, problem.epsilon);
+        let Toward { depths: target, l1 } = *toward;
         let w = problem.lambda / problem.nodes() as f64;
         let (gradient, next, p) = (&mut self.gradient, &mut self.next, &mut self.p);
         let (mut ahead, mut t) = (sigma.to_vec(), 1.0f64);
@@ -308,7 +316,16 @@ impl FistaSolver for CpuFista {
             problem.projector.back_into(&problem.residual(&problem.projector.depths(&ahead), target), gradient);
             p.par_iter_mut().enumerate().for_each(|(i, p)| *p = normalised_difference(&ahead, n, epsilon, i).1);
             gradient.par_iter_mut().enumerate().for_each(|(i, g)| *g = *g / b + w * tv_gradient_at(p, n, i));
-            next.par_iter_mut().zip(&ahead).zip(&*gradient).for_each(|((x, a), g)| *x = (a - step * g).max(0.0));
+            if l1.is_empty() {
+                next.par_iter_mut().zip(&ahead).zip(&*gradient).for_each(|((x, a), g)| *x = (a - step * g).max(0.0));
+            } else {
+                // The L1's proximal step on σ ≥ 0: a shift down by step · l1, then the clamp.
+                next.par_iter_mut()
+                    .zip(&ahead)
+                    .zip(&*gradient)
+                    .zip(l1)
+                    .for_each(|(((x, a), g), w)| *x = (a - step * (g + w)).max(0.0));
+            }
             let (t_next, momentum) = next_momentum(t);
             ahead.par_iter_mut().zip(&*next).zip(&*sigma).for_each(|((a, x), old)| *a = x + momentum * (x - old));
             sigma.copy_from_slice(next);
@@ -333,7 +350,10 @@ pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, on_log: imp
 /// `dense_tv_bregman_steps` > 0 it then solves again that many times, each from the last σ with
 /// the views' residual added to the depths it fits (Bregman iteration: TV takes contrast from a
 /// small object, in proportion to its surface over its volume, and each step gives it back);
-/// the log keeps E against the measured depths.
+/// the log keeps E against the measured depths. With `dense_tv_reweight_steps` > 0 and
+/// `dense_tv_sparsity` μ it then solves that many more times, each from the last σ with
+/// `μ/N³ Σ η/(σ_last + η) · σ` added to E (a reweighted L1: Candès, Wakin and Boyd's
+/// iteration toward sparsity); the log leaves that term out, so its rows compare across fits.
 pub fn fit_with<S: FistaSolver>(
     params: &TrainParams,
     views: &Views,
@@ -366,7 +386,18 @@ pub fn fit_with<S: FistaSolver>(
         }
         let first = solve * steps;
         let wants = |k: usize| params.logs_after(first + k);
-        solver.solve(&problem, &mut sigma, &target, steps, &wants, &mut |k, sigma| {
+        solver.solve(&problem, &mut sigma, &Toward { depths: &target, l1: &[] }, steps, &wants, &mut |k, sigma| {
+            record(first + k, &problem.evaluate(sigma))
+        })?;
+    }
+    // Reweighted L1: each solve weighs σ by η/(σ_last + η), from the last σ toward the depths.
+    let solved = params.dense_tv_bregman_steps + 1;
+    let (mu, eta) = (params.dense_tv_sparsity / problem.nodes() as f64, params.dense_tv_sparsity_eta);
+    for reweight in 0..params.dense_tv_reweight_steps {
+        let l1: Vec<f64> = sigma.iter().map(|&v| mu * eta / (v + eta)).collect();
+        let first = (solved + reweight) * steps;
+        let wants = |k: usize| params.logs_after(first + k);
+        solver.solve(&problem, &mut sigma, &Toward { depths: &target, l1: &l1 }, steps, &wants, &mut |k, sigma| {
             record(first + k, &problem.evaluate(sigma))
         })?;
     }

@@ -61,10 +61,31 @@ pub struct TrainParams {
     /// fits made before it existed stay cached.
     #[serde(skip_serializing_if = "crate::is_zero")]
     pub dense_tv_bregman_steps: usize,
+    /// `model = "dense_tv"`: solves after the first (and its Bregman steps) that add a
+    /// reweighted L1 of σ, `μ/N³ Σ w σ` with `w = η/(σ_last + η)`: cheap where σ is already
+    /// dense, dear where it is faint, so each solve draws the mass the three views leave
+    /// ambiguous into the objects they agree on (0: none; left out of the cache key at 0).
+    #[serde(skip_serializing_if = "crate::is_zero")]
+    pub dense_tv_reweight_steps: usize,
+    /// `model = "dense_tv"`: μ of the reweighted L1 (per node, against the data term per ray).
+    #[serde(skip_serializing_if = "crate::is_zero_f64")]
+    pub dense_tv_sparsity: f64,
+    /// `model = "dense_tv"`: η of the reweighted L1's weights, in σ (left out of the cache key
+    /// at its default).
+    #[serde(skip_serializing_if = "is_default_sparsity_eta")]
+    pub dense_tv_sparsity_eta: f64,
     /// Where the fit runs (part of the cache key: backends differ in rounding).
     pub backend: Backend,
     /// Worker threads (0: all cores). Results do not depend on it: not part of the cache key.
     pub threads: usize,
+}
+
+/// η of the reweighted L1, in σ: about the lung parenchyma's level (−850 HU in the default
+/// window), so faint streaks weigh about half again as much as the parenchyma.
+pub const DEFAULT_SPARSITY_ETA: f64 = 0.1;
+
+fn is_default_sparsity_eta(eta: &f64) -> bool {
+    *eta == DEFAULT_SPARSITY_ETA
 }
 
 /// What `train` fits.
@@ -130,7 +151,9 @@ impl TrainParams {
     pub fn steps(&self) -> usize {
         match self.model {
             FieldModel::Vm => self.iterations,
-            FieldModel::DenseTv => self.dense_tv_iterations * (self.dense_tv_bregman_steps + 1),
+            FieldModel::DenseTv => {
+                self.dense_tv_iterations * (self.dense_tv_bregman_steps + 1 + self.dense_tv_reweight_steps)
+            }
             FieldModel::Truth => 0,
         }
     }
@@ -179,6 +202,9 @@ impl Default for TrainParams {
             dense_tv_lambda: 1e-2,
             dense_tv_epsilon: 1e-3,
             dense_tv_bregman_steps: 0,
+            dense_tv_reweight_steps: 0,
+            dense_tv_sparsity: 0.0,
+            dense_tv_sparsity_eta: DEFAULT_SPARSITY_ETA,
             backend: Backend::Cpu,
             threads: 0,
         }
