@@ -96,6 +96,9 @@ ROWS = [
     ("bregman", "presets/bregman.toml", "B", "C*",
      "the default with one Bregman step on its dense fit (dense_tv_bregman_steps = 1): a second solve from the"
      " first σ, fitting the depths plus the views' residual"),
+    ("reweighted-l1", "presets/reweighted_l1.toml", "B", "C*",
+     "the default with one reweighted-L1 solve on its dense fit (dense_tv_reweight_steps = 1, dense_tv_sparsity ="
+     " 3e-2): a second solve from the first σ with μ/N³ Σ η/(σ + η) σ added, drawing ambiguous mass into dense objects"),
     ("default-blind-chest", "presets/default_blind_chest.toml", "C", "C",
      "the default fully blind: the whole-chest box of blind-chest around the lungs' centroid"),
     ("tiles", "presets/tiles.toml", "C", "C",
