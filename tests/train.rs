@@ -332,6 +332,20 @@ fn the_reweighted_l1_draws_mass_into_the_sphere_the_views_agree_on() {
     }
 }
 
+/// A weight without the solves that add it, or a negative one, is an error naming the key.
+#[test]
+fn the_reweighted_l1_keys_are_checked() {
+    let alone = TrainParams { dense_tv_sparsity: 1e-2, ..TrainParams::default() };
+    let e = alone.check().unwrap_err().to_string();
+    assert!(e.contains("dense_tv_sparsity") && e.contains("dense_tv_reweight_steps"), "{e}");
+    let negative = TrainParams { dense_tv_sparsity: -1.0, dense_tv_reweight_steps: 1, ..TrainParams::default() };
+    assert!(negative.check().unwrap_err().to_string().contains("dense_tv_sparsity"));
+    let eta = TrainParams { dense_tv_sparsity_eta: 0.0, ..TrainParams::default() };
+    assert!(eta.check().unwrap_err().to_string().contains("dense_tv_sparsity_eta"));
+    let both = TrainParams { dense_tv_sparsity: 1e-2, dense_tv_reweight_steps: 1, ..TrainParams::default() };
+    both.check().unwrap();
+}
+
 /// Without Bregman steps (or the reweighted L1) the parameters serialise as before the keys
 /// existed, so the dense fits cached then keep their keys; with them the key is there.
 #[test]

@@ -374,28 +374,22 @@ pub fn fit_with<S: FistaSolver>(
     let mut sigma = vec![0.0; problem.nodes()];
     record(0, &problem.evaluate(&sigma));
     let mut solver = solver_for(&problem)?;
-    // Bregman: each later solve fits the depths plus what the last σ left unexplained.
+    // Bregman: each later solve fits the depths plus what the last σ left unexplained. Then
+    // the reweighted L1's solves, each weighing σ by η/(σ_last + η), toward the last depths.
     let mut target = problem.measured.clone();
     let steps = params.dense_tv_iterations;
-    for solve in 0..=params.dense_tv_bregman_steps {
-        if solve > 0 {
+    let bregman = params.dense_tv_bregman_steps;
+    let (mu, eta) = (params.dense_tv_sparsity / problem.nodes() as f64, params.dense_tv_sparsity_eta);
+    for solve in 0..=bregman + params.dense_tv_reweight_steps {
+        if (1..=bregman).contains(&solve) {
             for (t, r) in target.iter_mut().zip(problem.residual(&problem.projector.depths(&sigma), &problem.measured))
             {
                 *t -= r;
             }
         }
+        let l1: Vec<f64> =
+            if solve > bregman { sigma.iter().map(|&v| mu * eta / (v + eta)).collect() } else { Vec::new() };
         let first = solve * steps;
-        let wants = |k: usize| params.logs_after(first + k);
-        solver.solve(&problem, &mut sigma, &Toward { depths: &target, l1: &[] }, steps, &wants, &mut |k, sigma| {
-            record(first + k, &problem.evaluate(sigma))
-        })?;
-    }
-    // Reweighted L1: each solve weighs σ by η/(σ_last + η), from the last σ toward the depths.
-    let solved = params.dense_tv_bregman_steps + 1;
-    let (mu, eta) = (params.dense_tv_sparsity / problem.nodes() as f64, params.dense_tv_sparsity_eta);
-    for reweight in 0..params.dense_tv_reweight_steps {
-        let l1: Vec<f64> = sigma.iter().map(|&v| mu * eta / (v + eta)).collect();
-        let first = (solved + reweight) * steps;
         let wants = |k: usize| params.logs_after(first + k);
         solver.solve(&problem, &mut sigma, &Toward { depths: &target, l1: &l1 }, steps, &wants, &mut |k, sigma| {
             record(first + k, &problem.evaluate(sigma))

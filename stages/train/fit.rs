@@ -131,13 +131,23 @@ impl TrainParams {
             ("lr", self.lr),
             ("lr_decay_ratio", self.lr_decay_ratio),
             ("dense_tv_epsilon", self.dense_tv_epsilon),
+            ("dense_tv_sparsity_eta", self.dense_tv_sparsity_eta),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 anyhow::bail!("[train] {key} must be positive (got {v})");
             }
         }
-        if !(self.dense_tv_lambda.is_finite() && self.dense_tv_lambda >= 0.0) {
-            anyhow::bail!("[train] dense_tv_lambda must be 0 or more (got {})", self.dense_tv_lambda);
+        for (key, v) in [("dense_tv_lambda", self.dense_tv_lambda), ("dense_tv_sparsity", self.dense_tv_sparsity)] {
+            if !(v.is_finite() && v >= 0.0) {
+                anyhow::bail!("[train] {key} must be 0 or more (got {v})");
+            }
+        }
+        if self.dense_tv_sparsity > 0.0 && self.dense_tv_reweight_steps == 0 {
+            anyhow::bail!(
+                "[train] dense_tv_sparsity = {} does nothing without dense_tv_reweight_steps ≥ 1 (the solves that \
+                 add it); set both, or leave dense_tv_sparsity at 0",
+                self.dense_tv_sparsity
+            );
         }
         Ok(())
     }
