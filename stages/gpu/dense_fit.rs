@@ -3,7 +3,8 @@
 //! differences live on the GPU for a whole solve. Per step the host writes the momentum and
 //! submits project → back-project → TV direction → step; σ comes back only at logged steps
 //! and at the end of a solve. Everything else — building `A`, the step `1/L`, Bregman's
-//! targets, the reweighted L1's weights and every log row — is `train::dense_tv`'s own, in f64 on the host.
+//! targets, the reweighted L1's weights and every log row — is `train::dense_tv`'s own, in
+//! f64 on the host.
 
 use super::buffers;
 use super::csr_times::{CsrTimes, DeviceCsr};
@@ -56,9 +57,8 @@ pub struct DeviceFista {
     target: wgpu::Buffer,
     ahead: wgpu::Buffer,
     sigma: wgpu::Buffer,
-    /// The reweighted L1's per-node weights (zeros until a solve has some).
+    /// The reweighted L1's per-node weights (zeros in a solve without one).
     l1: wgpu::Buffer,
-    l1_set: bool,
     step_uniforms: wgpu::Buffer,
     step_values: fista_step::Uniforms,
     /// Project, back-project, TV direction, step.
@@ -107,7 +107,6 @@ impl DeviceFista {
             ahead,
             sigma,
             l1,
-            l1_set: false,
             step_uniforms,
             step_values,
             passes: [project, back_project, tv, step],
@@ -149,13 +148,10 @@ impl FistaSolver for DeviceFista {
         checkpoint: &mut dyn FnMut(usize, &[f64]),
     ) -> anyhow::Result<()> {
         let Toward { depths: target, l1 } = *toward;
-        // The L1's weights, or zeros (a solve without one after a solve with one).
-        if !l1.is_empty() || self.l1_set {
-            let weights: Vec<f32> =
-                if l1.is_empty() { vec![0.0; self.nodes] } else { l1.iter().map(|&w| w as f32).collect() };
-            self.gpu.queue.write_buffer(&self.l1, 0, bytemuck::cast_slice(&weights));
-            self.l1_set = !l1.is_empty();
-        }
+        // The L1's weights, or zeros: one upload a solve, small beside its steps.
+        let weights: Vec<f32> =
+            if l1.is_empty() { vec![0.0; self.nodes] } else { l1.iter().map(|&w| w as f32).collect() };
+        self.gpu.queue.write_buffer(&self.l1, 0, bytemuck::cast_slice(&weights));
         let start: Vec<f32> = sigma.iter().map(|&v| v as f32).collect();
         let target: Vec<f32> = target.iter().map(|&v| v as f32).collect();
         let queue = &self.gpu.queue;

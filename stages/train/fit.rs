@@ -81,7 +81,8 @@ pub struct TrainParams {
 }
 
 /// η of the reweighted L1, in σ: about the lung parenchyma's level (−850 HU in the default
-/// window), so faint streaks weigh about half again as much as the parenchyma.
+/// window). The weights η/(σ + η) then run from 1 where σ is 0 through 1/2 at the parenchyma
+/// to about 1/8 at soft tissue (σ ≈ 0.7).
 pub const DEFAULT_SPARSITY_ETA: f64 = 0.1;
 
 fn is_default_sparsity_eta(eta: &f64) -> bool {
