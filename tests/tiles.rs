@@ -95,6 +95,10 @@ fn each_box_is_its_own_chain_and_select_keeps_the_best_scoring_box_per_rule() {
     let row: Vec<&str> = csv.lines().nth(1).unwrap().split(',').collect();
     let reported: f64 = row.last().unwrap().parse().unwrap();
     assert!((reported - box_seconds).abs() < 1e-3, "{reported} vs {box_seconds}");
+    // The target's readers rated it 4 of 5 on average (ingest's ground truth): a solid nodule.
+    let summary = read_json(&dir.path().join("out/summary.json"));
+    let n = |group: &str| summary["groups"][group]["n"].as_u64();
+    assert_eq!((n("solid"), n("subsolid"), n("ge10mm_solid")), (Some(1), Some(0), Some(1)));
 
     // A second run serves every box from the cache; a select edit reruns select alone.
     let again = run(dir.path());

@@ -1,7 +1,8 @@
 //! `metrics` (cohort): every patient's volume and localization against the consensus, and the
 //! cohort statistics (SPEC §3 metrics).
 //!
-//! Inputs, per patient: `select/result.json` and `train/train_log.csv`. Patients without a
+//! Inputs, per patient: `select/result.json`, `train/train_log.csv` and the target's texture
+//! rating from `ingest/ground_truth.json` (for the solid / subsolid groups). Patients without a
 //! ground-truth target are listed but not scored; patients that failed upstream are reported,
 //! excluded and counted. Outputs: `results.csv` (SPEC §4 columns, in order) and `summary.json`
 //! (see [`summary`]), and `report.html` with `scatter.svg` and `bland_altman.svg` (see
@@ -9,6 +10,7 @@
 
 use crate::engine::{Context, Output, Stage};
 use crate::formats::model;
+use crate::stage::ingest::truth::GroundTruth;
 use crate::stage::select::SelectResult;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
@@ -19,7 +21,7 @@ pub mod summary;
 
 pub use rows::{PatientRow, SizeClass};
 
-pub const VERSION: u32 = 8;
+pub const VERSION: u32 = 9;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -48,7 +50,7 @@ impl Stage for Metrics {
         VERSION
     }
     fn inputs(&self) -> &'static [&'static str] {
-        &["drr", "train", "select"]
+        &["ingest", "drr", "train", "select"]
     }
     fn is_cohort(&self) -> bool {
         true
@@ -59,7 +61,8 @@ impl Stage for Metrics {
     fn reads(&self, stage: &str, output: &str) -> bool {
         matches!(
             (stage, output),
-            ("select", "result.json" | "nodule.png")
+            ("ingest", "ground_truth.json")
+                | ("select", "result.json" | "nodule.png")
                 | ("train", "train_log.csv" | "model.safetensors")
                 | ("drr", "drr_coronal.png")
         )
@@ -72,6 +75,10 @@ impl Stage for Metrics {
         for patient in ctx.cohort_patients() {
             let result: SelectResult = serde_json::from_slice(&ctx.read_patient(patient, "select", "result.json")?)
                 .with_context(|| format!("{patient}: select/result.json"))?;
+            let truth: GroundTruth =
+                serde_json::from_slice(&ctx.read_patient(patient, "ingest", "ground_truth.json")?)
+                    .with_context(|| format!("{patient}: ingest/ground_truth.json"))?;
+            let texture_mean = truth.target.and_then(|t| truth.nodules.get(t)).map(|n| n.texture_mean);
             // A tiled patient trained one field per box: its time is theirs together.
             let mut seconds = 0.0;
             for r in 0..ctx.patient_replica_count(patient) {
@@ -108,7 +115,7 @@ impl Stage for Metrics {
                     format!("{} boxes a patient, ranked by response × depth", result.tiles.len()),
                 ));
             }
-            match PatientRow::new(&result, seconds) {
+            match PatientRow::new(&result, texture_mean, seconds) {
                 Some(row) => {
                     rows.push(row);
                     thumbs.push(report::Thumbnails {

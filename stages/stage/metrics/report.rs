@@ -264,7 +264,7 @@ fn patient_row(h: &mut String, r: &PatientRow, t: &Thumbnails) {
         h,
         "<tr><td class=l>{}</td><td>{}</td><td>{:.0}</td><td>{:.1}</td><td>{}</td><td>{}</td><td>{loc}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{}</td></tr>",
         escape(&r.patient),
-        r.size_class.name(),
+        r.texture.map_or(r.size_class.name().to_string(), |t| format!("{}, {}", r.size_class.name(), t.name())),
         r.gt_volume_mm3,
         r.gt_diameter_mm,
         num(o.map(|m| m.volume_mm3), 0),

@@ -34,6 +34,39 @@ impl SizeClass {
     }
 }
 
+/// How solid the nodule is, by its readers' mean LIDC texture rating (1 ground glass … 5 solid):
+/// `solid` from [`Texture::SOLID_RATING`] up (ratings 4 and 5, soft tissue: the phantom draws
+/// them at −50 and +30 HU), `subsolid` below (part-solid 3, non-solid 1 and 2: −250 to −650 HU).
+/// Fleischner's split: a subsolid nodule stands far less above the lung than a solid one, and
+/// radiographs miss it most. Reported beside the size classes, never used by a rule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Texture {
+    Solid,
+    Subsolid,
+}
+
+impl Texture {
+    /// The mean rating from which a nodule counts as solid.
+    pub const SOLID_RATING: f64 = 3.5;
+
+    /// The class of a mean rating; `None` where there is none (no rated read).
+    pub fn of(texture_mean: f64) -> Option<Texture> {
+        texture_mean.is_finite().then_some(if texture_mean >= Texture::SOLID_RATING {
+            Texture::Solid
+        } else {
+            Texture::Subsolid
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Texture::Solid => "solid",
+            Texture::Subsolid => "subsolid",
+        }
+    }
+}
+
 /// A selection's volume and localization, as the table reports it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Measured {
@@ -52,6 +85,8 @@ pub struct Measured {
 pub struct PatientRow {
     pub patient: String,
     pub size_class: SizeClass,
+    /// The target's texture class; `None` where its readers gave no rating.
+    pub texture: Option<Texture>,
     pub gt_volume_mm3: f64,
     pub gt_diameter_mm: f64,
     /// The primary (guided by default) selection; `None` when no candidate survived.
@@ -91,8 +126,9 @@ pub fn reader_ape_pct(reader_volumes_mm3: &[f64], gt: f64) -> Option<f64> {
 }
 
 impl PatientRow {
-    /// The row of `result`, or `None` when the patient has no ground-truth target.
-    pub fn new(result: &SelectResult, train_seconds: f64) -> Option<PatientRow> {
+    /// The row of `result`, or `None` when the patient has no ground-truth target. `texture_mean`
+    /// is the target's mean texture rating (`ground_truth.json`).
+    pub fn new(result: &SelectResult, texture_mean: Option<f64>, train_seconds: f64) -> Option<PatientRow> {
         let (gt, d) = (result.gt_volume_mm3?, result.annotated_diameter_mm?);
         let measured = |s: &Selection| {
             let l = s.localization.expect("a patient with a target has localization");
@@ -111,6 +147,7 @@ impl PatientRow {
         Some(PatientRow {
             patient: result.patient.clone(),
             size_class: SizeClass::of(d),
+            texture: texture_mean.and_then(Texture::of),
             gt_volume_mm3: gt,
             gt_diameter_mm: d,
             ours: primary.map(measured),
@@ -194,6 +231,15 @@ mod tests {
         assert_eq!(SizeClass::of(10.0), SizeClass::Medium);
         assert_eq!(SizeClass::of(20.0), SizeClass::Medium);
         assert_eq!(SizeClass::of(20.01), SizeClass::Large);
+    }
+
+    #[test]
+    fn ratings_4_and_5_are_solid_3_and_below_subsolid() {
+        assert_eq!(Texture::of(5.0), Some(Texture::Solid));
+        assert_eq!(Texture::of(3.5), Some(Texture::Solid), "readers split between 3 and 4");
+        assert_eq!(Texture::of(3.25), Some(Texture::Subsolid));
+        assert_eq!(Texture::of(1.5), Some(Texture::Subsolid));
+        assert_eq!(Texture::of(f64::NAN), None, "no rated read");
     }
 
     #[test]

@@ -4,7 +4,7 @@
 //! statistic is given over all scored patients and again over hits only, so no volume error
 //! appears without the hit rate it stands on.
 
-use super::rows::{CentreOnNodule, Measured, PatientRow, SizeClass};
+use super::rows::{CentreOnNodule, Measured, PatientRow, SizeClass, Texture};
 use super::Params;
 use crate::kernels::statistics::{self, BlandAltman, StatisticsError, Wilcoxon};
 use crate::kernels::stats;
@@ -166,12 +166,18 @@ const CONFIDENCE: f64 = 0.95;
 
 /// The summary of `rows`.
 pub fn summarize(rows: &[PatientRow], failed: &[String], unscored: &[String], params: &Params) -> Summary {
-    let subsets: [Subset; 5] = [
+    let subsets: [Subset; 9] = [
         ("all", |_| true),
-        ("ge10mm", |r| r.gt_diameter_mm >= 10.0),
+        ("ge10mm", ge10mm),
         ("small", |r| r.size_class == SizeClass::Small),
         ("medium", |r| r.size_class == SizeClass::Medium),
         ("large", |r| r.size_class == SizeClass::Large),
+        // By texture (beside the SPEC's groups): how much of a miss rate is the subsolid
+        // nodules', which stand barely above the lung.
+        ("solid", solid),
+        ("subsolid", subsolid),
+        ("ge10mm_solid", |r| ge10mm(r) && solid(r)),
+        ("ge10mm_subsolid", |r| ge10mm(r) && subsolid(r)),
     ];
     let groups = subsets
         .into_iter()
@@ -181,6 +187,18 @@ pub fn summarize(rows: &[PatientRow], failed: &[String], unscored: &[String], pa
         })
         .collect();
     Summary { scored: rows.len(), failed: failed.to_vec(), unscored: unscored.to_vec(), groups, paper: PAPER }
+}
+
+fn ge10mm(r: &PatientRow) -> bool {
+    r.gt_diameter_mm >= 10.0
+}
+
+fn solid(r: &PatientRow) -> bool {
+    r.texture == Some(Texture::Solid)
+}
+
+fn subsolid(r: &PatientRow) -> bool {
+    r.texture == Some(Texture::Subsolid)
 }
 
 fn ours(r: &PatientRow) -> Option<&Measured> {
@@ -349,6 +367,8 @@ mod tests {
         PatientRow {
             patient: patient.into(),
             size_class: SizeClass::of(d),
+            // B, the miss, is ground glass.
+            texture: Some(if patient == "B" { Texture::Subsolid } else { Texture::Solid }),
             gt_volume_mm3: gt,
             gt_diameter_mm: d,
             ours: Some(m),
@@ -400,6 +420,10 @@ mod tests {
         // One radiologist against the consensus: 20 % for every patient here.
         assert_eq!(all.readers.n, 3);
         assert!((all.readers.median_pct.value().unwrap().value - 20.0).abs() < 1e-9);
+        // By texture: the two solid nodules hit, the subsolid B missed; ≥ 10 mm splits A from B.
+        assert_eq!((s.groups["solid"].n, s.groups["solid"].localization.hit_rate_ours), (2, Some(1.0)));
+        assert_eq!((s.groups["subsolid"].n, s.groups["subsolid"].localization.hit_rate_ours), (1, Some(0.0)));
+        assert_eq!((s.groups["ge10mm_solid"].n, s.groups["ge10mm_subsolid"].n), (1, 1));
         // An empty class is reported, not dropped.
         assert_eq!(s.groups["large"].n, 0);
         assert_eq!(s.groups["large"].localization.hit_rate_ours, None);
