@@ -75,10 +75,10 @@ def main():
             patient_dir = os.path.join(out, patient)
             if not os.path.exists(os.path.join(patient_dir, "result.json")):
                 continue
-            kind = stratum(patient_dir)
-            if kind is None or kind[1] < args.min_diameter_mm:
+            found = stratum(patient_dir)
+            if found is None or found[1] < args.min_diameter_mm:
                 continue
-            table[kind[0]].append((patient, *hits(patient_dir)))
+            table[found[0]].append((patient, *hits(patient_dir)))
         print(f"{out} (targets ≥ {args.min_diameter_mm:g} mm)")
         for s in STRATA:
             rows = table[s]
