@@ -99,6 +99,10 @@ fn each_box_is_its_own_chain_and_select_keeps_the_best_scoring_box_per_rule() {
     let summary = read_json(&dir.path().join("out/summary.json"));
     let n = |group: &str| summary["groups"][group]["n"].as_u64();
     assert_eq!((n("solid"), n("subsolid"), n("ge10mm_solid")), (Some(1), Some(0), Some(1)));
+    // The lung encloses it (ingest's target_site.json): none of it is outside the lung field.
+    let site = read_json(&patient.join("target_site.json"));
+    assert_eq!((site["outside_lung_fraction"].as_f64(), site["attached"].as_bool()), (Some(0.0), Some(false)));
+    assert_eq!((n("ge10mm_solid_enclosed"), n("ge10mm_solid_attached")), (Some(1), Some(0)));
 
     // A second run serves every box from the cache; a select edit reruns select alone.
     let again = run(dir.path());

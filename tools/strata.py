@@ -1,46 +1,36 @@
 #!/usr/bin/env python3
-"""Hit rates by kind of nodule: solid and free in the lung, solid and touching its wall, subsolid.
+"""Hit rates by kind of nodule: solid and enclosed by the lung, solid and against its wall, subsolid.
 
     tools/strata.py out out-default-seed2 ...      # run out dirs: <patient>/result.json,
-                                                   # ground_truth.json, gt_mask.mhd, ct_unit.mhd
+                                                   # ground_truth.json, target_site.json
 
 A miss rate says little until it says which nodules it misses. For every patient whose target is
 at least `--min-diameter-mm` (10 by default) this sorts the target into one of three strata, from
-the annotations and the CT only (never from a result):
+what ingest read in the annotations and the CT (never from a result), as `summary.json`'s groups
+`ge10mm_solid_enclosed`, `ge10mm_solid_attached` and `ge10mm_subsolid` split them:
 
 - **subsolid**: its readers' mean texture rating is below 3.5 (`ground_truth.json`; LIDC's 1
-  ground glass … 5 solid; the phantom draws ratings 1–3 at −650 to −250 HU), as `summary.json`'s
-  `solid` / `subsolid` groups split them;
-- **attached**: solid, and touching the lung's wall: some node of its consensus mask
-  (`gt_mask.mhd` on the density lattice) lies outside the lung field of the true CT
-  (`ct_unit.mhd` on the same lattice, the band and hole filling of `tools/blob_ceiling.py`), so
-  the field does not enclose it (juxtapleural or paravertebral);
+  ground glass … 5 solid; the phantom draws ratings 1–3 at −650 to −250 HU);
+- **attached**: solid, and against the lung's wall (`target_site.json`: some of its consensus
+  lies outside the CT's lung field, juxtapleural or on the mediastinum or the spine);
 - **free**: solid, enclosed by the lung.
 
 It prints, per out dir and stratum, the guided and the blind rule's hits (`result.json`'s
-`localization.hit`) and which patients each missed. Needs numpy and scipy.
+`localization.hit`) and which patients each missed: the names behind the summary's rates.
 """
 import argparse
 import json
 import os
 
-import numpy as np
-
-from blob_ceiling import node_mm, true_ct_on_lattice, true_lung_field
-from fit_vs_truth import mask_on_lattice
-from metaimage import read_mhd
-
 SOLID_RATING = 3.5  # summary.json's `solid`: the readers' mean texture rating from 3.5 up
 STRATA = ("free", "attached", "subsolid")
 
 
-def kind(texture_mean, ct, on_nodule):
-    """The stratum of a target rated `texture_mean` whose nodes `on_nodule` lie in the true CT
-    `ct` (v in [0, 1], both on the density lattice)."""
+def kind(texture_mean, attached):
+    """The stratum of a target rated `texture_mean` that lies against the lung's wall or not."""
     if texture_mean < SOLID_RATING:
         return "subsolid"
-    outside_lungs = ~true_lung_field(ct.astype(np.float32))
-    return "attached" if (on_nodule & outside_lungs).any() else "free"
+    return "attached" if attached else "free"
 
 
 def stratum(patient_dir):
@@ -48,13 +38,13 @@ def stratum(patient_dir):
     truth = json.load(open(os.path.join(patient_dir, "ground_truth.json")))
     if truth.get("target") is None:
         return None
+    site_path = os.path.join(patient_dir, "target_site.json")
+    if not os.path.exists(site_path):
+        raise SystemExit(f"{site_path} is missing: it comes from ingest version 3 on; run the "
+                         "pipeline again (only ingest and metrics recompute)")
+    site = json.load(open(site_path))
     nodule = truth["nodules"][truth["target"]]
-    density, spacing, origin = read_mhd(os.path.join(patient_dir, "density.mhd"))
-    nodes = node_mm(density.shape, spacing, origin)
-    ct = true_ct_on_lattice(patient_dir, nodes, spacing)
-    mask, m_spacing, m_origin = read_mhd(os.path.join(patient_dir, "gt_mask.mhd"))
-    on_nodule = mask_on_lattice(mask, m_spacing, m_origin, nodes)
-    return kind(nodule["texture_mean"], ct, on_nodule), nodule["annotated_diameter_mm"]
+    return kind(nodule["texture_mean"], site["attached"]), nodule["annotated_diameter_mm"]
 
 
 def hits(patient_dir):

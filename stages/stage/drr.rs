@@ -13,7 +13,7 @@ use crate::formats::exr_image::{self, DrrImage};
 use crate::formats::png;
 use crate::geometry::{fit_focal_px, orbit, Aabb, Camera, SceneFrame, View};
 use crate::gpu::{self, Backend};
-use crate::kernels::lung_field::lung_field_centroid_mm;
+use crate::kernels::lung_field::{lung_field_centroid_mm, LUNG_THRESHOLD_HU};
 use crate::kernels::raymarch::{render, VolumeField};
 use crate::stage::ingest::truth::GroundTruth;
 use crate::volume::Volume;
@@ -336,9 +336,6 @@ impl Drr {
         }
     }
 }
-
-/// Lung field threshold for `roi_center = "lungs"`: between parenchyma (≈ −850) and soft tissue.
-pub const LUNG_THRESHOLD_HU: i16 = -400;
 
 /// The whole stage as a pure function: cameras and the three images (coronal, sagittal, axial).
 pub fn render_views(

@@ -3,7 +3,8 @@
 `aret-pipe phantom` writes a patient's synthetic CT series; pydicom must read it back as a CT
 series with the patient's real geometry and UIDs, and to the same HU our own ingest reads from
 the series the pipeline generates into its cache (same seed, same bytes). The ground truth the
-pipeline then computes from the XML must be pylidc's (the scan.json `reference` block).
+pipeline then computes from the XML must be pylidc's (the scan.json `reference` block), and
+where ingest says the target lies (`target_site.json`) must be scipy's reading of the same CT.
 """
 import json
 import os
@@ -14,6 +15,7 @@ import numpy as np
 import pydicom
 import pytest
 import SimpleITK as sitk
+from scipy import ndimage as ndi
 
 REPO = Path(__file__).resolve().parents[2]
 COHORT = REPO / "tools" / "cohorts" / "paper19"
@@ -95,3 +97,28 @@ def test_previews_are_published(generated):
     for name in ("phantom_axial.png", "phantom_coronal.png", "phantom_projection.png"):
         data = (generated / "out" / PATIENT / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def filled_lung_field(hu):
+    """Per axial slice, air below -400 HU not 4-connected to the border; holes then filled in every
+    slice across z, y and x (numpy axes 0, 1, 2)."""
+    low = hu < -400
+    field = np.zeros_like(low)
+    for k, slice_ in enumerate(low):
+        labels, _ = ndi.label(slice_)
+        border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        field[k] = slice_ & ~np.isin(labels, border)
+    for axis in range(3):
+        field = np.moveaxis(np.stack([ndi.binary_fill_holes(s) for s in np.moveaxis(field, axis, 0)]), 0, axis)
+    return field
+
+
+def test_target_site_is_scipys(generated):
+    """LIDC-IDRI-0001's nodule lies against the spine: part of it is outside the lung field."""
+    site = json.loads((generated / "out" / PATIENT / "target_site.json").read_text())
+    hu = sitk.GetArrayFromImage(sitk.ReadImage(str(generated / "out" / PATIENT / "ct_hu.mhd")))
+    mask = sitk.GetArrayFromImage(sitk.ReadImage(str(generated / "out" / PATIENT / "gt_mask.mhd"))) > 0
+    outside = 1.0 - filled_lung_field(hu)[mask].mean()
+    assert site["lung_threshold_hu"] == -400
+    assert site["outside_lung_fraction"] == pytest.approx(outside, abs=1e-12)
+    assert 0.1 < outside < 0.5 and site["attached"] is True

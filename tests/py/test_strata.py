@@ -1,34 +1,53 @@
-"""tools/strata.py sorts a target into solid and free, solid and touching the lung's wall, or
-subsolid, from its texture rating and the true CT alone."""
+"""tools/strata.py sorts each target into solid and enclosed, solid and against the lung's wall,
+or subsolid, from ingest's ground truth and target site, and names the patients each rule missed."""
+import json
 import sys
 from pathlib import Path
 
-import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tools"))  # the tools import their shared metaimage and blob_ceiling
+sys.path.insert(0, str(ROOT / "tools"))
 import strata  # noqa: E402
 
-SHAPE = (40, 40, 40)
+
+def test_the_rating_decides_subsolid_then_the_site_attached():
+    assert strata.kind(4.5, False) == "free"
+    assert strata.kind(4.5, True) == "attached"
+    assert strata.kind(1.5, True) == "subsolid", "a ground-glass nodule is subsolid wherever it lies"
+    assert strata.kind(3.25, False) == "subsolid"
+    assert strata.kind(3.5, False) == "free", "3.5 is solid, as summary.json splits"
 
 
-def chest_with_nodule(centre):
-    """Soft tissue (0.7) around one lung (0.1, nodes 8–31 on each axis), with a solid ball of
-    radius 4 nodes at `centre` (z, y, x)."""
-    ct = np.full(SHAPE, 0.7)
-    ct[8:32, 8:32, 8:32] = 0.1
-    z, y, x = np.indices(SHAPE)
-    nodule = (z - centre[0]) ** 2 + (y - centre[1]) ** 2 + (x - centre[2]) ** 2 <= 16
-    ct[nodule] = 0.7
-    return ct, nodule
+def patient(out, name, diameter_mm, texture, attached, guided_hit, blind_hit):
+    d = out / name
+    d.mkdir(parents=True)
+    nodule = {"annotated_diameter_mm": diameter_mm, "texture_mean": texture}
+    (d / "ground_truth.json").write_text(json.dumps({"target": 0, "nodules": [nodule]}))
+    (d / "target_site.json").write_text(json.dumps({"attached": attached}))
+    rule = lambda hit: {"localization": {"hit": hit}}
+    result = {"guided": rule(guided_hit), "blind_persistent": rule(blind_hit), "blind_rule": "blind_persistent"}
+    (d / "result.json").write_text(json.dumps(result))
 
 
-def test_a_nodule_the_lung_encloses_is_free_and_one_against_its_wall_is_attached():
-    assert strata.kind(4.5, *chest_with_nodule((20, 20, 20))) == "free"
-    assert strata.kind(4.5, *chest_with_nodule((20, 20, 10))) == "attached"
+def test_the_table_counts_hits_per_stratum_and_names_the_misses(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    patient(out, "LIDC-IDRI-0001", 32.8, 4.8, True, True, False)
+    patient(out, "LIDC-IDRI-0002", 30.8, 1.5, False, False, False)
+    patient(out, "LIDC-IDRI-0003", 31.0, 4.0, False, True, True)
+    patient(out, "LIDC-IDRI-0004", 6.8, 5.0, False, False, False)  # below 10 mm: left out
+    monkeypatch.setattr(sys, "argv", ["strata.py", str(out)])
+    strata.main()
+    lines = capsys.readouterr().out.splitlines()
+    assert "free      n= 1  guided  1  blind  1   guided misses: -; blind misses: -" in lines[1]
+    assert "attached  n= 1  guided  1  blind  0   guided misses: -; blind misses: 0001" in lines[2]
+    assert "subsolid  n= 1  guided  0  blind  0   guided misses: 0002; blind misses: 0002" in lines[3]
 
 
-def test_a_ground_glass_rating_is_subsolid_wherever_the_nodule_lies():
-    assert strata.kind(1.5, *chest_with_nodule((20, 20, 20))) == "subsolid"
-    assert strata.kind(3.25, *chest_with_nodule((20, 20, 10))) == "subsolid"
-    assert strata.kind(3.5, *chest_with_nodule((20, 20, 20))) == "free", "3.5 is solid, as summary.json splits"
+def test_an_out_dir_from_before_the_site_says_to_rerun(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    patient(out, "LIDC-IDRI-0001", 32.8, 4.8, True, True, False)
+    (out / "LIDC-IDRI-0001" / "target_site.json").unlink()
+    monkeypatch.setattr(sys, "argv", ["strata.py", str(out)])
+    with pytest.raises(SystemExit, match="target_site.json is missing"):
+        strata.main()

@@ -3,9 +3,11 @@
 //! Input: the patient's files (any nesting; files that are not CT DICOM are skipped and listed),
 //! optionally with its LIDC XML. Outputs: `ct_hu.mhd` + `ct_hu.raw` (int16 HU, MetaImage with
 //! spacing, origin and direction), `ct_series.json` (geometry and provenance), and from the
-//! annotations `ground_truth.json` + `gt_mask.mhd`/`.raw` (see [`truth`]). No patient-identifying
+//! annotations `ground_truth.json` + `gt_mask.mhd`/`.raw` (see [`truth`]) and `target_site.json`,
+//! whether the target lies against the lung's wall (see [`site`]). No patient-identifying
 //! tag reaches any of them: the patient is named only by the ID the dataset gives it.
 
+pub mod site;
 pub mod truth;
 
 use crate::engine::{Context, Output, Stage};
@@ -14,7 +16,8 @@ use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
 /// 2: `ground_truth.json` gives each annotation's own volume.
-pub const VERSION: u32 = 2;
+/// 3: `target_site.json`: whether the target lies against the lung's wall.
+pub const VERSION: u32 = 3;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -100,12 +103,14 @@ impl Stage for Ingest {
         };
         let annotations = truth::find_annotations(&files)?;
         let (ground_truth, gt_mask) = truth::ground_truth(ctx.patient(), &series, annotations, self.params.clevel)?;
+        let site = site::target_site(&series.hu, gt_mask.as_ref())?;
         let (header, raw) = mhd::encode(&series.hu, "ct_hu.raw");
         let mut outputs = vec![
             Output::new("ct_hu.mhd", header),
             Output::new("ct_hu.raw", raw),
             Output::new("ct_series.json", serde_json::to_vec_pretty(&info)?),
             Output::new("ground_truth.json", serde_json::to_vec_pretty(&ground_truth)?),
+            Output::new("target_site.json", serde_json::to_vec_pretty(&site)?),
         ];
         if let Some(mask) = gt_mask {
             let (header, raw) = mhd::encode(&mask, "gt_mask.raw");

@@ -2,7 +2,8 @@
 //! cohort statistics (SPEC §3 metrics).
 //!
 //! Inputs, per patient: `select/result.json`, `train/train_log.csv` and the target's texture
-//! rating from `ingest/ground_truth.json` (for the solid / subsolid groups). Patients without a
+//! rating from `ingest/ground_truth.json` (for the solid / subsolid groups) and its site from
+//! `ingest/target_site.json` (enclosed by the lung or attached to its wall). Patients without a
 //! ground-truth target are listed but not scored; patients that failed upstream are reported,
 //! excluded and counted. Outputs: `results.csv` (SPEC §4 columns, in order) and `summary.json`
 //! (see [`summary`]), and `report.html` with `scatter.svg` and `bland_altman.svg` (see
@@ -10,6 +11,7 @@
 
 use crate::engine::{Context, Output, Stage};
 use crate::formats::model;
+use crate::stage::ingest::site::TargetSite;
 use crate::stage::ingest::truth::GroundTruth;
 use crate::stage::select::SelectResult;
 use anyhow::Context as _;
@@ -19,9 +21,10 @@ pub mod report;
 pub mod rows;
 pub mod summary;
 
-pub use rows::{PatientRow, SizeClass};
+pub use rows::{PatientRow, Site, SizeClass};
 
-pub const VERSION: u32 = 9;
+/// 10: the solid nodules' groups by site (`ingest/target_site.json`).
+pub const VERSION: u32 = 10;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -61,7 +64,7 @@ impl Stage for Metrics {
     fn reads(&self, stage: &str, output: &str) -> bool {
         matches!(
             (stage, output),
-            ("ingest", "ground_truth.json")
+            ("ingest", "ground_truth.json" | "target_site.json")
                 | ("select", "result.json" | "nodule.png")
                 | ("train", "train_log.csv" | "model.safetensors")
                 | ("drr", "drr_coronal.png")
@@ -79,6 +82,8 @@ impl Stage for Metrics {
                 serde_json::from_slice(&ctx.read_patient(patient, "ingest", "ground_truth.json")?)
                     .with_context(|| format!("{patient}: ingest/ground_truth.json"))?;
             let texture_mean = truth.target.and_then(|t| truth.nodules.get(t)).map(|n| n.texture_mean);
+            let site: TargetSite = serde_json::from_slice(&ctx.read_patient(patient, "ingest", "target_site.json")?)
+                .with_context(|| format!("{patient}: ingest/target_site.json"))?;
             // A tiled patient trained one field per box: its time is theirs together.
             let mut seconds = 0.0;
             for r in 0..ctx.patient_replica_count(patient) {
@@ -115,7 +120,7 @@ impl Stage for Metrics {
                     format!("{} boxes a patient, ranked by response × depth", result.tiles.len()),
                 ));
             }
-            match PatientRow::new(&result, texture_mean, seconds) {
+            match PatientRow::new(&result, texture_mean, site.attached.map(Site::of), seconds) {
                 Some(row) => {
                     rows.push(row);
                     thumbs.push(report::Thumbnails {

@@ -264,7 +264,11 @@ fn patient_row(h: &mut String, r: &PatientRow, t: &Thumbnails) {
         h,
         "<tr><td class=l>{}</td><td>{}</td><td>{:.0}</td><td>{:.1}</td><td>{}</td><td>{}</td><td>{loc}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{}</td></tr>",
         escape(&r.patient),
-        r.texture.map_or(r.size_class.name().to_string(), |t| format!("{}, {}", r.size_class.name(), t.name())),
+        [Some(r.size_class.name()), r.texture.map(|t| t.name()), r.site.map(|s| s.name())]
+            .into_iter()
+            .flatten()
+            .collect::<Vec<_>>()
+            .join(", "),
         r.gt_volume_mm3,
         r.gt_diameter_mm,
         num(o.map(|m| m.volume_mm3), 0),

@@ -67,6 +67,34 @@ impl Texture {
     }
 }
 
+/// Where the nodule lies: enclosed by the lung, or against its wall (some of its consensus
+/// outside the CT's filled lung field: `ingest/target_site.json`). Three views show a nodule
+/// fused with the chest wall or the mediastinum worst. Reported beside size and texture, never
+/// used by a rule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Site {
+    Enclosed,
+    Attached,
+}
+
+impl Site {
+    pub fn of(attached: bool) -> Site {
+        if attached {
+            Site::Attached
+        } else {
+            Site::Enclosed
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Site::Enclosed => "enclosed",
+            Site::Attached => "attached",
+        }
+    }
+}
+
 /// A selection's volume and localization, as the table reports it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Measured {
@@ -87,6 +115,8 @@ pub struct PatientRow {
     pub size_class: SizeClass,
     /// The target's texture class; `None` where its readers gave no rating.
     pub texture: Option<Texture>,
+    /// Whether the target lies against the lung's wall; `None` where ingest could not tell.
+    pub site: Option<Site>,
     pub gt_volume_mm3: f64,
     pub gt_diameter_mm: f64,
     /// The primary (guided by default) selection; `None` when no candidate survived.
@@ -127,8 +157,14 @@ pub fn reader_ape_pct(reader_volumes_mm3: &[f64], gt: f64) -> Option<f64> {
 
 impl PatientRow {
     /// The row of `result`, or `None` when the patient has no ground-truth target. `texture_mean`
-    /// is the target's mean texture rating (`ground_truth.json`).
-    pub fn new(result: &SelectResult, texture_mean: Option<f64>, train_seconds: f64) -> Option<PatientRow> {
+    /// is the target's mean texture rating (`ground_truth.json`), `site` where it lies
+    /// (`target_site.json`).
+    pub fn new(
+        result: &SelectResult,
+        texture_mean: Option<f64>,
+        site: Option<Site>,
+        train_seconds: f64,
+    ) -> Option<PatientRow> {
         let (gt, d) = (result.gt_volume_mm3?, result.annotated_diameter_mm?);
         let measured = |s: &Selection| {
             let l = s.localization.expect("a patient with a target has localization");
@@ -148,6 +184,7 @@ impl PatientRow {
             patient: result.patient.clone(),
             size_class: SizeClass::of(d),
             texture: texture_mean.and_then(Texture::of),
+            site,
             gt_volume_mm3: gt,
             gt_diameter_mm: d,
             ours: primary.map(measured),

@@ -4,7 +4,7 @@
 //! statistic is given over all scored patients and again over hits only, so no volume error
 //! appears without the hit rate it stands on.
 
-use super::rows::{CentreOnNodule, Measured, PatientRow, SizeClass, Texture};
+use super::rows::{CentreOnNodule, Measured, PatientRow, Site, SizeClass, Texture};
 use super::Params;
 use crate::kernels::statistics::{self, BlandAltman, StatisticsError, Wilcoxon};
 use crate::kernels::stats;
@@ -166,7 +166,7 @@ const CONFIDENCE: f64 = 0.95;
 
 /// The summary of `rows`.
 pub fn summarize(rows: &[PatientRow], failed: &[String], unscored: &[String], params: &Params) -> Summary {
-    let subsets: [Subset; 9] = [
+    let subsets: [Subset; 13] = [
         ("all", |_| true),
         ("ge10mm", ge10mm),
         ("small", |r| r.size_class == SizeClass::Small),
@@ -178,6 +178,11 @@ pub fn summarize(rows: &[PatientRow], failed: &[String], unscored: &[String], pa
         ("subsolid", subsolid),
         ("ge10mm_solid", |r| ge10mm(r) && solid(r)),
         ("ge10mm_subsolid", |r| ge10mm(r) && subsolid(r)),
+        // By site among the solid ones: enclosed by the lung, or fused with its wall.
+        ("solid_enclosed", |r| solid(r) && r.site == Some(Site::Enclosed)),
+        ("solid_attached", |r| solid(r) && r.site == Some(Site::Attached)),
+        ("ge10mm_solid_enclosed", |r| ge10mm(r) && solid(r) && r.site == Some(Site::Enclosed)),
+        ("ge10mm_solid_attached", |r| ge10mm(r) && solid(r) && r.site == Some(Site::Attached)),
     ];
     let groups = subsets
         .into_iter()
@@ -369,6 +374,8 @@ mod tests {
             size_class: SizeClass::of(d),
             // B, the miss, is ground glass.
             texture: Some(if patient == "B" { Texture::Subsolid } else { Texture::Solid }),
+            // C, the small one, lies against the lung's wall.
+            site: Some(if patient == "C" { Site::Attached } else { Site::Enclosed }),
             gt_volume_mm3: gt,
             gt_diameter_mm: d,
             ours: Some(m),
@@ -424,6 +431,9 @@ mod tests {
         assert_eq!((s.groups["solid"].n, s.groups["solid"].localization.hit_rate_ours), (2, Some(1.0)));
         assert_eq!((s.groups["subsolid"].n, s.groups["subsolid"].localization.hit_rate_ours), (1, Some(0.0)));
         assert_eq!((s.groups["ge10mm_solid"].n, s.groups["ge10mm_subsolid"].n), (1, 1));
+        // By site among the solid: A enclosed, C attached; the subsolid B is in neither.
+        assert_eq!((s.groups["solid_enclosed"].n, s.groups["solid_attached"].n), (1, 1));
+        assert_eq!((s.groups["ge10mm_solid_enclosed"].n, s.groups["ge10mm_solid_attached"].n), (1, 0));
         // An empty class is reported, not dropped.
         assert_eq!(s.groups["large"].n, 0);
         assert_eq!(s.groups["large"].localization.hit_rate_ours, None);
