@@ -179,10 +179,10 @@ pub fn summarize(rows: &[PatientRow], failed: &[String], unscored: &[String], pa
         ("ge10mm_solid", |r| ge10mm(r) && solid(r)),
         ("ge10mm_subsolid", |r| ge10mm(r) && subsolid(r)),
         // By site among the solid ones: enclosed by the lung, or fused with its wall.
-        ("solid_enclosed", |r| solid(r) && r.site == Some(Site::Enclosed)),
-        ("solid_attached", |r| solid(r) && r.site == Some(Site::Attached)),
-        ("ge10mm_solid_enclosed", |r| ge10mm(r) && solid(r) && r.site == Some(Site::Enclosed)),
-        ("ge10mm_solid_attached", |r| ge10mm(r) && solid(r) && r.site == Some(Site::Attached)),
+        ("solid_enclosed", |r| solid(r) && enclosed(r)),
+        ("solid_attached", |r| solid(r) && attached(r)),
+        ("ge10mm_solid_enclosed", |r| ge10mm(r) && solid(r) && enclosed(r)),
+        ("ge10mm_solid_attached", |r| ge10mm(r) && solid(r) && attached(r)),
     ];
     let groups = subsets
         .into_iter()
@@ -204,6 +204,14 @@ fn solid(r: &PatientRow) -> bool {
 
 fn subsolid(r: &PatientRow) -> bool {
     r.texture == Some(Texture::Subsolid)
+}
+
+fn enclosed(r: &PatientRow) -> bool {
+    r.site == Some(Site::Enclosed)
+}
+
+fn attached(r: &PatientRow) -> bool {
+    r.site == Some(Site::Attached)
 }
 
 fn ours(r: &PatientRow) -> Option<&Measured> {
