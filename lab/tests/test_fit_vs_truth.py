@@ -1,11 +1,12 @@
-"""tools/fit_vs_truth.py tells a fit that loses the nodule's contrast from one that makes decoys."""
+"""lab/scripts/fit_vs_truth.py tells a fit that loses the nodule's contrast from one that makes
+decoys."""
 import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tools"))  # the tools import their shared metaimage and blob_ceiling
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+sys.path.insert(0, str(SCRIPTS))  # the scripts import their shared metaimage and blob_ceiling
 import fit_vs_truth  # noqa: E402
 
 SPACING = np.array([1.5, 1.5, 1.5])

@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
 """Issue 8's experiment table: one row per configuration, re-run from the shared cache.
 
-    tools/experiments.py                 # run every configuration, then write docs/experiments.md
-    tools/experiments.py --only tv3d     # run the named rows only (the table keeps the others)
-    tools/experiments.py --no-run        # rebuild the table from the results already in out dirs
+    lab/scripts/experiments.py                 # run every configuration, then write lab/log.md
+    lab/scripts/experiments.py --only tv3d     # run the named rows only (the table keeps the others)
+    lab/scripts/experiments.py --no-run        # rebuild the table from the results already in out dirs
 
 A row whose out dir is not on this machine keeps its line from the table as it stands.
 
@@ -22,7 +22,7 @@ import sys
 import time
 import tomllib
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # (name, config, assistance level of the primary rule, assistance of the blind rule, what it is)
 ROWS = [
@@ -137,7 +137,7 @@ COLUMNS = 14
 UNAMBIGUOUS_COLUMN = 7
 # The phantom's nodule where a config does not name one (`[dataset.phantom] nodule_extent`).
 DEFAULT_EXTENT = "union"
-START, END = "<!-- table: written by tools/experiments.py -->", "<!-- end of table -->"
+START, END = "<!-- table: written by lab/scripts/experiments.py -->", "<!-- end of table -->"
 LEVELS = {
     "A": "location and diameter known",
     "B": "diameter known (the guided rule)",
@@ -172,7 +172,7 @@ def commit():
     document differs from it."""
     git = lambda *a: subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     head = git("rev-parse", "--short", "HEAD") or "unknown"
-    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":!docs/experiments.md")
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":!lab/log.md")
     return head + ("+changes" if changed else "")
 
 

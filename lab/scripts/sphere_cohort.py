@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """A calibration cohort: solid spheres of known size in the phantom's lungs, outside the paper's 19.
 
-    tools/sphere_cohort.py tools/cohorts/spheres16 --binary target/release/aret-pipe
+    lab/scripts/sphere_cohort.py tools/cohorts/spheres16 --binary target/release/aret-pipe
 
 Writes <patient>.scan.json + <patient>.xml per patient, the layout of tools/cohorts/paper19, so
 `[dataset] kind = "phantom"` reads it like the real cohort (presets/calibration_spheres.toml).

@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
 """Calibrates the half-maximum sizing on spheres of known size, outside the cohorts it is used on.
 
-    tools/calibrate_sizing.py                       # presets/calibration_spheres.toml, the ladder below
-    tools/calibrate_sizing.py --fractions 0.4 0.5   # other fractions
-    tools/calibrate_sizing.py --no-run              # re-read the out dirs already written
-    tools/calibrate_sizing.py --preset pipeline.toml --fractions 0.4   # measure a fraction on a cohort
+    lab/scripts/calibrate_sizing.py                       # presets/calibration_spheres.toml, the ladder below
+    lab/scripts/calibrate_sizing.py --fractions 0.4 0.5   # other fractions
+    lab/scripts/calibrate_sizing.py --no-run              # re-read the out dirs already written
+    lab/scripts/calibrate_sizing.py --preset pipeline.toml --fractions 0.4   # measure a fraction on a cohort
 
 Runs the calibration preset once per `[select] half_max_fraction` on the ladder (the phantoms,
 views and fits are cached after the first; each further fraction recomputes only select and
@@ -28,7 +28,7 @@ import sys
 import tempfile
 from preset_config import load_absolute, toml_text
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 LADDER = [round(0.25 + 0.025 * n, 3) for n in range(15)]  # 0.25 … 0.60
 
 

@@ -1,4 +1,5 @@
-"""tools/select_study.py writes each set's config: the preset's fits, the shipped select, the variant.
+"""lab/scripts/select_study.py writes each set's config: the preset's fits, the shipped select,
+the variant.
 
 A study compares select variants on fits other runs cached, so its configs must reach the
 same cache and cohort as the presets do and change nothing upstream of select.
@@ -9,10 +10,11 @@ import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tools"))  # the tools import their shared preset_config
+SCRIPTS = ROOT / "lab" / "scripts"
+sys.path.insert(0, str(SCRIPTS))  # the scripts import their shared preset_config
 import preset_config  # noqa: E402
 
-spec = importlib.util.spec_from_file_location("select_study", ROOT / "tools" / "select_study.py")
+spec = importlib.util.spec_from_file_location("select_study", SCRIPTS / "select_study.py")
 study = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(study)
 

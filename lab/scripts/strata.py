@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Hit rates by kind of nodule: solid and enclosed by the lung, solid and against its wall, subsolid.
 
-    tools/strata.py out out-default-seed2 ...      # run out dirs: <patient>/result.json,
-                                                   # ground_truth.json, target_site.json
+    lab/scripts/strata.py out out-default-seed2 ...      # run out dirs: <patient>/result.json,
+                                                         # ground_truth.json, target_site.json
 
 A miss rate says little until it says which nodules it misses. For every patient whose target is
 at least `--min-diameter-mm` (10 by default) this sorts the target into one of three strata, from

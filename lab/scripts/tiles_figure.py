@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Where the boxes of a tiled run lay, and which one each patient's blind rule kept.
 
-    tools/tiles_figure.py out-tiles LIDC-IDRI-0002 LIDC-IDRI-0006 -o docs/tiles.png
+    lab/scripts/tiles_figure.py out-tiles LIDC-IDRI-0002 LIDC-IDRI-0006 -o lab/figures/tiles.png
 
 For each patient of a `roi_center = "tiles"` run (`presets/tiles.toml`): the CT's coronal mean
 projection (`ct_hu.mhd`, −1000…400 HU), every box's x–z extent from its `tileNN/cameras.json`

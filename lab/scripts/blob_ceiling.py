@@ -2,8 +2,8 @@
 """How often the select stage's blob search finds the nodule, on the reconstruction and on the
 true CT (issue 8: which of the two limits localization).
 
-    tools/blob_ceiling.py out            # a run's out dir: <patient>/density.mhd, lung_field.mhd,
-                                         # ct_unit.mhd, gt_mask.mhd, result.json
+    lab/scripts/blob_ceiling.py out            # a run's out dir: <patient>/density.mhd, lung_field.mhd,
+                                               # ct_unit.mhd, gt_mask.mhd, result.json
 
 For every patient, the true CT (`ct_unit.mhd`, v in [0, 1]) is blurred to the density lattice's
 cells (a Gaussian of 0.4 cells) and sampled at its nodes: the best a 64³ reconstruction could

@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Where a fit loses the nodule, against the perfect field of the same patients (issue 8).
 
-    tools/fit_vs_truth.py out out-perfect-field      # a run's out dir, then the same patients'
-                                                     # run with [train] model = "truth"
+    lab/scripts/fit_vs_truth.py out out-perfect-field      # a run's out dir, then the same patients'
+                                                           # run with [train] model = "truth"
 
 The perfect field (`presets/perfect_field.toml`, docs/train.md "A perfect field") is the true CT
 on the fit's own lattice, in its units, so the two `density.mhd` compare node for node. For

@@ -1,13 +1,13 @@
-"""tools/strata.py sorts each target into solid and enclosed, solid and against the lung's wall,
-or subsolid, from ingest's ground truth and target site, and names the patients each rule missed."""
+"""lab/scripts/strata.py sorts each target into solid and enclosed, solid and against the lung's
+wall, or subsolid, from ingest's ground truth and target site, and names the patients each rule
+missed."""
 import json
 import sys
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tools"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import strata  # noqa: E402
 
 

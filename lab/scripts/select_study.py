@@ -1,21 +1,21 @@
 #!/usr/bin/env python3
 """One [select] variant on every set of fits the experiments cached: hits ≥ 10 mm per set.
 
-    tools/select_study.py line-0.5 'rival_ratio = 0.5'          # run it on the nine sets
-    tools/select_study.py line-0.5 'rival_ratio = 0.5' --sets consensus-1,spheres-2
-    tools/select_study.py shipped ''                             # the shipped select itself
-    tools/select_study.py line-0.5 'rival_ratio = 0.5' --no-run  # summarise what is on disk
+    lab/scripts/select_study.py line-0.5 'rival_ratio = 0.5'          # run it on the nine sets
+    lab/scripts/select_study.py line-0.5 'rival_ratio = 0.5' --sets consensus-1,spheres-2
+    lab/scripts/select_study.py shipped ''                             # the shipped select itself
+    lab/scripts/select_study.py line-0.5 'rival_ratio = 0.5' --no-run  # summarise what is on disk
 
 Each set is a preset's phantom, views and fit, sized by the shipped select (`pipeline.toml`'s
 [select]) with the variant's keys on top. Only select and metrics recompute: with every fit in
 cache/ the nine sets take about five minutes on two cores (a set whose fits are not cached
-trains first: 15–20 minutes). docs/experiments.md's select-only tables over "the nine sets"
+trains first: 15–20 minutes). lab/log.md's select-only tables over "the nine sets"
 were measured this way. Two more sets are held out (`--sets views128-consensus,views128-union`:
 fits to SPEC §3's 128² views, on which no rule was chosen): run them to check a rule the nine
 chose. Out dirs: out-study/NAME/SET/. Only the standard library is needed.
 
 With --perfect-field every set's fit is replaced by the true CT on the same lattice
-(`[train] model = "truth"`, a ceiling: docs/experiments.md, "A perfect field"): what the select
+(`[train] model = "truth"`, a ceiling: lab/log.md, "A perfect field"): what the select
 finds when the reconstruction is not the limit, in about 2 minutes a set (no training).
 """
 import argparse
@@ -28,7 +28,7 @@ import tomllib
 
 from preset_config import load_absolute, toml_text
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # (set, preset, keys set on top of the preset, as {table: {key: value}})
 SETS = [
@@ -54,7 +54,7 @@ HELD_OUT = [
     ("consensus-7", "presets/default_seed6.toml", {"dataset.phantom": {"seed": 7}}),
     ("consensus-8", "presets/default_seed6.toml", {"dataset.phantom": {"seed": 8}}),
     # Trained at stop 49 (2026-11-28) with nothing looked at but the fit: kept for judging
-    # `roundness_opening` (docs/experiments.md, "A perfect field").
+    # `roundness_opening` (lab/log.md, "A perfect field").
     ("consensus-9", "presets/default_seed6.toml", {"dataset.phantom": {"seed": 9}}),
 ]
 

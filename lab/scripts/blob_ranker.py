@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
 """How well `tie_break = "score"` ranks a search's blobs, and its weight chosen without peeking.
 
-    tools/select_study.py shipped ''          # first: the nine sets' result.json files
-    tools/blob_ranker.py shipped              # then: the blind search's blobs, judged
-    tools/blob_ranker.py shipped --search guided
+    lab/scripts/select_study.py shipped ''          # first: the nine sets' result.json files
+    lab/scripts/blob_ranker.py shipped              # then: the blind search's blobs, judged
+    lab/scripts/blob_ranker.py shipped --search guided
 
 Every result.json records the blobs each search accepted (`centres.blind_accepted`,
 `centres.guided_accepted`: response, region roundness and peak score, whether the centre lies
@@ -26,7 +26,7 @@ import math
 import os
 import sys
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 WEIGHTS = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0)
 TOPS = (1, 2, 3, 4, 5, 6, 8, 16)
 
@@ -94,7 +94,7 @@ def main():
     args = ap.parse_args()
     study_dir = args.study if os.path.isdir(args.study) else os.path.join(ROOT, "out-study", args.study)
     if not os.path.isdir(study_dir):
-        sys.exit(f"no study at {study_dir}: run tools/select_study.py {args.study} '' first")
+        sys.exit(f"no study at {study_dir}: run lab/scripts/select_study.py {args.study} '' first")
     found = cases(study_dir, args.search)
     if not found:
         sys.exit(f"{study_dir} holds no results.csv with nodules ≥ 10 mm")
