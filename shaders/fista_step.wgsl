@@ -1,8 +1,6 @@
 // One FISTA step of the dense fit at every lattice node (mirrors the step of
 // train::dense_tv::CpuFista): the gradient of E at the look-ahead point,
-//   g = Aᵀ(Aσ̂ − τ)/B + λ/N³ · Σ_a (p_a(i − e_a) − p_a(i)) + w_i,
-// w_i the node's weight of the reweighted L1 (0 without one: its proximal step on σ ≥ 0 is
-// the same shift down before the clamp),
+//   g = Aᵀ(Aσ̂ − τ)/B + λ/N³ · Σ_a (p_a(i − e_a) − p_a(i)),
 // a projected step σ' = max(σ̂ − g/L, 0), and the next look-ahead σ̂ = σ' + m (σ' − σ).
 // One invocation per node: it reads p at its lower neighbours but writes only its own σ and σ̂.
 
@@ -29,8 +27,6 @@ struct FistaStep {
 @group(0) @binding(2) var<storage, read> direction: array<f32>;
 @group(0) @binding(3) var<storage, read_write> ahead: array<f32>;
 @group(0) @binding(4) var<storage, read_write> sigma: array<f32>;
-// μ/N³ · η/(σ_last + η) per node, or zeros.
-@group(0) @binding(5) var<storage, read> l1: array<f32>;
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -49,7 +45,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) g
         }
         tv += below - direction[3u * i + axis];
     }
-    let g = back[i] * u.per_ray + u.tv_weight * tv + l1[i];
+    let g = back[i] * u.per_ray + u.tv_weight * tv;
     let next = max(ahead[i] - u.step * g, 0.0);
     ahead[i] = next + u.momentum * (next - sigma[i]);
     sigma[i] = next;

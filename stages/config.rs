@@ -1,10 +1,14 @@
-//! `pipeline.toml`: the schema, its defaults, and errors that name the key and its line.
+//! `pipeline.toml`: the schema, its defaults, and errors that name the key, its file and line.
 //!
-//! Each stage's table deserialises straight into that stage's `Params`; unknown keys and wrong
-//! types are errors. Relative paths are taken relative to the configuration file's folder.
+//! Each stage's table deserialises straight into that stage's `Params`, whose defaults are the
+//! shipped method; unknown keys and wrong types are errors. A configuration is read in layers
+//! ([`layers`]): the file a configuration `extends`, the file itself, then each `--set`.
+//! Relative paths are taken relative to the folder of the file that gives them.
+
+mod layers;
 
 use crate::stage::{drr, grid, hu, ingest, metrics, select, sweep, train};
-use anyhow::{anyhow, bail, Context as _};
+use anyhow::bail;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -114,11 +118,19 @@ impl DatasetSection {
 }
 
 impl Config {
-    /// Reads and checks `path`. Errors name the file, the key and its line.
+    /// Reads and checks `path` and what it `extends`. Errors name the file, the key and its line.
     pub fn load(path: &Path) -> anyhow::Result<Config> {
-        let text =
-            std::fs::read_to_string(path).with_context(|| format!("cannot read configuration {}", path.display()))?;
-        let mut config = Config::parse(&text).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        Config::load_with(path, &[])
+    }
+
+    /// [`Config::load`], then each `section.key=value` of `sets` over it, typed and checked as
+    /// if the file said so (a path given there is relative to the current folder).
+    pub fn load_with(path: &Path, sets: &[String]) -> anyhow::Result<Config> {
+        let mut stack = layers::Stack::read(path)?;
+        for set in sets {
+            stack.push_set(set)?;
+        }
+        let mut config = stack.resolve()?;
         config.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
         if config.base_dir.as_os_str().is_empty() {
             config.base_dir = ".".into();
@@ -126,11 +138,9 @@ impl Config {
         Ok(config)
     }
 
-    /// Parses configuration text (paths stay relative).
+    /// Parses configuration text (paths stay relative; no `extends`).
     pub fn parse(text: &str) -> anyhow::Result<Config> {
-        let config: Config = toml::from_str(text).map_err(|e| anyhow!("{}", e.to_string().trim_end()))?;
-        config.check()?;
-        Ok(config)
+        layers::Stack::from_text(text)?.resolve()
     }
 
     fn check(&self) -> anyhow::Result<()> {
@@ -229,7 +239,7 @@ mod tests {
         let e = Config::parse(&format!("{MINIMAL}[grid]\nsize = 3\n")).unwrap_err().to_string();
         assert!(e.contains("size"), "{e}");
         let e = Config::parse(&format!("{MINIMAL}[train]\niters = 3\n")).unwrap_err().to_string();
-        assert!(e.contains("iters") && e.contains("iterations"), "{e}");
+        assert!(e.contains("[train] iters") && e.contains("dense_tv"), "{e}");
     }
 
     #[test]
@@ -248,8 +258,15 @@ mod tests {
         let phantom = MINIMAL.replace("kind = \"dicom\"\nroot = \"data\"", "kind = \"phantom\"\ncohort = \"c\"");
         assert!(Config::parse(&phantom).is_ok());
         let e = Config::parse(&MINIMAL.replace("root = \"data\"", "cohort = \"c\"")).unwrap_err().to_string();
+        assert!(e.contains("[dataset] cohort is read only by kind = \"phantom\""), "{e}");
+        let e = Config::parse(&MINIMAL.replace("root = \"data\"\n", "")).unwrap_err().to_string();
         assert!(e.contains("needs `root`"), "{e}");
         let e = Config::parse(&MINIMAL.replace("\"dicom\"", "\"phantom\"")).unwrap_err().to_string();
+        assert!(
+            e.contains("line 5") && e.contains("[dataset] root is read only by kind = \"dicom\" or \"lidc\""),
+            "{e}"
+        );
+        let e = Config::parse(&MINIMAL.replace("\"dicom\"\nroot = \"data\"", "\"phantom\"")).unwrap_err().to_string();
         assert!(e.contains("needs `cohort`"), "{e}");
         let e = Config::parse(&MINIMAL.replace("\"dicom\"", "\"nifti\"")).unwrap_err().to_string();
         assert!(e.contains("nifti") && e.contains("line 4"), "{e}");

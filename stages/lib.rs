@@ -22,14 +22,3 @@ pub mod train;
 pub mod volume;
 
 pub use stage::STAGE_NAMES;
-
-/// For `#[serde(skip_serializing_if = "crate::is_zero")]`: a count left out of a stage's
-/// parameters, and so of its cache key, at 0 (keys added later keep older results cached).
-pub(crate) fn is_zero(n: &usize) -> bool {
-    *n == 0
-}
-
-/// [`is_zero`] for a weight.
-pub(crate) fn is_zero_f64(x: &f64) -> bool {
-    *x == 0.0
-}

@@ -36,15 +36,16 @@ impl Project {
         write_series(&dir, specs, default_name);
     }
 
-    /// A tiny run (8³ lattice, 3 iterations): the engine is under test, so it uses the paper's
-    /// sweep and selection, which need no lung field in the density.
+    /// A tiny run (a VM field on an 8³ lattice, 3 iterations): the engine is under test, so it
+    /// uses the paper's sweep and selection, which need no lung field in the density.
     fn write_config(&self, name: &str, cache: &str, out: &str, extra: &str) {
         let text = format!(
             "[pipeline]\nname = \"test\"\ncache_dir = \"{cache}\"\nout_dir = \"{out}\"\nworkers = 2\n\
              [dataset]\nkind = \"dicom\"\nroot = \"data\"\n\
              [drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n\
-             [train]\niterations = 3\ngrid = 8\nrank = 2\nbatch_rays = 64\nlog_every = 1\n\
-             [sweep]\nscore = \"density\"\nregion = \"box\"\n[select]\nlocalize = \"none\"\n{extra}"
+             [train]\nmodel = \"vm\"\ngrid = 8\nlog_every = 1\n\
+             [train.vm]\niterations = 3\nrank = 2\nbatch_rays = 64\n\
+             [sweep]\nscore = \"density\"\nregion = \"box\"\n[select]\nlocalize = \"none\"\nsizing = \"candidates\"\n{extra}"
         );
         std::fs::write(self.path(name), text).unwrap();
     }
@@ -536,30 +537,26 @@ fn stages_rerun_only_for_the_outputs_they_read() {
 }
 
 /// `[train] model = "truth"` through the engine: the CT on the lattice, one log row, and a key
-/// that the fit's own keys do not reach (changing `lr` keeps it cached).
+/// that the fits' own keys do not reach (`--set` picks the model over the file's, whose VM table
+/// it then drops; a new `log_every` keeps the ceiling cached).
 #[test]
 fn the_perfect_field_runs_through_the_engine_and_ignores_the_fits_keys() {
     let p = Project::new(&["P1"], 6);
     // The box around the small CT (the other tests' box at the origin misses it: their fits
     // fit empty views, and the ceiling would be zero everywhere).
-    let with = |train: &str| {
-        let text = std::fs::read_to_string(p.path("pipeline.toml")).unwrap();
-        let text = text.replacen("[train]\n", &format!("[train]\n{train}"), 1).replacen(
-            "roi_center = [0.0, 0.0, 0.0]",
-            "roi_center = [-97.6, -78.3, 16.25]",
-            1,
-        );
-        std::fs::write(p.path("pipeline.toml"), text).unwrap();
-    };
-    with("model = \"truth\"\n");
-    let r = p.run(&[]);
+    let config = std::fs::read_to_string(p.path("pipeline.toml")).unwrap();
+    let config = config.replacen("roi_center = [0.0, 0.0, 0.0]", "roi_center = [-97.6, -78.3, 16.25]", 1);
+    std::fs::write(p.path("pipeline.toml"), config).unwrap();
+    let r = p.run(&["--set", "train.model=truth"]);
     assert_eq!((count(&r, "train", "computed"), count(&r, "grid", "computed")), (1, 1));
     let log = std::fs::read_to_string(p.path("out/P1/train_log.csv")).unwrap();
     assert_eq!(log.lines().count(), 2, "a header and one row: {log}");
     let model = std::fs::read(p.path("out/P1/model.safetensors")).unwrap();
     assert!(String::from_utf8_lossy(&model[..400.min(model.len())]).contains(r#"\"model\":\"truth\""#));
-    p.write_config("pipeline.toml", "cache", "out", "");
-    with("model = \"truth\"\nlr = 0.5\n");
-    let r = p.run(&[]);
-    assert_eq!(count(&r, "train", "cached"), 1, "lr is not the ceiling's key");
+    let r = p.run(&["--set", "train.model=truth", "--set", "train.log_every=5"]);
+    assert_eq!(count(&r, "train", "cached"), 1, "log_every is not the ceiling's key");
+    // The file's own VM table under model = "truth" is an error naming it.
+    let out = p.aret(&["run", "pipeline.toml", "--set", "train.model=truth", "--set", "train.vm.rank=3"]);
+    let stderr = text(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("[train.vm]") && stderr.contains("model = \"vm\""), "{stderr}");
 }

@@ -204,7 +204,7 @@ fn same_inputs_give_identical_images_whatever_the_thread_count() {
 #[test]
 fn tiles_lay_boxes_on_a_grid_centred_on_the_lungs_and_key_only_a_tiling() {
     use aret_pipe::engine::Stage;
-    use aret_pipe::stage::drr::{Drr, RoiMode};
+    use aret_pipe::stage::drr::{Drr, RoiMode, TileParams};
     let tiling = Params { roi_center: RoiCenter::Mode(RoiMode::Tiles), ..Params::default() };
     assert_eq!(tiling.tile_count(), 18);
     // The default box (x −100…140, y ±60, z −80…60 mm about its origin): box centres at
@@ -220,8 +220,9 @@ fn tiles_lay_boxes_on_a_grid_centred_on_the_lungs_and_key_only_a_tiling() {
     // Any other ROI centre neither fans out nor has the tiling in its cache key.
     let lungs_only = Drr { params: Params { roi_center: RoiCenter::Mode(RoiMode::Lungs), ..tiling.clone() } };
     assert!(lungs_only.replica_names().is_empty());
-    assert!(lungs_only.params().get("tiles").is_none() && lungs_only.params().get("tile_step_mm").is_none());
-    assert!(Params { tiles: [2, 0, 3], ..tiling.clone() }.check().unwrap_err().to_string().contains("tiles"));
-    let bad_step = Params { tile_step_mm: [1.0, -1.0, 1.0], ..tiling };
-    assert!(bad_step.check().unwrap_err().to_string().contains("tile_step_mm"));
+    assert!(lungs_only.params().get("tiles").is_none());
+    let counts = TileParams { counts: [2, 0, 3], ..TileParams::default() };
+    assert!(Params { tiles: counts, ..tiling.clone() }.check().unwrap_err().to_string().contains("[drr.tiles] counts"));
+    let bad_step = Params { tiles: TileParams { step_mm: [1.0, -1.0, 1.0], ..TileParams::default() }, ..tiling };
+    assert!(bad_step.check().unwrap_err().to_string().contains("[drr.tiles] step_mm"));
 }

@@ -13,9 +13,8 @@ use aret_pipe::gpu::device::{Gpu, GpuOptions};
 use aret_pipe::gpu::fit::DeviceFit;
 use aret_pipe::gpu::Backend;
 use aret_pipe::stage::drr::{render_views, Params as DrrParams, RoiCenter};
-use aret_pipe::train::fit::{
-    fit, gradient, ray_pool, renderer, BatchStep, Schedule, Step, StepBuffers, TrainParams, Views,
-};
+use aret_pipe::train::fit::{fit, gradient, ray_pool, renderer, BatchStep, Schedule, Step, StepBuffers, Views};
+use aret_pipe::train::params::{DenseTvParams, TrainParams, VmParams};
 use aret_pipe::train::regularize::TvNorm;
 use aret_pipe::train::render::PhotoLoss;
 use std::path::Path;
@@ -55,8 +54,9 @@ fn views() -> (Vec<Camera>, Vec<Vec<f32>>, Aabb) {
     (set.cameras, images, set.aabb)
 }
 
-fn small(params: TrainParams) -> TrainParams {
-    TrainParams { grid: 24, rank: 6, batch_rays: 1024, log_every: 50, ..params }
+/// A small VM fit with `vm`'s keys (rank 6, 1024 rays a batch) on a 24³ lattice.
+fn small(vm: VmParams) -> TrainParams {
+    TrainParams { grid: 24, log_every: 50, vm: VmParams { rank: 6, batch_rays: 1024, ..vm }, ..TrainParams::tensorf() }
 }
 
 /// max |a − b| / max |b|: the error relative to the magnitude of the reference.
@@ -102,7 +102,7 @@ fn compare_step(gpu: &Gpu, params: &TrainParams, mask_percentile: Option<f64>) -
     let per_view = views.rays();
     let pool = ray_pool(&per_view, &aabb);
     let (field, mut schedule) = Schedule::start(params, pool.len());
-    let drawn = schedule.next_batch(params.batch_rays, renderer.step).to_vec();
+    let drawn = schedule.next_batch(params.vm.batch_rays, renderer.step).to_vec();
     let batch: Vec<_> = drawn.iter().map(|&(i, _)| pool[i]).collect();
     let offsets: Vec<f64> = drawn.iter().map(|&(_, o)| o).collect();
     let mut device = DeviceFit::new(gpu, params, &renderer, &field, batch.len(), &per_view).unwrap();
@@ -118,7 +118,7 @@ fn compare_step(gpu: &Gpu, params: &TrainParams, mask_percentile: Option<f64>) -
         let k = widest.expect("a window");
         let s = 0.5 * (sigma[k] + sigma[k + 1]);
         let threshold = 1.0 - (-s * renderer.step * renderer.scale).exp();
-        let masked = TrainParams { alpha_threshold: threshold, ..params.clone() };
+        let masked = TrainParams { vm: VmParams { alpha_threshold: threshold, ..params.vm.clone() }, ..params.clone() };
         device = DeviceFit::new(gpu, &masked, &renderer, &field, batch.len(), &per_view).unwrap();
         device.remask().unwrap();
         let cpu_mask = renderer.alpha_mask(&field.compose(), threshold);
@@ -164,14 +164,14 @@ fn one_step_factor_gradients_agree_within_1e_4() {
     let Some(gpu) = device() else { return };
     // The defaults (3-D TV 1e-4) and the paper's loss (no 3-D TV); then heavy regularisers
     // with squared TV, so their gradients matter.
-    let defaults = small(TrainParams::default());
-    let paper = small(TrainParams { lambda_tv3d: 0.0, ..TrainParams::default() });
-    let heavy = small(TrainParams {
+    let defaults = small(VmParams::default());
+    let paper = small(VmParams { lambda_tv3d: 0.0, ..VmParams::default() });
+    let heavy = small(VmParams {
         lambda_l1: 0.05,
         lambda_tv: 0.05,
         tv_norm: TvNorm::L2,
         lambda_tv3d: 0.05,
-        ..TrainParams::default()
+        ..VmParams::default()
     });
     let (cpu, g) = compare_step(&gpu, &defaults, None);
     assert_gradients_agree("defaults", &cpu, &g);
@@ -181,7 +181,7 @@ fn one_step_factor_gradients_agree_within_1e_4() {
     assert_gradients_agree("heavy regularisers, l2 TV, 3-D TV", &cpu, &g);
     let (cpu, g) = compare_step(&gpu, &defaults, Some(0.97));
     assert_gradients_agree("alpha mask", &cpu, &g);
-    let log_loss = small(TrainParams { loss: PhotoLoss::Log, ..TrainParams::default() });
+    let log_loss = small(VmParams { loss: PhotoLoss::Log, ..VmParams::default() });
     let (cpu, g) = compare_step(&gpu, &log_loss, None);
     assert_gradients_agree("log loss", &cpu, &g);
 }
@@ -193,8 +193,7 @@ fn a_300_iteration_fit_reaches_the_cpu_loss_within_1_percent_and_repeats_itself(
     let Some(gpu) = device() else { return };
     let (cameras, images, aabb) = views();
     let views = Views { cameras: &cameras, images: &images, aabb };
-    let params =
-        small(TrainParams { iterations: 300, alpha_mask_iterations: vec![150, 250], ..TrainParams::default() });
+    let params = small(VmParams { iterations: 300, alpha_mask_iterations: vec![150, 250], ..VmParams::default() });
     let started = std::time::Instant::now();
     let cpu = fit(&params, &views, |_| {});
     let cpu_s = started.elapsed().as_secs_f64();
@@ -238,31 +237,25 @@ fn a_batch_past_the_exact_scatter_limit_is_an_error_naming_the_key() {
     let (set, images) = render_views(&wide, &chest_ct(true), [0.0; 3], "explicit").unwrap();
     let (cameras, aabb) = (set.cameras, set.aabb);
     let views = Views { cameras: &cameras, images: &images, aabb };
-    let params = TrainParams { grid: 24, rank: 6, batch_rays: 1_000_000, iterations: 1, ..TrainParams::default() };
+    let params = small(VmParams { batch_rays: 1_000_000, iterations: 1, ..VmParams::default() });
     let most = aret_pipe::gpu::grad_from_fixed::max_batch_rays(&renderer(&params, aabb));
     assert!(ray_pool(&views.rays(), &aabb).len() > most, "the views hold more rays than one batch may");
     let e = aret_pipe::gpu::fit::fit(&gpu, &params, &views, |_| {}).err().expect("refused");
     let message = format!("{e:#}");
-    assert!(message.contains("[train] batch_rays") && message.contains(&most.to_string()), "{message}");
+    assert!(message.contains("[train.vm] batch_rays") && message.contains(&most.to_string()), "{message}");
 }
 
 /// The dense model's FISTA on the device against the CPU's: in f32 against f64, the same
 /// steps give the same log within 1e-5 and σ within 1e-4 of its peak; the device repeats
-/// itself bit for bit; and its Bregman step and reweighted-L1 solve continue from its own σ.
+/// itself bit for bit.
 #[test]
 fn the_dense_fit_on_the_device_follows_the_cpu_and_repeats_itself() {
     use aret_pipe::train::dense_tv;
-    use aret_pipe::train::fit::FieldModel;
     let Some(gpu) = device() else { return };
     let (cameras, images, aabb) = views();
     let views = Views { cameras: &cameras, images: &images, aabb };
-    let params = TrainParams {
-        model: FieldModel::DenseTv,
-        grid: 20,
-        dense_tv_iterations: 150,
-        log_every: 50,
-        ..TrainParams::default()
-    };
+    let dense_tv = DenseTvParams { iterations: 150, ..DenseTvParams::default() };
+    let params = TrainParams { grid: 20, log_every: 50, dense_tv, ..TrainParams::default() };
     let r = renderer(&params, aabb);
     let started = std::time::Instant::now();
     let cpu = dense_tv::fit(&params, &views, &r, |_| {});
@@ -286,35 +279,6 @@ fn the_dense_fit_on_the_device_follows_the_cpu_and_repeats_itself() {
     assert!(sigma_err < 1e-4, "σ differs by {sigma_err:.1e} of its peak");
     let again = aret_pipe::gpu::dense_fit::fit(&gpu, &params, &views, &r, |_| {}).unwrap();
     assert_eq!(again.sigma, on_gpu.sigma, "the device repeats its own fit bit for bit");
-    let bregman = TrainParams { dense_tv_bregman_steps: 1, ..params.clone() };
-    let (cpu_b, gpu_b) = (
-        dense_tv::fit(&bregman, &views, &r, |_| {}),
-        aret_pipe::gpu::dense_fit::fit(&gpu, &bregman, &views, &r, |_| {}).unwrap(),
-    );
-    let (c, g) = (cpu_b.log.last().unwrap(), gpu_b.log.last().unwrap());
-    assert_eq!((c.iteration, g.iteration), (300, 300));
-    assert!((g.loss - c.loss).abs() < 1e-3 * c.loss, "after a Bregman step: {} (gpu) against {} (cpu)", g.loss, c.loss);
-    // A reweighted L1's solve after the first: its weights ride along into the device's step.
-    let reweighted = TrainParams {
-        dense_tv_reweight_steps: 1,
-        dense_tv_sparsity: 3e-2,
-        dense_tv_bregman_steps: 0,
-        ..params.clone()
-    };
-    let (cpu_r, gpu_r) = (
-        dense_tv::fit(&reweighted, &views, &r, |_| {}),
-        aret_pipe::gpu::dense_fit::fit(&gpu, &reweighted, &views, &r, |_| {}).unwrap(),
-    );
-    let (c, g) = (cpu_r.log.last().unwrap(), gpu_r.log.last().unwrap());
-    assert_eq!((c.iteration, g.iteration), (300, 300));
-    assert!(
-        (g.loss - c.loss).abs() < 1e-3 * c.loss,
-        "after a reweighted solve: {} (gpu) against {} (cpu)",
-        g.loss,
-        c.loss
-    );
-    let sigma_err = relative_to_max(&gpu_r.sigma, &cpu_r.sigma);
-    assert!(sigma_err < 1e-3, "reweighted σ differs by {sigma_err:.1e} of its peak");
 }
 
 #[test]
@@ -338,11 +302,14 @@ fn project(patients: &[&str], extra: &str) -> tempfile::TempDir {
     dir
 }
 
+/// A tiny VM fit with `extra` in its `[train]` table; `extra` may pick another model instead.
 fn write_config(dir: &Path, extra: &str) {
+    let model = if extra.contains("model =") { "" } else { "model = \"vm\"\n" };
+    let vm = if model.is_empty() { "" } else { "[train.vm]\niterations = 3\nrank = 2\nbatch_rays = 64\n" };
     let text = format!(
         "[pipeline]\nname = \"gpu\"\nworkers = 2\n[dataset]\nkind = \"dicom\"\nroot = \"data\"\n\
          [drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n\
-         [train]\niterations = 3\ngrid = 8\nrank = 2\nbatch_rays = 64\nlog_every = 1\n{extra}"
+         [train]\n{model}grid = 8\nlog_every = 1\n{extra}{vm}"
     );
     std::fs::write(dir.join("pipeline.toml"), text).unwrap();
 }
@@ -427,7 +394,7 @@ fn the_model_records_the_backend_that_ran() {
     let outcome = if expected == "gpu" { "cached" } else { "computed" };
     assert_eq!(train_outcomes(dir.path()), [outcome]);
     // The dense model runs there too.
-    write_config(dir.path(), "backend = \"gpu\"\nmodel = \"dense_tv\"\ndense_tv_iterations = 5\n");
+    write_config(dir.path(), "backend = \"gpu\"\nmodel = \"dense_tv\"\n[train.dense_tv]\niterations = 5\n");
     let out = run(dir.path(), false);
     assert!(out.status.success(), "{}\n{}", text(&out.stdout), text(&out.stderr));
     assert_eq!(model_backend(dir.path(), "P1"), "gpu");

@@ -3,7 +3,27 @@
 //! one (Dice 0, no hit, a "MISS" verdict), and the oracle must still see the nodule.
 
 use aret_pipe::kernels::localization::ground_truth_on_grid;
-use aret_pipe::stage::select::{verdict, Analysis, Localize, Params as SelectParams, Rule};
+use aret_pipe::stage::select::{
+    verdict, Analysis, BlobParams, Localize, Params as SelectParams, Rule, Sizing, TieBreak,
+};
+
+/// The blob search with `blob`'s keys.
+fn blob_search(blob: BlobParams) -> SelectParams {
+    SelectParams { blob, ..SelectParams::default() }
+}
+
+/// A search that takes the strongest blob it accepts anywhere in the lungs: no tie-break, no
+/// fallback.
+fn strongest() -> BlobParams {
+    BlobParams {
+        inside_mm: 0.0,
+        tie_break: TieBreak::Response,
+        blind_tie_break: TieBreak::Response,
+        guided_fallback: false,
+        guided_faint_ratio: 0.0,
+        ..BlobParams::default()
+    }
+}
 use aret_pipe::stage::sweep::{equivalent_diameter_mm, levels, Params, Region, Score};
 use aret_pipe::volume::{Geometry, Volume};
 
@@ -71,7 +91,7 @@ fn a_guided_match_on_the_body_wall_is_reported_as_a_miss() {
     assert!(guided.candidate.centroid_mm[0] < 15.0, "guided should land on the wall: {guided:?}");
     let l = guided.localization.unwrap();
     assert!(!l.hit && l.dice == 0.0 && l.centroid_distance_mm > 20.0, "{l:?}");
-    let paper = SelectParams { localize: Localize::None, ..SelectParams::default() };
+    let paper = SelectParams { localize: Localize::None, sizing: Sizing::Candidates, ..SelectParams::default() };
     let line = verdict(Rule::Guided, Some(&guided), true, true, &paper);
     assert!(line.starts_with("MISS") && line.contains("Dice 0.00"), "{line}");
     // The oracle still finds the nodule among the candidates (Dice of a 22 mm blob against a
@@ -118,7 +138,7 @@ fn chest() -> (Volume<f32>, [usize; 3]) {
 #[test]
 fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
     use aret_pipe::kernels::filters::distance_inside_mm;
-    use aret_pipe::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobFilter};
+    use aret_pipe::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs};
     let (density, nodule) = chest();
     let (dims, spacing) = (density.geometry.dims, density.geometry.spacing_mm);
     let at = |v: [usize; 3]| v[0] + dims[0] * (v[1] + dims[1] * v[2]);
@@ -128,15 +148,10 @@ fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
     assert!(!lungs.field[at([40, 42, 20])] && !lungs.field[at([55, 44, 33])], "outside air is not lung");
     assert!(lungs.field[at([50, 10, 5])], "parenchyma touching the box faces is lung");
     let sites = blob_sites(&distance_inside_mm(&lungs.field, dims, spacing), dims, spacing, 8.0);
-    let find = |filter| {
-        let ranked = ranked_blobs(&density.data, dims, spacing, filter, &[6.0, 9.0, 13.0], &sites);
-        *ranked.first().expect("a blob")
-    };
-    let peak = find(BlobFilter::Laplacian);
-    for (filter, found) in [(BlobFilter::Laplacian, peak), (BlobFilter::Hessian, find(BlobFilter::Hessian))] {
-        let off: usize = (0..3).map(|a| found.voxel[a].abs_diff(nodule[a])).sum();
-        assert!(off <= 1, "{filter:?}: the blob centre {found:?} is the nodule's {nodule:?}");
-    }
+    let ranked = ranked_blobs(&density.data, dims, spacing, &[6.0, 9.0, 13.0], &sites);
+    let found = *ranked.first().expect("a blob");
+    let off: usize = (0..3).map(|a| found.voxel[a].abs_diff(nodule[a])).sum();
+    assert!(off <= 1, "the blob centre {found:?} is the nodule's {nodule:?}");
     // The paper's guided rule takes the decoy (it touches nothing of the nodule); sized
     // through the centre it takes the nodule.
     let levels = levels(&density, &paper_sweep()).unwrap();
@@ -144,9 +159,9 @@ fn the_lung_field_and_the_blob_centre_are_found_in_the_density_itself() {
     let holds_nodule = |sel: (usize, u32)| levels[sel.0].components.labels[at(nodule)] == sel.1;
     let anywhere = analysis.choose(Rule::Guided, Some(14.0), None).unwrap();
     assert!(!holds_nodule(anywhere), "the unlocalised guided rule should be fooled by the decoy");
-    let through = analysis.choose(Rule::Guided, Some(14.0), Some(at(peak.voxel))).unwrap();
+    let through = analysis.choose(Rule::Guided, Some(14.0), Some(at(found.voxel))).unwrap();
     assert!(holds_nodule(through));
-    let blind = analysis.persistent(Some(at(peak.voxel))).unwrap();
+    let blind = analysis.persistent(Some(at(found.voxel))).unwrap();
     assert!(holds_nodule(blind));
 }
 
@@ -200,21 +215,22 @@ fn two_balls(weak_level: f32) -> (Volume<f32>, [usize; 3], [usize; 3]) {
 
 #[test]
 fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
-    use aret_pipe::kernels::lung_mask::{ranked_blobs, BlobFilter};
+    use aret_pipe::kernels::filters::hessian_blob_response;
+    use aret_pipe::kernels::lung_mask::ranked_blobs;
     use aret_pipe::stage::select::{centres, Search};
     let (density, strong, weak) = two_balls(0.5);
     let g = density.geometry.clone();
     let (dims, spacing) = (g.dims, g.spacing_mm);
     let sites = vec![true; g.len()];
-    let ranked = ranked_blobs(&density.data, dims, spacing, BlobFilter::Hessian, &[5.0], &sites);
+    let ranked = ranked_blobs(&density.data, dims, spacing, &[5.0], &sites);
     assert!(ranked.windows(2).all(|w| w[0].response >= w[1].response), "strongest first");
-    let response = BlobFilter::Hessian.response(&density.data, dims, spacing, 5.0);
+    let response = hessian_blob_response(&density.data, dims, spacing, 5.0);
     assert_eq!(ranked[0].response, response.iter().copied().fold(f32::MIN, f32::max), "the first is the maximum");
     let off = |v: [usize; 3], c: [usize; 3]| (0..3).map(|a| v[a].abs_diff(c[a])).max().unwrap();
     assert!(off(ranked[0].voxel, strong) <= 1, "{:?}", ranked[0]);
     assert!(off(ranked[1].voxel, weak) <= 1, "{:?}", ranked[1]);
     // The guided search (18 mm annotated: scale 5.2 mm) takes the strongest blob it accepts.
-    let params = SelectParams { inside_mm: 0.0, ..SelectParams::default() };
+    let params = blob_search(strongest());
     let lungs = vec![true; g.len()];
     let find = |accept: &(dyn Fn(Search, &aret_pipe::stage::select::Centre) -> bool + Sync)| {
         centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|s, c| accept(s, c).into())
@@ -227,18 +243,9 @@ fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
     let second = passed_over.guided.expect("the weaker ball");
     assert!(second.rank >= 1 && off(second.voxel, weak) <= 1, "{second:?}");
     assert!(find(&|_, _| false).note.expect("a note").contains("could be sized"));
-    // `guided_scale_ratios` sets the guided search's scales around the matched one; over
-    // several it keeps each blob's strongest, and a ball of radius 9 mm answers most at 5.2 mm.
+    // The guided search answers at the scale matched to the annotated diameter: d / (2√3).
     let matched_mm = 18.0 / (2.0 * 3f64.sqrt());
-    let guided_scale = |ratios: Vec<f64>| {
-        let params = SelectParams { guided_scale_ratios: ratios, ..params.clone() };
-        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|_, _| true.into());
-        let centre = found.guided.expect("a guided centre");
-        assert!(off(centre.voxel, strong) <= 1, "{centre:?}");
-        centre.blob.expect("a blob").scale_mm
-    };
-    assert!((guided_scale(vec![1.0, 1.5]) - matched_mm).abs() < 1e-9);
-    assert!((guided_scale(vec![1.5]) - 1.5 * matched_mm).abs() < 1e-9);
+    assert!((first.blob.expect("a blob").scale_mm - matched_mm).abs() < 1e-9, "{first:?}");
 }
 
 #[test]
@@ -248,7 +255,7 @@ fn a_rival_blob_that_answers_nearly_as_strongly_makes_the_centre_ambiguous() {
     let off = |v: [f64; 3], c: [usize; 3]| (0..3).map(|a| (v[a] / 2.0 - c[a] as f64).abs()).fold(0.0, f64::max);
     let search = |weak_level: f32, rival_ratio: f64, accept: &(dyn Fn(Search, &Centre) -> bool + Sync)| {
         let (density, strong, weak) = two_balls(weak_level);
-        let params = SelectParams { inside_mm: 0.0, rival_ratio, ..SelectParams::default() };
+        let params = blob_search(BlobParams { rival_ratio, ..strongest() });
         let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|s, c| accept(s, c).into());
         let taken = found.guided.expect("a guided centre");
         assert!(off(taken.position_mm, strong) <= 1.0, "{taken:?}");
@@ -279,7 +286,7 @@ fn the_roundness_tie_break_takes_the_roundest_of_the_blobs_that_answer_alike() {
     // round (0.9); the search decides only from what it is told.
     let taken = |weak_level: f32, tie_break: TieBreak| {
         let (density, strong, weak) = two_balls(weak_level);
-        let params = SelectParams { inside_mm: 0.0, tie_break, ..SelectParams::default() };
+        let params = blob_search(BlobParams { tie_break, ..strongest() });
         let judge = |_: Search, c: &Centre| Weighed::Accepted {
             region: Some(RegionShape {
                 roundness: if near(c.position_mm, strong) { 0.3 } else { 0.9 },
@@ -325,7 +332,7 @@ fn the_score_tie_break_ranks_the_strongest_few_by_response_over_peak_and_roundne
         assert!(ranks.windows(2).all(|w| w[0] < w[1]) && ranks.contains(&blind.rank), "{ranks:?}");
         (near(guided.position_mm, strong), near(blind.position_mm, weak), blind)
     };
-    let base = SelectParams { inside_mm: 0.0, blind_tie_break: Some(TieBreak::Score), ..SelectParams::default() };
+    let base = blob_search(BlobParams { blind_tie_break: TieBreak::Score, ..strongest() });
     // The weak ball answers at well under 0.7 of the strong one (no roundness contest), but its
     // response per unit of peak contrast is higher: the blind search takes it, while the guided
     // one (tie_break "response") keeps the strongest.
@@ -335,7 +342,7 @@ fn the_score_tie_break_ranks_the_strongest_few_by_response_over_peak_and_roundne
     let expected = (f64::from(blind.blob.unwrap().response) / f64::from(0.2f32)).ln() + 3.0 * 0.5;
     assert!((score - expected).abs() < 1e-9, "{score} vs {expected}");
     // Only the `score_top` strongest contend: with one, the strongest is taken.
-    let (_, blind_on_weak, _) = search(SelectParams { score_top: 1, ..base.clone() });
+    let (_, blind_on_weak, _) = search(blob_search(BlobParams { score_top: 1, ..base.blob.clone() }));
     assert!(!blind_on_weak);
     // Without a region there is no score.
     assert_eq!(blob_score(&Centre { region: None, ..blind }, 3.0), None);
@@ -346,7 +353,7 @@ fn with_no_guided_centre_the_guided_rule_may_fall_back_to_the_blind_one() {
     use aret_pipe::stage::select::{centres, Centre, Search, Weighed};
     let (density, strong, _) = two_balls(0.3);
     let lungs = vec![true; density.geometry.len()];
-    let params = SelectParams { inside_mm: 0.0, ..SelectParams::default() };
+    let params = blob_search(strongest());
     let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
     // The guided search accepts nothing; the blind one takes the strong ball.
     let found =
@@ -375,7 +382,7 @@ fn a_guided_centre_far_fainter_than_the_blind_one_gives_way_to_it() {
     use aret_pipe::stage::select::{centres, Centre, RegionShape, Weighed};
     let (density, strong, weak) = two_balls(0.3);
     let lungs = vec![true; density.geometry.len()];
-    let params = SelectParams { inside_mm: 0.0, ..SelectParams::default() };
+    let params = blob_search(strongest());
     let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|_, _| Weighed::from(true));
     let shape = |peak_score| Some(RegionShape { roundness: 0.8, diameter_mm: 18.0, peak_score });
     let blind = Centre { voxel: strong, region: shape(0.30), ..found.blind.clone().expect("a blind centre") };

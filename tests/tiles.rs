@@ -15,9 +15,10 @@ fn write_config(dir: &Path, select_extra: &str) {
     let text = format!(
         "[pipeline]\nname = \"tiles\"\ncache_dir = \"cache\"\nout_dir = \"out\"\nworkers = 2\n\
          [dataset]\nkind = \"phantom\"\ncohort = \"{}\"\n[dataset.phantom]\nnodule_extent = \"consensus\"\n\
-         [drr]\nwidth_px = 48\nheight_px = 48\nroi_center = \"tiles\"\ntiles = [1, 2, 2]\n\
-         [train]\nmodel = \"dense_tv\"\ngrid = 32\ndense_tv_iterations = 60\n\
-         [select]\nprimary = \"blind_persistent\"\nsizing = \"half_max\"\n{select_extra}",
+         [drr]\nwidth_px = 48\nheight_px = 48\nroi_center = \"tiles\"\n[drr.tiles]\ncounts = [1, 2, 2]\n\
+         [train]\ngrid = 32\n[train.dense_tv]\niterations = 60\n\
+         [select]\nprimary = \"blind_persistent\"\nsizing = \"half_max\"\n\
+         [select.blob]\ntie_break = \"response\"\nblind_tie_break = \"response\"\nguided_fallback = false\n{select_extra}",
         cohort.display()
     );
     std::fs::write(dir.join("t.toml"), text).unwrap();

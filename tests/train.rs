@@ -5,7 +5,8 @@ use aret_pipe::geometry::{Aabb, Camera};
 use aret_pipe::stage::drr::{render_views, Params as DrrParams, RoiCenter};
 use aret_pipe::train::adam::Adam;
 use aret_pipe::train::field::VmField;
-use aret_pipe::train::fit::{fit, regularize_and_update, renderer, TrainParams, Views};
+use aret_pipe::train::fit::{fit, regularize_and_update, renderer, Views};
+use aret_pipe::train::params::{DenseTvParams, TrainParams, VmParams};
 use aret_pipe::train::regularize::{self, TvNorm};
 use aret_pipe::train::render::{Lattice, PhotoLoss, Ray, Renderer};
 use glam::DVec3;
@@ -118,12 +119,13 @@ fn the_fused_regularise_and_update_pass_equals_its_two_passes_bit_for_bit() {
     // The training loop adds L1 + TV and updates by Adam in one pass per factor component;
     // the result must be l1_and_tv, then Adam::update, to the last bit.
     for (norm, seed) in [(TvNorm::L1, 3), (TvNorm::L2, 4)] {
-        let params = TrainParams { lambda_l1: 0.3, lambda_tv: 0.7, tv_norm: norm, ..TrainParams::default() };
+        let vm = VmParams { lambda_l1: 0.3, lambda_tv: 0.7, tv_norm: norm, ..VmParams::default() };
+        let params = TrainParams { vm, ..TrainParams::tensorf() };
         let field: VmField<f32> = VmField::random(16, 3, 1.0, seed);
         let grad: VmField<f32> = VmField::random(16, 3, 0.1, seed + 10);
-        let (mut a_field, mut a_grad, mut a_adam) = (field.clone(), grad.clone(), Adam::new(params.adam(), &field));
-        let (mut b_field, mut b_grad, mut b_adam) = (field.clone(), grad.clone(), Adam::new(params.adam(), &field));
-        let (mut c_field, mut c_adam) = (field.clone(), Adam::new(params.adam(), &field));
+        let (mut a_field, mut a_grad, mut a_adam) = (field.clone(), grad.clone(), Adam::new(params.vm.adam(), &field));
+        let (mut b_field, mut b_grad, mut b_adam) = (field.clone(), grad.clone(), Adam::new(params.vm.adam(), &field));
+        let (mut c_field, mut c_adam) = (field.clone(), Adam::new(params.vm.adam(), &field));
         for _ in 0..3 {
             let (l1, tv) = regularize::l1_and_tv(&a_field, Some(0.3), Some((norm, 0.7)), &mut a_grad);
             let lr = a_adam.update(&mut a_field, &a_grad);
@@ -182,8 +184,9 @@ fn phantom_views() -> (Vec<Camera>, Vec<Vec<f32>>, Aabb) {
     (set.cameras, images, set.aabb)
 }
 
-fn small(params: TrainParams) -> TrainParams {
-    TrainParams { grid: 24, rank: 6, batch_rays: 1024, log_every: 50, ..params }
+/// A small VM fit with `vm`'s keys (rank 6, 1024 rays a batch) on a 24³ lattice.
+fn small(vm: VmParams) -> TrainParams {
+    TrainParams { grid: 24, log_every: 50, vm: VmParams { rank: 6, batch_rays: 1024, ..vm }, ..TrainParams::tensorf() }
 }
 
 #[test]
@@ -191,7 +194,8 @@ fn the_papers_failure_mode_never_moves_the_photometric_loss() {
     let (cameras, images, aabb) = phantom_views();
     let views = Views { cameras: &cameras, images: &images, aabb };
     // Δ = −10, s = 25: ReLU is zero everywhere, so the rendering gradient is exactly zero.
-    let broken = small(TrainParams { shift: -10.0, scale: 25.0, iterations: 100, ..TrainParams::default() });
+    let broken =
+        TrainParams { scale: 25.0, ..small(VmParams { shift: -10.0, iterations: 100, ..VmParams::default() }) };
     let field: VmField<f32> = VmField::random(24, 6, 0.1, 3);
     let dense = field.compose();
     let rays: Vec<Ray> = views.rays().concat();
@@ -206,9 +210,10 @@ fn the_papers_failure_mode_never_moves_the_photometric_loss() {
     assert_eq!(first.psnr_db, last.psnr_db, "full-view error unchanged after 100 iterations");
     assert!(last.l1 < first.l1, "the regularisers still shrink the factors");
     // With every regulariser off (λ1 = λ2 = 0, and no 3-D TV) nothing at all changes.
-    let frozen = TrainParams { lambda_l1: 0.0, lambda_tv: 0.0, lambda_tv3d: 0.0, iterations: 20, ..broken.clone() };
+    let frozen_vm = VmParams { lambda_l1: 0.0, lambda_tv: 0.0, lambda_tv3d: 0.0, iterations: 20, ..broken.vm.clone() };
+    let frozen = TrainParams { vm: frozen_vm.clone(), ..broken.clone() };
     let a = fit(&frozen, &views, |_| {});
-    let b = fit(&TrainParams { iterations: 1, ..frozen.clone() }, &views, |_| {});
+    let b = fit(&TrainParams { vm: VmParams { iterations: 1, ..frozen_vm }, ..frozen.clone() }, &views, |_| {});
     assert_eq!(a.field, b.field, "zero gradient: the factors stay at their initial values");
 }
 
@@ -217,7 +222,7 @@ fn the_papers_failure_mode_never_moves_the_photometric_loss() {
 fn the_fix_lowers_the_loss_tenfold_and_fits_the_sphere_scene_to_35_db() {
     let (cameras, images, aabb) = phantom_views();
     let views = Views { cameras: &cameras, images: &images, aabb };
-    let fixed = small(TrainParams { iterations: 300, ..TrainParams::default() });
+    let fixed = small(VmParams { iterations: 300, ..VmParams::default() });
     let fitted = fit(&fixed, &views, |_| {});
     let full_view_mse =
         |row: &aret_pipe::train::fit::LogRow| row.psnr_db.iter().map(|p| 10f64.powf(-p / 10.0)).sum::<f64>();
@@ -231,134 +236,14 @@ fn the_fix_lowers_the_loss_tenfold_and_fits_the_sphere_scene_to_35_db() {
 fn one_seed_gives_identical_factors_another_differs() {
     let (cameras, images, aabb) = phantom_views();
     let views = Views { cameras: &cameras, images: &images, aabb };
-    let p = small(TrainParams { iterations: 40, ..TrainParams::default() });
     let run = |seed: u64, threads: usize| {
+        let p = small(VmParams { iterations: 40, seed, ..VmParams::default() });
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-        pool.install(|| fit(&TrainParams { seed, ..p.clone() }, &views, |_| {}).field)
+        pool.install(|| fit(&p, &views, |_| {}).field)
     };
     let a = run(1, 1);
     assert_eq!(a, run(1, 3));
     assert_ne!(a, run(2, 2));
-}
-
-/// The dense fit's Bregman steps: the first solve is the plain fit's, step for step, and each
-/// later one fits the views more closely (the TV's bias taken back), from where it stopped.
-#[test]
-fn bregman_steps_continue_the_dense_fit_and_tighten_the_views() {
-    use aret_pipe::train::dense_tv;
-    use aret_pipe::train::fit::FieldModel;
-    let (cameras, images, aabb) = phantom_views();
-    let views = Views { cameras: &cameras, images: &images, aabb };
-    // A strong TV, so that its bias and not the coarse lattice is what limits the plain fit.
-    let plain = TrainParams {
-        model: FieldModel::DenseTv,
-        grid: 16,
-        dense_tv_iterations: 300,
-        dense_tv_lambda: 1e-1,
-        log_every: 100,
-        ..TrainParams::default()
-    };
-    let bregman = TrainParams { dense_tv_bregman_steps: 2, ..plain.clone() };
-    let r = renderer(&plain, aabb);
-    let (a, b) = (dense_tv::fit(&plain, &views, &r, |_| {}), dense_tv::fit(&bregman, &views, &r, |_| {}));
-    let iterations: Vec<usize> = b.log.iter().map(|row| row.iteration).collect();
-    assert_eq!(iterations, [0, 100, 200, 300, 400, 500, 600, 700, 800, 900], "a row every 100 of 3 × 300 steps");
-    for (x, y) in a.log.iter().zip(&b.log) {
-        assert_eq!((x.iteration, x.loss), (y.iteration, y.loss), "the first solve is the plain fit");
-    }
-    let photo_at = |k: usize| b.log[k].photo;
-    // The plain fit has settled: its last 100 steps gain little against what a step gains.
-    assert!(photo_at(2) - photo_at(3) < 0.1 * (photo_at(3) - photo_at(6)), "settled: {:?}", &b.log[..4]);
-    assert!(photo_at(6) < 0.8 * photo_at(3), "one step fits closer: {} → {}", photo_at(3), photo_at(6));
-    assert!(photo_at(9) < photo_at(6), "and the next closer still: {} → {}", photo_at(6), photo_at(9));
-    assert_ne!(a.sigma, b.sigma);
-}
-
-/// The reweighted L1: its solve comes after the plain one, step for step, and weighing faint
-/// nodes dearer than dense ones it draws σ into the sphere the three views agree on. Against
-/// the same solve without the L1, the sphere stands out more from the lung around it, and the
-/// views stay close.
-#[test]
-fn the_reweighted_l1_draws_mass_into_the_sphere_the_views_agree_on() {
-    use aret_pipe::train::dense_tv;
-    use aret_pipe::train::fit::FieldModel;
-    let (cameras, images, aabb) = phantom_views();
-    let views = Views { cameras: &cameras, images: &images, aabb };
-    let n = 24;
-    let longer = TrainParams {
-        model: FieldModel::DenseTv,
-        grid: n,
-        dense_tv_iterations: 200,
-        dense_tv_reweight_steps: 1,
-        log_every: 100,
-        ..TrainParams::default()
-    };
-    let reweighted = TrainParams { dense_tv_sparsity: 3e-2, ..longer.clone() };
-    let r = renderer(&longer, aabb);
-    let (a, b) = (dense_tv::fit(&longer, &views, &r, |_| {}), dense_tv::fit(&reweighted, &views, &r, |_| {}));
-    let iterations: Vec<usize> = b.log.iter().map(|row| row.iteration).collect();
-    assert_eq!(iterations, [0, 100, 200, 300, 400]);
-    for (x, y) in a.log.iter().zip(&b.log).take(3) {
-        assert_eq!(x.loss, y.loss, "the first solve is the plain fit's");
-    }
-    // Node centres in patient mm (scene units of 40 mm, the scene origin at 0); chest_ct's
-    // sphere has radius 15 mm at (40, 0, 10) and its lung is an ellipsoid around x = 45.
-    let cell: Vec<f64> = (0..3).map(|k| (aabb.max[k] - aabb.min[k]) / n as f64).collect();
-    let centre = |i: usize| -> [f64; 3] {
-        let index = [i % n, i / n % n, i / (n * n)];
-        std::array::from_fn(|k| (aabb.min[k] + (index[k] as f64 + 0.5) * cell[k]) * 40.0)
-    };
-    let (mut sphere, mut lung) = (Vec::new(), Vec::new());
-    for i in 0..n * n * n {
-        let [x, y, z] = centre(i);
-        let from_sphere = ((x - 40.0).powi(2) + y.powi(2) + (z - 10.0).powi(2)).sqrt();
-        let in_lung = ((x - 45.0) / 35.0).powi(2) + (y / 40.0).powi(2) + (z / 60.0).powi(2) < 0.8;
-        if from_sphere < 10.0 {
-            sphere.push(i);
-        } else if in_lung && from_sphere > 25.0 {
-            lung.push(i);
-        }
-    }
-    assert!(sphere.len() >= 4 && lung.len() >= 20, "{} sphere and {} lung nodes", sphere.len(), lung.len());
-    let mean =
-        |sigma: &[f32], nodes: &[usize]| nodes.iter().map(|&i| f64::from(sigma[i])).sum::<f64>() / nodes.len() as f64;
-    let contrast = |sigma: &[f32]| mean(sigma, &sphere) - mean(sigma, &lung);
-    let (plain, sparse) = (contrast(&a.sigma), contrast(&b.sigma));
-    eprintln!("sphere over lung: {plain:.3} without the L1, {sparse:.3} with it (truth 0.64)");
-    assert!(sparse > 1.4 * plain, "the L1 raises the sphere's contrast: {plain:.3} → {sparse:.3}");
-    let (pa, pb) = (&a.log.last().unwrap().psnr_db, &b.log.last().unwrap().psnr_db);
-    for (x, y) in pa.iter().zip(pb) {
-        assert!(*y > x - 3.0, "the views stay within 3 dB: {pa:?} → {pb:?}");
-    }
-}
-
-/// A weight without the solves that add it, or a negative one, is an error naming the key.
-#[test]
-fn the_reweighted_l1_keys_are_checked() {
-    let alone = TrainParams { dense_tv_sparsity: 1e-2, ..TrainParams::default() };
-    let e = alone.check().unwrap_err().to_string();
-    assert!(e.contains("dense_tv_sparsity") && e.contains("dense_tv_reweight_steps"), "{e}");
-    let negative = TrainParams { dense_tv_sparsity: -1.0, dense_tv_reweight_steps: 1, ..TrainParams::default() };
-    assert!(negative.check().unwrap_err().to_string().contains("dense_tv_sparsity"));
-    let eta = TrainParams { dense_tv_sparsity_eta: 0.0, ..TrainParams::default() };
-    assert!(eta.check().unwrap_err().to_string().contains("dense_tv_sparsity_eta"));
-    let both = TrainParams { dense_tv_sparsity: 1e-2, dense_tv_reweight_steps: 1, ..TrainParams::default() };
-    both.check().unwrap();
-}
-
-/// Without Bregman steps (or the reweighted L1) the parameters serialise as before the keys
-/// existed, so the dense fits cached then keep their keys; with them the key is there.
-#[test]
-fn bregman_steps_enter_the_cache_key_only_when_set() {
-    let plain = serde_json::to_value(TrainParams::default()).unwrap();
-    assert!(plain.get("dense_tv_bregman_steps").is_none(), "{plain}");
-    let one = serde_json::to_value(TrainParams { dense_tv_bregman_steps: 1, ..TrainParams::default() }).unwrap();
-    assert_eq!(one["dense_tv_bregman_steps"], 1);
-    for key in ["dense_tv_reweight_steps", "dense_tv_sparsity", "dense_tv_sparsity_eta"] {
-        assert!(plain.get(key).is_none(), "{key} is left out at its default: {plain}");
-    }
-    let back: TrainParams = serde_json::from_value(plain).unwrap();
-    assert_eq!(back, TrainParams::default());
 }
 
 /// `model = "truth"`: each node is its cell's mean of the CT in the fit's units, and air
@@ -398,7 +283,7 @@ fn the_perfect_field_is_the_cts_cell_means_in_the_fits_units() {
 fn the_perfect_field_reproduces_the_views() {
     use aret_pipe::kernels::raymarch::VolumeField;
     use aret_pipe::train::dense_tv::evaluate_views;
-    use aret_pipe::train::fit::FieldModel;
+    use aret_pipe::train::params::FieldModel;
     use aret_pipe::train::truth::cell_means;
     let drr = DrrParams { width_px: 48, height_px: 48, roi_center: RoiCenter::Mm([0.0; 3]), ..DrrParams::default() };
     let ct = chest_ct(false);
@@ -427,8 +312,12 @@ fn the_perfect_field_reproduces_the_views() {
 fn only_the_perfect_field_reads_the_ct_and_its_key_ignores_the_fits_keys() {
     use aret_pipe::engine::Stage;
     use aret_pipe::stage::train::Train;
-    use aret_pipe::train::fit::FieldModel;
-    let stage = |model, iterations| Train { params: TrainParams { model, iterations, ..TrainParams::default() } };
+    use aret_pipe::train::params::FieldModel;
+    let stage = |model, iterations| {
+        let (vm, dense_tv) =
+            (VmParams { iterations, ..VmParams::default() }, DenseTvParams { iterations, ..DenseTvParams::default() });
+        Train { params: TrainParams { model, vm, dense_tv, ..TrainParams::default() } }
+    };
     for model in [FieldModel::Vm, FieldModel::DenseTv] {
         assert!(!stage(model, 10).reads("hu", "ct_unit.raw"), "{model:?} reads the CT");
         assert!(stage(model, 10).reads("drr", "drr_axial.exr"));
@@ -439,4 +328,10 @@ fn only_the_perfect_field_reads_the_ct_and_its_key_ignores_the_fits_keys() {
     let keys: Vec<String> = truth.params().as_object().unwrap().keys().cloned().collect();
     assert_eq!(keys, ["grid", "model", "scale"]);
     assert_ne!(stage(FieldModel::Vm, 10).params(), stage(FieldModel::Vm, 99).params());
+    assert_ne!(stage(FieldModel::DenseTv, 10).params(), stage(FieldModel::DenseTv, 99).params());
+    // A fit's key holds its own model's table and not the other's.
+    let dense = stage(FieldModel::DenseTv, 10).params();
+    assert!(dense.get("dense_tv").is_some() && dense.get("vm").is_none() && dense.get("threads").is_none(), "{dense}");
+    let vm = stage(FieldModel::Vm, 10).params();
+    assert!(vm.get("vm").is_some() && vm.get("dense_tv").is_none(), "{vm}");
 }

@@ -14,7 +14,8 @@ use aret_pipe::formats::{mhd, png};
 use aret_pipe::gpu::fit::DeviceFit;
 use aret_pipe::gpu::{Backend, Gpu};
 use aret_pipe::stage::drr::{render_views, CameraSet, Focal, Params as DrrParams, RoiCenter};
-use aret_pipe::train::fit::{fit, ray_pool, renderer, Schedule, TrainParams, Views};
+use aret_pipe::train::fit::{fit, ray_pool, renderer, Schedule, Views};
+use aret_pipe::train::params::{TrainParams, VmParams};
 use aret_pipe::volume::Volume;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -30,7 +31,8 @@ fn main() -> anyhow::Result<()> {
     let (set, images) = CameraSet::read_published(&dir)?;
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
     // The paper's configuration: the defaults without the 3-D TV (issue 8's addition).
-    let params = TrainParams { iterations, log_every: iterations, lambda_tv3d: 0.0, ..TrainParams::default() };
+    let vm = VmParams { iterations, lambda_tv3d: 0.0, ..VmParams::default() };
+    let params = TrainParams { log_every: iterations, vm, ..TrainParams::tensorf() };
     let (mut on_gpu, mut on_cpu) = (Vec::new(), Vec::new());
     let mut first_gpu_field = None;
     for run in 0..runs {
@@ -89,7 +91,7 @@ fn profile_kernels(gpu: &Gpu, params: &TrainParams, views: &Views) -> anyhow::Re
     let per_view = views.rays();
     let pool = ray_pool(&per_view, &views.aabb);
     let (field, mut schedule) = Schedule::start(params, pool.len());
-    let drawn = schedule.next_batch(params.batch_rays, renderer.step).to_vec();
+    let drawn = schedule.next_batch(params.vm.batch_rays, renderer.step).to_vec();
     let batch: Vec<_> = drawn.iter().map(|&(i, _)| pool[i]).collect();
     let offsets: Vec<f64> = drawn.iter().map(|&(_, o)| o).collect();
     let mut device = DeviceFit::new(gpu, params, &renderer, &field, batch.len(), &per_view)?;

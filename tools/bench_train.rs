@@ -13,7 +13,8 @@
 use aret_pipe::stage::drr::CameraSet;
 use aret_pipe::train::adam::{Adam, AdamParams};
 use aret_pipe::train::field::VmField;
-use aret_pipe::train::fit::{fit, renderer, view_mse, TrainParams, Views};
+use aret_pipe::train::fit::{fit, renderer, view_mse, Views};
+use aret_pipe::train::params::{TrainParams, VmParams};
 use aret_pipe::train::regularize;
 use rand::SeedableRng;
 use std::time::Instant;
@@ -35,7 +36,8 @@ fn bench() -> anyhow::Result<()> {
     let (set, images) = CameraSet::read_published(&dir)?;
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
     // The paper's configuration: the defaults without the 3-D TV (issue 8's addition).
-    let params = TrainParams { iterations, lambda_tv3d: 0.0, ..TrainParams::default() };
+    let params =
+        TrainParams { vm: VmParams { iterations, lambda_tv3d: 0.0, ..VmParams::default() }, ..TrainParams::tensorf() };
     let (mut per_iteration, mut in_loop, mut steps) = (Vec::new(), Vec::new(), Vec::new());
     let mut last_field = None;
     for run in 0..runs {
@@ -81,7 +83,7 @@ fn profile_kernels(params: &TrainParams, views: &Views, field: &VmField<f32>) {
         views.rays().into_iter().flatten().filter(|r| views.aabb.intersect(r.origin, r.dir).is_some()).collect();
     // A batch as training draws it: a random subset, traced in pool order.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-    let mut picked = rand::seq::index::sample(&mut rng, pool.len(), params.batch_rays).into_vec();
+    let mut picked = rand::seq::index::sample(&mut rng, pool.len(), params.vm.batch_rays).into_vec();
     picked.sort_unstable();
     let batch: Vec<_> = picked.iter().map(|&i| pool[i]).collect();
     let offsets: Vec<f64> = (0..batch.len()).map(|i| renderer.step * ((i * 37) % 101) as f64 / 101.0).collect();
@@ -120,7 +122,7 @@ fn profile_kernels(params: &TrainParams, views: &Views, field: &VmField<f32>) {
         (
             "L1 + TV",
             median_ms(&mut || {
-                regularize::l1_and_tv(field, Some(1e-4), Some((params.tv_norm, 1e-5)), &mut grad);
+                regularize::l1_and_tv(field, Some(1e-4), Some((params.vm.tv_norm, 1e-5)), &mut grad);
             }),
         ),
         (

@@ -20,8 +20,7 @@ use std::collections::HashMap;
 /// Everything needed to evaluate the field besides its factors.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ModelMeta {
-    /// What the tensors hold (absent, as in files from before dense models: VM factors).
-    #[serde(default, skip_serializing_if = "FieldModel::is_vm")]
+    /// What the tensors hold.
     pub model: FieldModel,
     pub grid: usize,
     pub rank: usize,
@@ -156,11 +155,11 @@ mod tests {
         assert!(matches!(field, Field::Dense(ref s) if *s == sigma) && mask.is_none());
         assert_eq!(decoded, meta(FieldModel::DenseTv, 3, 0));
         assert!(encode_dense(&sigma[..26], &meta(FieldModel::DenseTv, 3, 0)).is_err());
-        // A VM model's metadata has no `model` key, as files written before dense models.
+        // A VM model's metadata names its model too.
         let vm = VmField::zeros(3, 2);
         let bytes = encode(&vm, None, &meta(FieldModel::Vm, 3, 2)).unwrap();
         let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
-        assert!(!header.metadata().as_ref().unwrap()["aret_pipe"].contains("model"));
+        assert!(header.metadata().as_ref().unwrap()["aret_pipe"].contains(r#""model":"vm""#));
         assert!(matches!(decode(&bytes).unwrap().0, Field::Vm(ref f) if f.rank == 2));
     }
 }

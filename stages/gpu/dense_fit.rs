@@ -2,9 +2,8 @@
 //! σ, the look-ahead point, the residual, the back-projection and the TV's normalised
 //! differences live on the GPU for a whole solve. Per step the host writes the momentum and
 //! submits project → back-project → TV direction → step; σ comes back only at logged steps
-//! and at the end of a solve. Everything else — building `A`, the step `1/L`, Bregman's
-//! targets, the reweighted L1's weights and every log row — is `train::dense_tv`'s own, in
-//! f64 on the host.
+//! and at the end of the solve. Everything else — building `A`, the step `1/L` and every log
+//! row — is `train::dense_tv`'s own, in f64 on the host.
 
 use super::buffers;
 use super::csr_times::{CsrTimes, DeviceCsr};
@@ -13,7 +12,7 @@ use super::fista_step::{self, FistaStep};
 use super::kernel::Bound;
 use super::tv_direction::TvDirection;
 use super::Gpu;
-use crate::train::dense_tv::{self, next_momentum, DenseFitted, DenseProblem, FistaSolver, Toward};
+use crate::train::dense_tv::{self, next_momentum, DenseFitted, DenseProblem, FistaSolver};
 use crate::train::fit::{LogRow, TrainParams, Views};
 use crate::train::render::Renderer;
 use std::sync::Arc;
@@ -57,8 +56,6 @@ pub struct DeviceFista {
     target: wgpu::Buffer,
     ahead: wgpu::Buffer,
     sigma: wgpu::Buffer,
-    /// The reweighted L1's per-node weights (zeros in a solve without one).
-    l1: wgpu::Buffer,
     step_uniforms: wgpu::Buffer,
     step_values: fista_step::Uniforms,
     /// Project, back-project, TV direction, step.
@@ -83,7 +80,6 @@ impl DeviceFista {
         let direction = buffers::zeroed(&gpu, "TV direction", f32s(3 * nodes))?;
         let ahead = buffers::zeroed(&gpu, "look-ahead σ", f32s(nodes))?;
         let sigma = buffers::zeroed(&gpu, "σ", f32s(nodes))?;
-        let l1 = buffers::zeroed(&gpu, "L1 weights", f32s(nodes))?;
         let step_values = fista_step::Uniforms {
             n: n as u32,
             nodes: nodes as u32,
@@ -97,7 +93,7 @@ impl DeviceFista {
         let (project, project_u) = kernels.csr_times.bind(&gpu, &rows, &ahead, Some(&target), &residual)?;
         let (back_project, back_u) = kernels.csr_times.bind(&gpu, &columns, &residual, None, &back)?;
         let (tv, tv_u) = kernels.tv_direction.bind(&gpu, n, problem.epsilon, &ahead, &direction)?;
-        let step = kernels.fista_step.bind(&gpu, &step_uniforms, [&back, &direction, &ahead, &sigma, &l1], nodes)?;
+        let step = kernels.fista_step.bind(&gpu, &step_uniforms, [&back, &direction, &ahead, &sigma], nodes)?;
         gpu.check()?;
         Ok(DeviceFista {
             gpu,
@@ -106,7 +102,6 @@ impl DeviceFista {
             target,
             ahead,
             sigma,
-            l1,
             step_uniforms,
             step_values,
             passes: [project, back_project, tv, step],
@@ -142,16 +137,11 @@ impl FistaSolver for DeviceFista {
         &mut self,
         _problem: &DenseProblem,
         sigma: &mut [f64],
-        toward: &Toward,
+        target: &[f64],
         steps: usize,
         wants: &dyn Fn(usize) -> bool,
         checkpoint: &mut dyn FnMut(usize, &[f64]),
     ) -> anyhow::Result<()> {
-        let Toward { depths: target, l1 } = *toward;
-        // The L1's weights, or zeros: one upload a solve, small beside its steps.
-        let weights: Vec<f32> =
-            if l1.is_empty() { vec![0.0; self.nodes] } else { l1.iter().map(|&w| w as f32).collect() };
-        self.gpu.queue.write_buffer(&self.l1, 0, bytemuck::cast_slice(&weights));
         let start: Vec<f32> = sigma.iter().map(|&v| v as f32).collect();
         let target: Vec<f32> = target.iter().map(|&v| v as f32).collect();
         let queue = &self.gpu.queue;

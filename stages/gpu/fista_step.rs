@@ -27,22 +27,20 @@ pub struct FistaStep {
 impl FistaStep {
     pub fn new(gpu: &Gpu) -> anyhow::Result<FistaStep> {
         let (read, write) = (Binding::Storage { read_only: true }, Binding::Storage { read_only: false });
-        Ok(FistaStep {
-            kernel: Kernel::new(gpu, "fista_step", SOURCE, &[Binding::Uniform, read, read, write, write, read])?,
-        })
+        Ok(FistaStep { kernel: Kernel::new(gpu, "fista_step", SOURCE, &[Binding::Uniform, read, read, write, write])? })
     }
 
     /// Binds a step over `nodes` (storage in the shader's order: back-projection, direction,
-    /// look-ahead, σ, the L1's weights).
+    /// look-ahead, σ).
     pub fn bind(
         &self,
         gpu: &Gpu,
         uniforms: &wgpu::Buffer,
-        storage: [&wgpu::Buffer; 5],
+        storage: [&wgpu::Buffer; 4],
         nodes: usize,
     ) -> anyhow::Result<Bound> {
-        let [back, direction, ahead, sigma, l1] = storage;
-        let resources = [whole(uniforms), whole(back), whole(direction), whole(ahead), whole(sigma), whole(l1)];
+        let [back, direction, ahead, sigma] = storage;
+        let resources = [whole(uniforms), whole(back), whole(direction), whole(ahead), whole(sigma)];
         let group = self.kernel.bind(gpu, &resources);
         Ok(Bound { group, groups: groups(gpu, nodes as u64, WORKGROUP)? })
     }

@@ -23,6 +23,7 @@ use super::Gpu;
 use crate::train::adam::AdamParams;
 use crate::train::field::VmField;
 use crate::train::fit::{self as cpu, log_row, ray_pool, renderer, Fitted, LogRow, Schedule, Step, TrainParams, Views};
+use crate::train::params::VmParams;
 use crate::train::render::{AlphaMask, PhotoLoss, Ray, Renderer};
 use std::time::Instant;
 
@@ -64,17 +65,15 @@ impl Kernels {
 /// Fails, naming the option, when `params` asks for something the shaders do not compute (since
 /// the dense model gained its shaders, nothing).
 ///
-/// The destructuring lists every `[train]` key on purpose: a new option does not compile here
-/// until someone decides whether the GPU backend covers it (and, if not, refuses it below) —
-/// the GPU must never silently train a different loss than the CPU would.
+/// The destructuring lists every `[train]` and `[train.vm]` key on purpose: a new option does
+/// not compile here until someone decides whether the GPU backend covers it (and, if not,
+/// refuses it below) — the GPU must never silently train a different loss than the CPU would.
+/// The dense fit's keys are all its solver's, which runs on either backend.
 pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
-    // Both models have shaders: the VM fit's loop here, the dense fit's in `gpu::dense_fit`.
-    let TrainParams {
-        model: _,
-        grid: _,
+    let TrainParams { model: _, grid: _, scale: _, log_every: _, backend: _, threads: _, dense_tv: _, vm } = params;
+    let VmParams {
         rank: _,
         shift: _,
-        scale: _,
         iterations: _,
         batch_rays: _,
         lr: _,
@@ -87,18 +86,8 @@ pub fn check_supported(params: &TrainParams) -> anyhow::Result<()> {
         init_scale: _,
         alpha_mask_iterations: _,
         alpha_threshold: _,
-        log_every: _,
         seed: _,
-        backend: _,
-        threads: _,
-        dense_tv_iterations: _,
-        dense_tv_lambda: _,
-        dense_tv_epsilon: _,
-        dense_tv_bregman_steps: _,
-        dense_tv_reweight_steps: _,
-        dense_tv_sparsity: _,
-        dense_tv_sparsity_eta: _,
-    } = params;
+    } = vm;
     Ok(())
 }
 
@@ -114,7 +103,7 @@ pub fn fit(gpu: &Gpu, params: &TrainParams, views: &Views, mut on_log: impl FnMu
     let per_view = views.rays();
     let pool = ray_pool(&per_view, &views.aabb);
     let (field, mut schedule) = Schedule::start(params, pool.len());
-    let batch_len = params.batch_rays.min(pool.len());
+    let batch_len = params.vm.batch_rays.min(pool.len());
     let mut device = DeviceFit::new(gpu, params, &renderer, &field, batch_len, &per_view)?;
     let mut log = Vec::new();
     // Row 0: the initial field (its "photo" is the full-view MSE), regularisers at weight 0.
@@ -122,15 +111,15 @@ pub fn fit(gpu: &Gpu, params: &TrainParams, views: &Views, mut on_log: impl FnMu
     let photo = initial.view_loss;
     let seconds = started.elapsed().as_secs_f64();
     let terms = cpu::Terms { photo, l1: initial.l1, tv: initial.tv, tv3d: initial.tv3d };
-    let row = log_row(params, 0, terms, &initial.view_mse, params.lr, seconds);
+    let row = log_row(params, 0, terms, &initial.view_mse, params.vm.lr, seconds);
     on_log(&row);
     log.push(row);
     let mut batch = Vec::with_capacity(batch_len);
     let mut offsets = Vec::with_capacity(batch_len);
-    for it in 0..params.iterations {
-        schedule.next_rays(&pool, params.batch_rays, renderer.step, &mut batch, &mut offsets);
+    for it in 0..params.vm.iterations {
+        schedule.next_rays(&pool, params.vm.batch_rays, renderer.step, &mut batch, &mut offsets);
         let lr = device.iterate(&batch, &offsets)?;
-        if params.remasks_after(it + 1) {
+        if params.vm.remasks_after(it + 1) {
             device.remask()?;
         }
         if params.logs_after(it + 1) {
@@ -222,10 +211,10 @@ impl<'g> DeviceFit<'g> {
         let most = grad_from_fixed::max_batch_rays(renderer);
         if batch_len > most {
             anyhow::bail!(
-                "[train] batch_rays = {} gives batches of {batch_len} rays, more than the GPU backend sums \
+                "[train.vm] batch_rays = {} gives batches of {batch_len} rays, more than the GPU backend sums \
                  exactly ({most} rays at this lattice's sample step: a node's integer sum takes at most 65,536 \
                  addends a batch); set batch_rays to {most} or fewer, or [train] backend = \"cpu\"",
-                params.batch_rays
+                params.vm.batch_rays
             );
         }
         let kernels = gpu.train_kernels()?;
@@ -290,26 +279,26 @@ impl<'g> DeviceFit<'g> {
         let lines = contract_lines::Shape { n: n as u32, rank: rank as u32, entries: (3 * rank * n) as u32, _pad: 0 };
         let lines_u = buffers::uniform(gpu, "contract lines", &lines);
         let lines_b = k.contract_lines.bind(gpu, &lines_u, [&factors, &dense_grad, &grad], lines.entries)?;
-        let l1_values = l1::Uniforms::new(n, rank, params.lambda_l1);
+        let l1_values = l1::Uniforms::new(n, rank, params.vm.lambda_l1);
         let l1_u = buffers::uniform(gpu, "l1", &l1_values);
         let l1_count = l1::partials(gpu, l1_values.entries)?;
         let l1_partials = buffers::zeroed(gpu, "l1 partials", bytes(l1_count))?;
         let l1_b = k.l1.bind(gpu, &l1_u, [&factors, &grad, &l1_partials], l1_values.entries)?;
-        let tv_values = tv::Uniforms::new(n, rank, params.tv_norm, params.lambda_tv);
+        let tv_values = tv::Uniforms::new(n, rank, params.vm.tv_norm, params.vm.lambda_tv);
         let tv_u = buffers::uniform(gpu, "tv", &tv_values);
         let tv_count = l1::partials(gpu, tv_values.entries)?;
         let tv_partials = buffers::zeroed(gpu, "tv partials", bytes(tv_count))?;
         let tv_b = k.tv.bind(gpu, &tv_u, [&factors, &grad, &tv_partials], tv_values.entries)?;
-        let tv_dense_values = tv_dense::Uniforms::new(n, params.lambda_tv3d);
+        let tv_dense_values = tv_dense::Uniforms::new(n, params.vm.lambda_tv3d);
         let tv_dense_u = buffers::uniform(gpu, "tv dense", &tv_dense_values);
         let tv_dense_count = l1::partials(gpu, tv_dense_values.nodes)?;
         let tv_dense_partials = buffers::zeroed(gpu, "tv dense partials", bytes(tv_dense_count))?;
         let tv_dense_b =
             k.tv_dense.bind(gpu, &tv_dense_u, [&dense, &dense_grad, &tv_dense_partials], tv_dense_values.nodes)?;
-        let adam_params = params.adam();
+        let adam_params = params.vm.adam();
         let adam_u = buffers::uniform(gpu, "adam", &adam::Uniforms::new(entries, &adam_params, &adam_params.step(0)));
         let adam_b = k.adam.bind(gpu, &adam_u, &grad, &factors, [&moments[0], &moments[1]], entries)?;
-        let alpha_values = alpha_mask::Uniforms::new(renderer, params.alpha_threshold);
+        let alpha_values = alpha_mask::Uniforms::new(renderer, params.vm.alpha_threshold);
         let alpha_u = buffers::uniform(gpu, "alpha mask", &alpha_values);
         let alpha_b = k.alpha_mask.bind(gpu, (&alpha_u, alpha_values), &dense, &mask_nodes)?;
         gpu.check()?;

@@ -124,6 +124,6 @@ mod tests {
         // The paper's configuration (cubic cells, half-cell steps, 2048 rays) fits with room.
         let cubic = renderer(&TrainParams::default(), Aabb::new([-1.0; 3], [1.0; 3]));
         assert_eq!(max_batch_rays(&cubic), CHUNKS_PER_WORD / 12);
-        assert!(TrainParams::default().batch_rays <= max_batch_rays(&cubic));
+        assert!(TrainParams::default().vm.batch_rays <= max_batch_rays(&cubic));
     }
 }

@@ -10,7 +10,7 @@
 //! slice along x, y and z, so that the nodules inside it belong to the field.
 
 use super::components::{label, Connectivity};
-use super::filters::{blob_response, fill_holes_per_slice, gaussian_mm, hessian_blob_response, otsu_threshold};
+use super::filters::{fill_holes_per_slice, gaussian_mm, hessian_blob_response, otsu_threshold};
 use super::morphology;
 use rayon::prelude::*;
 
@@ -94,28 +94,6 @@ pub fn blob_sites(depth_mm: &[f64], dims: [usize; 3], spacing_mm: [f64; 3], insi
     depth_mm.iter().enumerate().map(|(i, &d)| d > inside_mm && far_from_faces(i)).collect()
 }
 
-/// Which scale-normalised bright-blob response the search maximises.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum BlobFilter {
-    /// `−s²∇²(G_s ∗ σ)`, the Laplacian of Gaussian ([`blob_response`]): also positive along
-    /// bright lines and beside edges.
-    Laplacian,
-    /// `s²·max(0, −λ₁)`, the Hessian's least-negative curvature ([`hessian_blob_response`]):
-    /// positive only where σ curves down along all three axes, so vessels and streaks do not
-    /// answer.
-    Hessian,
-}
-
-impl BlobFilter {
-    pub fn response(self, density: &[f32], dims: [usize; 3], spacing_mm: [f64; 3], s_mm: f64) -> Vec<f32> {
-        match self {
-            BlobFilter::Laplacian => blob_response(density, dims, spacing_mm, s_mm),
-            BlobFilter::Hessian => hessian_blob_response(density, dims, spacing_mm, s_mm),
-        }
-    }
-}
-
 /// Every blob the search could answer with, strongest first: the `sites` whose response
 /// (the max over `scales_mm`, each node keeping its first strongest scale) is positive and at
 /// least that of every neighbouring site (26-connected). The first is the strongest response
@@ -124,12 +102,11 @@ pub fn ranked_blobs(
     density: &[f32],
     dims: [usize; 3],
     spacing_mm: [f64; 3],
-    filter: BlobFilter,
     scales_mm: &[f64],
     sites: &[bool],
 ) -> Vec<BlobPeak> {
     let responses: Vec<Vec<f32>> =
-        scales_mm.par_iter().map(|&scale_mm| filter.response(density, dims, spacing_mm, scale_mm)).collect();
+        scales_mm.par_iter().map(|&scale_mm| hessian_blob_response(density, dims, spacing_mm, scale_mm)).collect();
     // The strongest response at each node, and the index of its first scale.
     let mut best: Vec<(f32, usize)> = vec![(f32::NEG_INFINITY, 0); density.len()];
     for (k, response) in responses.iter().enumerate() {

@@ -56,9 +56,7 @@ pub struct PhantomParams {
     /// Radius at which the pulmonary vessel trees stop branching, mm of a 340-mm-wide body
     /// (scaled with it).
     pub min_vessel_radius_mm: f32,
-    /// How far each nodule's tissue reaches. Left out of the cache key at its default, so the
-    /// phantoms generated before it existed stay cached.
-    #[serde(skip_serializing_if = "NoduleExtent::is_union")]
+    /// How far each nodule's tissue reaches.
     pub nodule_extent: NoduleExtent,
 }
 
@@ -69,7 +67,6 @@ pub enum NoduleExtent {
     /// Every voxel any reader drew, at the nodule's full attenuation: the object is the union
     /// of the contours, larger than the 50 % consensus the metrics measure against (1.0–1.8×,
     /// median 1.24× on the paper's 19 targets).
-    #[default]
     Union,
     /// Each voxel filled by the fraction of readers who drew it: where they disagree the edge
     /// is graded, and the object's half-attenuation surface is the 50 % consensus.
@@ -77,13 +74,8 @@ pub enum NoduleExtent {
     /// The 50 % consensus itself (pylidc's default `clevel`, the metrics' default), at full
     /// attenuation: the object is the ground truth the metrics score against, with the same
     /// partial-volume edge as the union.
+    #[default]
     Consensus,
-}
-
-impl NoduleExtent {
-    fn is_union(&self) -> bool {
-        *self == NoduleExtent::Union
-    }
 }
 
 impl Default for PhantomParams {
@@ -94,7 +86,7 @@ impl Default for PhantomParams {
             lung_hu: -850.0,
             lung_texture_hu: 25.0,
             min_vessel_radius_mm: 0.3,
-            nodule_extent: NoduleExtent::Union,
+            nodule_extent: NoduleExtent::Consensus,
         }
     }
 }
@@ -172,9 +164,9 @@ mod tests {
     }
 
     #[test]
-    fn the_default_extent_leaves_the_cache_key_as_it_was() {
+    fn the_extent_is_part_of_the_cache_key() {
         let default = serde_json::to_value(PhantomParams::default()).unwrap();
-        assert!(default.get("nodule_extent").is_none(), "{default}");
+        assert_eq!(default["nodule_extent"], "consensus", "{default}");
         let readers = PhantomParams { nodule_extent: NoduleExtent::Readers, ..PhantomParams::default() };
         assert_eq!(serde_json::to_value(readers).unwrap()["nodule_extent"], "readers");
     }

@@ -24,7 +24,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal, Poisson};
 use serde::{Deserialize, Serialize};
 
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 
 /// `focal_px`: a number of pixels, or `"fit"`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -92,17 +92,31 @@ pub struct Params {
     pub seed: u64,
     /// Where the rays are marched: "cpu", "gpu" or "auto" (resolved before the cache key).
     pub backend: Backend,
-    /// `roi_center = "tiles"`: how many boxes along x, y and z.
-    pub tiles: [usize; 3],
-    /// `roi_center = "tiles"`: the distance between neighbouring boxes' centres (mm).
-    pub tile_step_mm: [f64; 3],
+    /// `roi_center = "tiles"`: the grid of boxes.
+    pub tiles: TileParams,
+}
+
+/// `[drr.tiles]`: the boxes of `roi_center = "tiles"`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TileParams {
+    /// How many boxes along x, y and z.
+    pub counts: [usize; 3],
+    /// The distance between neighbouring boxes' centres (mm).
+    pub step_mm: [f64; 3],
+}
+
+impl Default for TileParams {
+    fn default() -> Self {
+        TileParams { counts: [2, 3, 3], step_mm: [132.0, 74.0, 120.0] }
+    }
 }
 
 impl Default for Params {
     fn default() -> Self {
         Params {
-            width_px: 128,
-            height_px: 128,
+            width_px: 256,
+            height_px: 256,
             focal_px: Focal::Mode(FocalMode::Fit),
             distance: 50.0,
             mm_per_unit: 40.0,
@@ -117,8 +131,7 @@ impl Default for Params {
             view_angle_offsets_deg: [0.0; 3],
             seed: 0,
             backend: Backend::Cpu,
-            tiles: [2, 3, 3],
-            tile_step_mm: [132.0, 74.0, 120.0],
+            tiles: TileParams::default(),
         }
     }
 }
@@ -156,11 +169,11 @@ impl Params {
                 bail!("[drr] {key} must be ≥ 0 (got {v})");
             }
         }
-        if self.tiles.contains(&0) {
-            bail!("[drr] tiles must be at least 1 along every axis (got {:?})", self.tiles);
+        if self.tiles.counts.contains(&0) {
+            bail!("[drr.tiles] counts must be at least 1 along every axis (got {:?})", self.tiles.counts);
         }
-        if self.tile_step_mm.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
-            bail!("[drr] tile_step_mm must be positive on every axis (got {:?})", self.tile_step_mm);
+        if self.tiles.step_mm.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            bail!("[drr.tiles] step_mm must be positive on every axis (got {:?})", self.tiles.step_mm);
         }
         if self.aabb_min.iter().chain(&self.aabb_max).any(|&c| c.abs() >= self.distance) {
             bail!("[drr] the cameras (distance {}) must stay outside the box", self.distance);
@@ -178,17 +191,18 @@ impl Params {
 
     /// How many boxes tile the lungs (`roi_center = "tiles"`), x slowest, z fastest.
     pub fn tile_count(&self) -> usize {
-        self.tiles.iter().product()
+        self.tiles.counts.iter().product()
     }
 
     /// The scene origin of box `tile` whose grid is centred on `lungs_mm`: the box's own
-    /// centre lies `(i − (n − 1)/2) · tile_step_mm` from it on each axis.
+    /// centre lies `(i − (n − 1)/2) · step_mm` from it on each axis.
     pub fn tile_origin_mm(&self, lungs_mm: [f64; 3], tile: usize) -> [f64; 3] {
-        let [_, ny, nz] = self.tiles;
+        let TileParams { counts, step_mm } = self.tiles;
+        let [_, ny, nz] = counts;
         let index = [tile / (ny * nz), (tile / nz) % ny, tile % nz];
         std::array::from_fn(|a| {
             let box_centre = (self.aabb_min[a] + self.aabb_max[a]) / 2.0 * self.mm_per_unit;
-            let offset = (index[a] as f64 - (self.tiles[a] as f64 - 1.0) / 2.0) * self.tile_step_mm[a];
+            let offset = (index[a] as f64 - (counts[a] as f64 - 1.0) / 2.0) * step_mm[a];
             lungs_mm[a] + offset - box_centre
         })
     }
@@ -248,16 +262,9 @@ impl Stage for Drr {
     fn params(&self) -> serde_json::Value {
         let backend = self.params.backend.resolve("[drr]");
         let mut json = super::params_json(&Params { backend, ..self.params.clone() });
-        // The key names the backend only when it is the GPU: DRRs cached before the GPU
-        // backend existed were the CPU's, and stay valid.
-        let table = json.as_object_mut().expect("params are a table");
-        if backend == Backend::Cpu {
-            table.remove("backend");
-        }
-        // The tiling's keys matter only to a tiling, and DRRs cached before it existed stay valid.
+        // The boxes' grid is read only by a tiling.
         if !self.params.tiling() {
-            table.remove("tiles");
-            table.remove("tile_step_mm");
+            json.as_object_mut().expect("params are a table").remove("tiles");
         }
         json
     }

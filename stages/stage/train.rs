@@ -20,42 +20,10 @@ use crate::volume::Volume;
 use anyhow::bail;
 use std::fmt::Write as _;
 
-pub const VERSION: u32 = 4;
-
-/// The `[train]` keys only the VM fit reads.
-const VM_ONLY_KEYS: [&str; 15] = [
-    "rank",
-    "iterations",
-    "shift",
-    "batch_rays",
-    "lr",
-    "lr_decay_ratio",
-    "lambda_l1",
-    "lambda_tv",
-    "tv_norm",
-    "lambda_tv3d",
-    "loss",
-    "init_scale",
-    "alpha_mask_iterations",
-    "alpha_threshold",
-    "seed",
-];
-
-/// The `[train]` keys only the dense fit reads (`model` too: absent, the VM fit's keys stay as
-/// they were before dense models).
-const DENSE_ONLY_KEYS: [&str; 8] = [
-    "model",
-    "dense_tv_iterations",
-    "dense_tv_lambda",
-    "dense_tv_epsilon",
-    "dense_tv_bregman_steps",
-    "dense_tv_reweight_steps",
-    "dense_tv_sparsity",
-    "dense_tv_sparsity_eta",
-];
+pub const VERSION: u32 = 5;
 
 /// `[train]` is the fit's own parameter table.
-pub use crate::train::fit::{Backend, TrainParams as Params};
+pub use crate::train::params::{Backend, TrainParams as Params};
 
 pub struct Train {
     pub params: Params,
@@ -87,23 +55,7 @@ impl Stage for Train {
         &["drr", "hu"]
     }
     fn params(&self) -> serde_json::Value {
-        let resolved = Params { backend: self.backend(), ..self.params.clone() };
-        let mut json = super::params_json(&resolved);
-        let table = json.as_object_mut().expect("params are a table");
-        // Only what the chosen model reads is part of its key (so VM fits keep their keys).
-        if self.params.model == FieldModel::Truth {
-            // The CT on the lattice depends on the lattice and s alone.
-            table.retain(|key, _| ["model", "grid", "scale"].contains(&key.as_str()));
-            return json;
-        }
-        let unread: &[&str] = match self.params.model {
-            FieldModel::Vm => &DENSE_ONLY_KEYS,
-            _ => &VM_ONLY_KEYS,
-        };
-        for key in unread.iter().chain(&["threads"]) {
-            table.remove(*key);
-        }
-        json
+        Params { backend: self.backend(), ..self.params.clone() }.key()
     }
     fn reads(&self, stage: &str, output: &str) -> bool {
         match stage {
@@ -175,13 +127,13 @@ impl Train {
         let meta = ModelMeta {
             model: FieldModel::Vm,
             grid: params.grid,
-            rank: params.rank,
+            rank: params.vm.rank,
             aabb: views.aabb,
-            shift: params.shift,
+            shift: params.vm.shift,
             scale: params.scale,
             step: fitted.renderer.step,
-            seed: params.seed,
-            iterations: params.iterations,
+            seed: params.vm.seed,
+            iterations: params.vm.iterations,
             backend: self.backend().name().into(),
             parameters: fitted.field.len(),
         };
@@ -199,7 +151,7 @@ impl Train {
         let params = &self.params;
         let renderer = renderer(params, views.aabb);
         let fitted = self.in_pool(|| fit_on(params, views, &renderer))??;
-        let meta = self.lattice_meta(FieldModel::DenseTv, &renderer, params.dense_tv_iterations, self.backend());
+        let meta = self.lattice_meta(FieldModel::DenseTv, &renderer, params.dense_tv.iterations, self.backend());
         Ok((model::encode_dense(&fitted.sigma, &meta)?, fitted.log))
     }
 

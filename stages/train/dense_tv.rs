@@ -215,7 +215,7 @@ impl DenseProblem {
         let seen: Vec<bool> = projector.rows.offsets.windows(2).map(|w| w[1] > w[0]).collect();
         let rays_seen = seen.iter().filter(|&&s| s).count().max(1) as f64;
         let measured = rays.iter().map(|r| -r.target.max(MIN_INTENSITY).ln()).collect();
-        let (lambda, epsilon) = (params.dense_tv_lambda, params.dense_tv_epsilon);
+        let (lambda, epsilon) = (params.dense_tv.lambda, params.dense_tv.epsilon);
         let step = 1.0 / lipschitz(&projector, n * n * n, rays_seen, lambda, epsilon);
         DenseProblem { n, projector, seen, rays_seen, measured, lambda, epsilon, step }
     }
@@ -252,23 +252,16 @@ impl DenseProblem {
     }
 }
 
-/// What one solve fits: the depths (the measured ones, or Bregman's), and the reweighted L1's
-/// per-node weights `l1[i]`, each adding `l1[i] · σ[i]` to E (empty: no L1).
-pub struct Toward<'a> {
-    pub depths: &'a [f64],
-    pub l1: &'a [f64],
-}
-
 /// FISTA on E toward given depths: [`CpuFista`] here, or the device's loop (`gpu::dense_fit`).
 pub trait FistaSolver {
-    /// Runs `steps` FISTA steps on `problem` from `sigma` (restarting the momentum) toward
-    /// `toward`, and leaves the last iterate in `sigma`. After each step `k` (from 1) for which
+    /// Runs `steps` FISTA steps on `problem` from `sigma` toward the depths `target`, and
+    /// leaves the last iterate in `sigma`. After each step `k` (from 1) for which
     /// `wants(k)`, it hands σ to `checkpoint`.
     fn solve(
         &mut self,
         problem: &DenseProblem,
         sigma: &mut [f64],
-        toward: &Toward,
+        target: &[f64],
         steps: usize,
         wants: &dyn Fn(usize) -> bool,
         checkpoint: &mut dyn FnMut(usize, &[f64]),
@@ -301,13 +294,12 @@ impl FistaSolver for CpuFista {
         &mut self,
         problem: &DenseProblem,
         sigma: &mut [f64],
-        toward: &Toward,
+        target: &[f64],
         steps: usize,
         wants: &dyn Fn(usize) -> bool,
         checkpoint: &mut dyn FnMut(usize, &[f64]),
     ) -> anyhow::Result<()> {
         let (n, b, step, epsilon) = (problem.n, problem.rays_seen, problem.step, problem.epsilon);
-        let Toward { depths: target, l1 } = *toward;
         let w = problem.lambda / problem.nodes() as f64;
         let (gradient, next, p) = (&mut self.gradient, &mut self.next, &mut self.p);
         let (mut ahead, mut t) = (sigma.to_vec(), 1.0f64);
@@ -316,16 +308,7 @@ impl FistaSolver for CpuFista {
             problem.projector.back_into(&problem.residual(&problem.projector.depths(&ahead), target), gradient);
             p.par_iter_mut().enumerate().for_each(|(i, p)| *p = normalised_difference(&ahead, n, epsilon, i).1);
             gradient.par_iter_mut().enumerate().for_each(|(i, g)| *g = *g / b + w * tv_gradient_at(p, n, i));
-            if l1.is_empty() {
-                next.par_iter_mut().zip(&ahead).zip(&*gradient).for_each(|((x, a), g)| *x = (a - step * g).max(0.0));
-            } else {
-                // The L1's proximal step on σ ≥ 0: a shift down by step · l1, then the clamp.
-                next.par_iter_mut()
-                    .zip(&ahead)
-                    .zip(&*gradient)
-                    .zip(l1)
-                    .for_each(|(((x, a), g), w)| *x = (a - step * (g + w)).max(0.0));
-            }
+            next.par_iter_mut().zip(&ahead).zip(&*gradient).for_each(|((x, a), g)| *x = (a - step * g).max(0.0));
             let (t_next, momentum) = next_momentum(t);
             ahead.par_iter_mut().zip(&*next).zip(&*sigma).for_each(|((a, x), old)| *a = x + momentum * (x - old));
             sigma.copy_from_slice(next);
@@ -344,16 +327,9 @@ pub fn fit(params: &TrainParams, views: &Views, renderer: &Renderer, on_log: imp
         .expect("the CPU solver does not fail")
 }
 
-/// Fits σ to `views` as the module describes, `params.dense_tv_iterations` FISTA steps by the
+/// Fits σ to `views` as the module describes, `params.dense_tv.iterations` FISTA steps by the
 /// solver `solver_for` makes, logging as the VM fit logs (`photo` is the data term, `tv3d` the
-/// smoothed TV, `lr` the step `1/L`; every row evaluated here, in f64, whatever the solver). With
-/// `dense_tv_bregman_steps` > 0 it then solves again that many times, each from the last σ with
-/// the views' residual added to the depths it fits (Bregman iteration: TV takes contrast from a
-/// small object, in proportion to its surface over its volume, and each step gives it back);
-/// the log keeps E against the measured depths. With `dense_tv_reweight_steps` > 0 and
-/// `dense_tv_sparsity` μ it then solves that many more times, each from the last σ with
-/// `μ/N³ Σ η/(σ_last + η) · σ` added to E (a reweighted L1: Candès, Wakin and Boyd's
-/// iteration toward sparsity); the log leaves that term out, so its rows compare across fits.
+/// smoothed TV, `lr` the step `1/L`; every row evaluated here, in f64, whatever the solver).
 pub fn fit_with<S: FistaSolver>(
     params: &TrainParams,
     views: &Views,
@@ -374,27 +350,10 @@ pub fn fit_with<S: FistaSolver>(
     let mut sigma = vec![0.0; problem.nodes()];
     record(0, &problem.evaluate(&sigma));
     let mut solver = solver_for(&problem)?;
-    // Bregman: each later solve fits the depths plus what the last σ left unexplained. Then
-    // the reweighted L1's solves, each weighing σ by η/(σ_last + η), toward the last depths.
-    let mut target = problem.measured.clone();
-    let steps = params.dense_tv_iterations;
-    let bregman = params.dense_tv_bregman_steps;
-    let (mu, eta) = (params.dense_tv_sparsity / problem.nodes() as f64, params.dense_tv_sparsity_eta);
-    for solve in 0..=bregman + params.dense_tv_reweight_steps {
-        if (1..=bregman).contains(&solve) {
-            for (t, r) in target.iter_mut().zip(problem.residual(&problem.projector.depths(&sigma), &problem.measured))
-            {
-                *t -= r;
-            }
-        }
-        let l1: Vec<f64> =
-            if solve > bregman { sigma.iter().map(|&v| mu * eta / (v + eta)).collect() } else { Vec::new() };
-        let first = solve * steps;
-        let wants = |k: usize| params.logs_after(first + k);
-        solver.solve(&problem, &mut sigma, &Toward { depths: &target, l1: &l1 }, steps, &wants, &mut |k, sigma| {
-            record(first + k, &problem.evaluate(sigma))
-        })?;
-    }
+    let wants = |k: usize| params.logs_after(k);
+    solver.solve(&problem, &mut sigma, &problem.measured, params.dense_tv.iterations, &wants, &mut |k, sigma| {
+        record(k, &problem.evaluate(sigma))
+    })?;
     Ok(DenseFitted { sigma: sigma.iter().map(|&v| v as f32).collect(), log })
 }
 

@@ -1,226 +1,19 @@
 //! The training loop: Adam on MSE + λ1·L1 + λ2·TV over seeded ray batches (SPEC §3 train).
 
-use super::adam::{Adam, AdamParams};
+use super::adam::Adam;
 use super::field::VmField;
 use super::huge_pages::HugePageBuffer;
+pub use super::params::{Backend, FieldModel, TrainParams};
 use super::regularize::{self, Penalties, TvNorm};
-use super::render::{AlphaMask, BatchResult, Lattice, PhotoLoss, Ray, Renderer, MAX_GRID};
+use super::render::{AlphaMask, BatchResult, Lattice, PhotoLoss, Ray, Renderer};
 use crate::geometry::{Aabb, Camera};
 use crate::kernels::wide::with_avx2;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use std::time::Instant;
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct TrainParams {
-    /// What is fitted: TensoRF's VM factors (SPEC §3) or a dense lattice under 3-D TV (or, as a
-    /// ceiling, nothing: the true CT on the lattice).
-    pub model: FieldModel,
-    /// Lattice nodes per axis (N); planes are N×N, lines N.
-    pub grid: usize,
-    /// Components per plane/line pair (R).
-    pub rank: usize,
-    /// Δ in σ = ReLU(f + Δ).
-    pub shift: f64,
-    /// s in Î = exp(−s · Σ σ δ).
-    pub scale: f64,
-    pub iterations: usize,
-    pub batch_rays: usize,
-    pub lr: f64,
-    /// Learning rate at the end over at the start (exponential decay).
-    pub lr_decay_ratio: f64,
-    pub lambda_l1: f64,
-    pub lambda_tv: f64,
-    pub tv_norm: TvNorm,
-    /// Weight of the 3-D TV of the composed field F (0: off, as in the paper).
-    pub lambda_tv3d: f64,
-    /// What the photometric term compares: intensities (the paper) or optical depths.
-    pub loss: PhotoLoss,
-    /// Factors start as `init_scale · N(0, 1)`.
-    pub init_scale: f64,
-    /// Iterations after which the alpha mask is (re)computed.
-    pub alpha_mask_iterations: Vec<usize>,
-    pub alpha_threshold: f64,
-    /// Evaluate and log every this many iterations (and at the last).
-    pub log_every: usize,
-    pub seed: u64,
-    /// `model = "dense_tv"`: FISTA steps (`iterations` counts the VM fit's Adam steps).
-    pub dense_tv_iterations: usize,
-    /// `model = "dense_tv"`: the weight λ of the smoothed 3-D TV (per node, against the data
-    /// term per ray).
-    pub dense_tv_lambda: f64,
-    /// `model = "dense_tv"`: ε of the smoothed TV `√(|∇σ|² + ε²)`, in σ per lattice step.
-    pub dense_tv_epsilon: f64,
-    /// `model = "dense_tv"`: Bregman steps after the first solve (0: none). Each adds the views'
-    /// residual back to the measured depths and solves again from the last σ, which returns the
-    /// contrast the TV took from small objects. Left out of the cache key at 0, so the dense
-    /// fits made before it existed stay cached.
-    #[serde(skip_serializing_if = "crate::is_zero")]
-    pub dense_tv_bregman_steps: usize,
-    /// `model = "dense_tv"`: solves after the first (and its Bregman steps) that add a
-    /// reweighted L1 of σ, `μ/N³ Σ w σ` with `w = η/(σ_last + η)`: cheap where σ is already
-    /// dense, dear where it is faint, so each solve draws the mass the three views leave
-    /// ambiguous into the objects they agree on (0: none; left out of the cache key at 0).
-    #[serde(skip_serializing_if = "crate::is_zero")]
-    pub dense_tv_reweight_steps: usize,
-    /// `model = "dense_tv"`: μ of the reweighted L1 (per node, against the data term per ray).
-    #[serde(skip_serializing_if = "crate::is_zero_f64")]
-    pub dense_tv_sparsity: f64,
-    /// `model = "dense_tv"`: η of the reweighted L1's weights, in σ (left out of the cache key
-    /// at its default).
-    #[serde(skip_serializing_if = "is_default_sparsity_eta")]
-    pub dense_tv_sparsity_eta: f64,
-    /// Where the fit runs (part of the cache key: backends differ in rounding).
-    pub backend: Backend,
-    /// Worker threads (0: all cores). Results do not depend on it: not part of the cache key.
-    pub threads: usize,
-}
-
-/// η of the reweighted L1, in σ: about the lung parenchyma's level (−850 HU in the default
-/// window). The weights η/(σ + η) then run from 1 where σ is 0 through 1/2 at the parenchyma
-/// to about 1/8 at soft tissue (σ ≈ 0.7).
-pub const DEFAULT_SPARSITY_ETA: f64 = 0.1;
-
-fn is_default_sparsity_eta(eta: &f64) -> bool {
-    *eta == DEFAULT_SPARSITY_ETA
-}
-
-/// What `train` fits.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum FieldModel {
-    /// TensoRF's vector–matrix factors (SPEC §3 train).
-    #[default]
-    Vm,
-    /// σ itself on the N³ lattice, fitted to the optical depths under a smoothed 3-D TV by a
-    /// convex solver ([`super::dense_tv`]; its steps on the CPU or the GPU). `pipeline.toml` ships
-    /// it, on 128³.
-    DenseTv,
-    /// No fit: the true CT averaged over each lattice cell ([`super::truth`]), the field a
-    /// perfect fit would reach on that lattice. A ceiling for measuring `select`, not a method.
-    Truth,
-}
-
-impl FieldModel {
-    pub fn is_vm(&self) -> bool {
-        *self == FieldModel::Vm
-    }
-}
-
-/// Where the training runs (shared with `[drr] backend`).
-pub use crate::gpu::Backend;
-
-impl TrainParams {
-    pub fn check(&self) -> anyhow::Result<()> {
-        if self.grid < 2
-            || self.grid > MAX_GRID
-            || self.rank == 0
-            || self.iterations == 0
-            || self.batch_rays == 0
-            || self.dense_tv_iterations == 0
-        {
-            anyhow::bail!(
-                "[train] grid must be in [2, {MAX_GRID}] and rank, iterations, batch_rays, dense_tv_iterations ≥ 1"
-            );
-        }
-        for (key, v) in [
-            ("scale", self.scale),
-            ("lr", self.lr),
-            ("lr_decay_ratio", self.lr_decay_ratio),
-            ("dense_tv_epsilon", self.dense_tv_epsilon),
-            ("dense_tv_sparsity_eta", self.dense_tv_sparsity_eta),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                anyhow::bail!("[train] {key} must be positive (got {v})");
-            }
-        }
-        for (key, v) in [("dense_tv_lambda", self.dense_tv_lambda), ("dense_tv_sparsity", self.dense_tv_sparsity)] {
-            if !(v.is_finite() && v >= 0.0) {
-                anyhow::bail!("[train] {key} must be 0 or more (got {v})");
-            }
-        }
-        if self.dense_tv_sparsity > 0.0 && self.dense_tv_reweight_steps == 0 {
-            anyhow::bail!(
-                "[train] dense_tv_sparsity = {} does nothing without dense_tv_reweight_steps ≥ 1 (the solves that \
-                 add it); set both, or leave dense_tv_sparsity at 0",
-                self.dense_tv_sparsity
-            );
-        }
-        Ok(())
-    }
-
-    /// Whether the three views are evaluated and a row logged after `done` iterations.
-    pub fn logs_after(&self, done: usize) -> bool {
-        done.is_multiple_of(self.log_every.max(1)) || done == self.steps()
-    }
-
-    /// The fit's length: Adam iterations (VM) or FISTA steps (dense).
-    pub fn steps(&self) -> usize {
-        match self.model {
-            FieldModel::Vm => self.iterations,
-            FieldModel::DenseTv => {
-                self.dense_tv_iterations * (self.dense_tv_bregman_steps + 1 + self.dense_tv_reweight_steps)
-            }
-            FieldModel::Truth => 0,
-        }
-    }
-
-    /// Whether the alpha mask is (re)computed after `done` iterations.
-    pub fn remasks_after(&self, done: usize) -> bool {
-        self.alpha_mask_iterations.contains(&done)
-    }
-
-    /// The optimiser: TensoRF's Adam with the configured rate and decay.
-    pub fn adam(&self) -> AdamParams {
-        AdamParams {
-            lr: self.lr,
-            beta1: 0.9,
-            beta2: 0.99,
-            eps: 1e-8,
-            decay_ratio: self.lr_decay_ratio,
-            iterations: self.iterations,
-        }
-    }
-}
-
-impl Default for TrainParams {
-    fn default() -> Self {
-        TrainParams {
-            model: FieldModel::Vm,
-            grid: 64,
-            rank: 16,
-            shift: 0.0,
-            scale: 1.0,
-            iterations: 3000,
-            batch_rays: 2048,
-            lr: 0.02,
-            lr_decay_ratio: 0.1,
-            lambda_l1: 1e-4,
-            lambda_tv: 1e-5,
-            tv_norm: TvNorm::L1,
-            lambda_tv3d: 1e-4,
-            loss: PhotoLoss::Intensity,
-            init_scale: 0.1,
-            alpha_mask_iterations: vec![1500, 2500],
-            alpha_threshold: 1e-3,
-            log_every: 100,
-            seed: 0,
-            dense_tv_iterations: 500,
-            dense_tv_lambda: 1e-2,
-            dense_tv_epsilon: 1e-3,
-            dense_tv_bregman_steps: 0,
-            dense_tv_reweight_steps: 0,
-            dense_tv_sparsity: 0.0,
-            dense_tv_sparsity_eta: DEFAULT_SPARSITY_ETA,
-            backend: Backend::Cpu,
-            threads: 0,
-        }
-    }
-}
 
 /// One logged iteration.
 #[derive(Debug, Clone, Serialize)]
@@ -280,16 +73,15 @@ pub struct Fitted {
     pub step_seconds: Vec<f64>,
 }
 
-/// The renderer of `params` on `aabb`: samples every half mean voxel.
+/// The renderer of `params` on `aabb`: samples every half mean voxel. Only the VM field has a
+/// shift and a choice of photometric loss; a lattice of σ renders σ itself.
 pub fn renderer(params: &TrainParams, aabb: Aabb) -> Renderer {
     let mean_voxel = (0..3).map(|a| (aabb.max[a] - aabb.min[a]) / params.grid as f64).sum::<f64>() / 3.0;
-    Renderer {
-        lattice: Lattice { n: params.grid, aabb },
-        shift: params.shift,
-        scale: params.scale,
-        step: 0.5 * mean_voxel,
-        loss: params.loss,
-    }
+    let (shift, loss) = match params.model {
+        FieldModel::Vm => (params.vm.shift, params.vm.loss),
+        _ => (0.0, PhotoLoss::Intensity),
+    };
+    Renderer { lattice: Lattice { n: params.grid, aabb }, shift, scale: params.scale, step: 0.5 * mean_voxel, loss }
 }
 
 /// The rays training draws from: those of `per_view` that meet the box (TensoRF's filtering).
@@ -314,9 +106,9 @@ pub struct Schedule {
 impl Schedule {
     /// The initial field of `params` and the batch schedule over a pool of `pool_len` rays.
     pub fn start(params: &TrainParams, pool_len: usize) -> (VmField<f32>, Schedule) {
-        let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
-        let field = VmField::random(params.grid, params.rank, params.init_scale, rng.gen());
-        (field, Schedule::over(rng, pool_len, params.batch_rays))
+        let mut rng = ChaCha8Rng::seed_from_u64(params.vm.seed);
+        let field = VmField::random(params.grid, params.vm.rank, params.vm.init_scale, rng.gen());
+        (field, Schedule::over(rng, pool_len, params.vm.batch_rays))
     }
 
     /// The batches of a pool of `pool_len` rays drawn from `rng`.
@@ -407,7 +199,7 @@ pub struct Terms {
 impl Terms {
     /// The weighted sum: the loss.
     pub fn loss(&self, params: &TrainParams) -> f64 {
-        self.photo + params.lambda_l1 * self.l1 + params.lambda_tv * self.tv + params.lambda_tv3d * self.tv3d
+        self.photo + params.vm.lambda_l1 * self.l1 + params.vm.lambda_tv * self.tv + params.vm.lambda_tv3d * self.tv3d
     }
 }
 
@@ -453,7 +245,7 @@ pub struct BatchStep<'a> {
 pub fn gradient(params: &TrainParams, step: BatchStep, buffers: &mut StepBuffers) -> Terms {
     let mut terms = photometric_gradient(params, step, buffers);
     (terms.l1, terms.tv) =
-        regularize::l1_and_tv(step.field, Some(params.lambda_l1 as f32), tv_weight(params), &mut buffers.grad);
+        regularize::l1_and_tv(step.field, Some(params.vm.lambda_l1 as f32), tv_weight(params), &mut buffers.grad);
     terms
 }
 
@@ -468,8 +260,8 @@ fn photometric_gradient(params: &TrainParams, step: BatchStep, buffers: &mut Ste
     let (result, prepared) =
         rayon::join(|| renderer.batch(dense, mask, rays, offsets, Some(grad_dense)), || field.prepare_contraction());
     // The 3-D TV acts on F itself: its gradient joins dL/dF before the contraction.
-    let tv3d = if params.lambda_tv3d > 0.0 {
-        regularize::tv_dense(dense, field.n, params.lambda_tv3d as f32, grad_dense)
+    let tv3d = if params.vm.lambda_tv3d > 0.0 {
+        regularize::tv_dense(dense, field.n, params.vm.lambda_tv3d as f32, grad_dense)
     } else if logged {
         tv_dense_value(dense, field.n)
     } else {
@@ -481,7 +273,7 @@ fn photometric_gradient(params: &TrainParams, step: BatchStep, buffers: &mut Ste
 
 /// The planes' TV norm and weight.
 fn tv_weight(params: &TrainParams) -> Option<(TvNorm, f32)> {
-    Some((params.tv_norm, params.lambda_tv as f32))
+    Some((params.vm.tv_norm, params.vm.lambda_tv as f32))
 }
 
 /// Adds the L1 and TV gradients to `grad` and updates `field` by Adam, in one parallel pass
@@ -497,7 +289,7 @@ pub fn regularize_and_update(
     adam: &mut Adam<f32>,
     logged: bool,
 ) -> (f64, (f64, f64)) {
-    let penalties = Penalties::new(field, Some(params.lambda_l1 as f32), tv_weight(params));
+    let penalties = Penalties::new(field, Some(params.vm.lambda_l1 as f32), tv_weight(params));
     let penalties = if logged { penalties } else { penalties.gradient_only() };
     let (lr, update, m, v) = adam.begin_update();
     let tasks: Vec<_> = field
@@ -528,7 +320,7 @@ pub fn terms_of(params: &TrainParams, field: &VmField<f32>, photo: f64) -> Terms
     Terms {
         photo,
         l1: regularize::l1(field, 0.0, &mut scratch),
-        tv: regularize::tv(field, params.tv_norm, 0.0, &mut scratch),
+        tv: regularize::tv(field, params.vm.tv_norm, 0.0, &mut scratch),
         tv3d: tv_dense_value(&field.compose(), field.n),
     }
 }
@@ -568,25 +360,25 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
     // The batch draw reads 2048 rays at random from megabytes of them: on huge pages.
     let pool = HugePageBuffer::from_slice(&ray_pool(&per_view, &views.aabb));
     let (mut field, mut schedule) = Schedule::start(params, pool.len());
-    let mut adam = Adam::new(params.adam(), &field);
+    let mut adam = Adam::new(params.vm.adam(), &field);
     let mut mask: Option<AlphaMask> = None;
     let mut log = Vec::new();
     // Row 0: the initial field, before any update (its "photo" is the full views' loss).
     let (initial_mse, photo) = view_errors(&renderer, &field, None, &per_view);
     let terms = terms_of(params, &field, photo);
-    let initial = log_row(params, 0, terms, &initial_mse, params.lr, started.elapsed().as_secs_f64());
+    let initial = log_row(params, 0, terms, &initial_mse, params.vm.lr, started.elapsed().as_secs_f64());
     on_log(&initial);
     log.push(initial);
-    let (mut batch, mut offsets) = (Vec::with_capacity(params.batch_rays), Vec::with_capacity(params.batch_rays));
+    let (mut batch, mut offsets) = (Vec::with_capacity(params.vm.batch_rays), Vec::with_capacity(params.vm.batch_rays));
     let mut draw = |batch: &mut Vec<Ray>, offsets: &mut Vec<f64>| {
-        schedule.next_rays(&pool, params.batch_rays, renderer.step, batch, offsets)
+        schedule.next_rays(&pool, params.vm.batch_rays, renderer.step, batch, offsets)
     };
-    if params.iterations > 0 {
+    if params.vm.iterations > 0 {
         draw(&mut batch, &mut offsets);
     }
     let mut buffers = StepBuffers::new(field.n, field.rank);
-    let mut step_seconds = Vec::with_capacity(params.iterations);
-    for it in 0..params.iterations {
+    let mut step_seconds = Vec::with_capacity(params.vm.iterations);
+    for it in 0..params.vm.iterations {
         let logged = params.logs_after(it + 1);
         let step_start = Instant::now();
         let step = BatchStep {
@@ -603,15 +395,15 @@ pub fn fit(params: &TrainParams, views: &Views, mut on_log: impl FnMut(&LogRow))
         let ((lr, (l1, tv)), ()) = rayon::join(
             || regularize_and_update(params, &mut field, &mut buffers.grad, &mut adam, logged),
             || {
-                if it + 1 < params.iterations {
+                if it + 1 < params.vm.iterations {
                     draw(&mut batch, &mut offsets);
                 }
             },
         );
         (terms.l1, terms.tv) = (l1, tv);
         step_seconds.push(step_start.elapsed().as_secs_f64());
-        if params.remasks_after(it + 1) {
-            mask = Some(renderer.alpha_mask(&field.compose(), params.alpha_threshold));
+        if params.vm.remasks_after(it + 1) {
+            mask = Some(renderer.alpha_mask(&field.compose(), params.vm.alpha_threshold));
         }
         if logged {
             let views_mse = view_mse(&renderer, &field, mask.as_ref(), &per_view);

@@ -15,6 +15,7 @@ pub mod field;
 pub mod fit;
 pub mod gemm;
 pub mod huge_pages;
+pub mod params;
 pub mod regularize;
 pub mod render;
 pub mod truth;

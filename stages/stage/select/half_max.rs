@@ -16,10 +16,9 @@
 use super::localize::Centre;
 use super::Rule;
 use super::Selection;
-use crate::kernels::components::{component_within, label, Components, Connectivity};
+use crate::kernels::components::{component_within, label, Components};
 use crate::kernels::eigen3::eigenvalues;
 use crate::kernels::localization::GroundTruthOnGrid;
-use crate::kernels::morphology::{dilate, erode};
 use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params as SweepParams, Scored};
 use crate::volume::Geometry;
 use serde::{Deserialize, Serialize};
@@ -66,7 +65,6 @@ pub fn plausible(
     centre: &Centre,
     cut: Cut,
     diameter_range_mm: Option<[f64; 2]>,
-    roundness_opening: usize,
 ) -> Option<RegionShape> {
     let (seed, peak) = peak_near(scored, centre.voxel)?;
     let geometry = &scored.score.geometry;
@@ -78,45 +76,7 @@ pub fn plausible(
     let diameter_mm = equivalent_diameter_mm(voxels.len() as f64 * voxel_mm3);
     let fits =
         within(diameter_mm, sweep.diameter_mm) && diameter_range_mm.is_none_or(|range| within(diameter_mm, range));
-    fits.then(|| {
-        let shape = if roundness_opening > 0 { opened(&voxels, geometry, roundness_opening) } else { voxels };
-        RegionShape { roundness: roundness(&shape, geometry), diameter_mm, peak_score: peak }
-    })
-}
-
-/// The largest part of a region (voxel indices into `geometry`'s lattice) that survives an
-/// opening by a ball of `radius` lattice steps, ascending: strands thinner than the ball, like
-/// the vessels attached to a nodule, are cut off its core. Empty when nothing survives (the
-/// region is all strands). Works on the region's bounding box, padded by the radius.
-pub fn opened(voxels: &[usize], geometry: &Geometry, radius: usize) -> Vec<usize> {
-    if voxels.is_empty() {
-        return Vec::new();
-    }
-    let (mut lo, mut hi) = ([usize::MAX; 3], [0; 3]);
-    for &i in voxels {
-        let v = geometry.voxel_at(i);
-        for a in 0..3 {
-            lo[a] = lo[a].min(v[a]);
-            hi[a] = hi[a].max(v[a]);
-        }
-    }
-    // The box, with `radius` empty voxels around it, so the erosion sees the region's own edge.
-    let size: [usize; 3] = std::array::from_fn(|a| hi[a] - lo[a] + 1 + 2 * radius);
-    let local = |i: usize| {
-        let v = geometry.voxel_at(i);
-        (v[0] + radius - lo[0]) + size[0] * ((v[1] + radius - lo[1]) + size[1] * (v[2] + radius - lo[2]))
-    };
-    let mut mask = vec![false; size.iter().product()];
-    for &i in voxels {
-        mask[local(i)] = true;
-    }
-    let kept = dilate(&erode(&mask, size, radius), size, radius);
-    let parts = label(&kept, size, Connectivity::Six);
-    let Some(largest) = (1..=parts.count() as u32).max_by_key(|&l| (parts.size(l), std::cmp::Reverse(l))) else {
-        return Vec::new();
-    };
-    let core = parts.mask_of(largest);
-    voxels.iter().copied().filter(|&i| core[local(i)]).collect()
+    fits.then(|| RegionShape { roundness: roundness(&voxels, geometry), diameter_mm, peak_score: peak })
 }
 
 /// How round a region is: √(λ₃/λ₁) of the covariance of its voxels' positions (mm), 1 for a
@@ -417,23 +377,20 @@ mod tests {
         let sweep = SweepParams { diameter_mm: [1.0, 80.0], ..SweepParams::default() };
         let at = centre([16, 16, 16]);
         // The FWHM ball's equivalent diameter is ≈ 2 · 4 · √(2 ln 2) ≈ 9.4 nodes.
-        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), None, 0).is_some());
-        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([8.0, 11.0]), 0).is_some());
-        assert!(
-            plausible(&scored, &sweep, &at, Cut::at(0.5), Some([11.0, 30.0]), 0).is_none(),
-            "smaller than the range"
-        );
-        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([2.0, 8.0]), 0).is_none(), "larger than the range");
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), None).is_some());
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([8.0, 11.0])).is_some());
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([11.0, 30.0])).is_none(), "smaller than the range");
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([2.0, 8.0])).is_none(), "larger than the range");
         let narrow = SweepParams { diameter_mm: [1.0, 8.0], ..SweepParams::default() };
-        assert!(plausible(&scored, &narrow, &at, Cut::at(0.5), None, 0).is_none(), "larger than any nodule");
+        assert!(plausible(&scored, &narrow, &at, Cut::at(0.5), None).is_none(), "larger than any nodule");
         // Only the part inside the sweep's region counts: a cap of the ball (x ≤ 13) is small.
         scored.region = Some((0..32usize.pow(3)).map(|i| i % 32 <= 13).collect());
-        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([8.0, 11.0]), 0).is_none());
-        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([3.0, 8.0]), 0).is_some());
+        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([8.0, 11.0])).is_none());
+        assert!(plausible(&scored, &sweep, &centre([13, 16, 16]), Cut::at(0.5), Some([3.0, 8.0])).is_some());
         // No positive peak: nothing to size.
         let flat =
             Scored { score: Volume { geometry: geometry([32; 3]), data: vec![0.0; 32 * 32 * 32] }, region: None };
-        assert!(plausible(&flat, &sweep, &at, Cut::at(0.5), None, 0).is_none());
+        assert!(plausible(&flat, &sweep, &at, Cut::at(0.5), None).is_none());
     }
 
     #[test]
@@ -454,8 +411,8 @@ mod tests {
         assert_eq!(free.candidate.voxels - held.candidate.voxels, 13, "the strand's nodes x = 19..31 go");
         // The search's check measures the same region.
         let d = held.candidate.diameter_mm;
-        assert!(plausible(&scored, &sweep, &at, cut, Some([d - 1e-9, d + 1e-9]), 0).is_some());
-        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([d - 1e-9, d + 1e-9]), 0).is_none());
+        assert!(plausible(&scored, &sweep, &at, cut, Some([d - 1e-9, d + 1e-9])).is_some());
+        assert!(plausible(&scored, &sweep, &at, Cut::at(0.5), Some([d - 1e-9, d + 1e-9])).is_none());
     }
 
     #[test]
@@ -480,36 +437,5 @@ mod tests {
         let rod: Vec<usize> = (10..40).map(|x| x + 64 * (32 + 64 * 32)).collect();
         assert!(roundness(&rod, &g) < 1e-6);
         assert_eq!(roundness(&[5], &g), 1.0);
-    }
-
-    #[test]
-    fn an_opening_cuts_attached_strands_off_a_region_before_its_roundness_is_measured() {
-        let g = geometry([40; 3]);
-        let g = &g;
-        let ball = |c: [f64; 3], r: f64| {
-            move |i: usize| {
-                let v = g.voxel_at(i);
-                (0..3).map(|a| (v[a] as f64 - c[a]).powi(2)).sum::<f64>() <= r * r
-            }
-        };
-        let core = ball([20.0; 3], 5.0);
-        // A ball of radius 5 with a strand one voxel thick along x, 14 voxels long.
-        let strand = |i: usize| {
-            let [x, y, z] = g.voxel_at(i);
-            (26..40).contains(&x) && y == 20 && z == 20
-        };
-        let region: Vec<usize> = (0..g.len()).filter(|&i| core(i) || strand(i)).collect();
-        let ball_only: Vec<usize> = (0..g.len()).filter(|&i| core(i)).collect();
-        let cut = opened(&region, g, 1);
-        assert!(cut.iter().all(|&i| core(i)), "nothing of the strand survives");
-        assert!(cut.len() * 10 > ball_only.len() * 9, "the core does: {} of {}", cut.len(), ball_only.len());
-        assert!(roundness(&region, g) < 0.8 && roundness(&cut, g) > 0.99);
-        // Two balls joined by the strand: the larger one is kept; a bare strand leaves nothing.
-        let small = ball([34.0, 20.0, 20.0], 3.0);
-        let pair: Vec<usize> = (0..g.len()).filter(|&i| core(i) || strand(i) || small(i)).collect();
-        assert!(opened(&pair, g, 1).iter().all(|&i| core(i)));
-        let bare: Vec<usize> = (0..g.len()).filter(|&i| strand(i)).collect();
-        assert!(opened(&bare, g, 1).is_empty());
-        assert_eq!(opened(&ball_only, g, 0), ball_only, "radius 0 keeps the region");
     }
 }

@@ -6,11 +6,10 @@
 //!   nodule's consensus centroid — no more assisted than the ROI itself, and meaningless
 //!   otherwise (the stage says so in its verdict's localization line).
 //! - `blob` (assistance B for the guided rule, C for the blind ones): the strongest bright-blob
-//!   response of σ (`blob_filter`: the Laplacian or the Hessian of Gaussian) more than
-//!   `inside_mm` inside the lung field found in σ. The guided rule
-//!   uses the scale matched to the annotated diameter (s = d / (2√3): a ball of radius √3·s
-//!   answers most at s), times each of `guided_scale_ratios` (default: 1 alone); the blind
-//!   rules the maximum over `blob_scales_mm`.
+//!   response of σ (the Hessian of Gaussian's, [`crate::kernels::filters::hessian_blob_response`])
+//!   more than `inside_mm` inside the lung field found in σ. The guided rule uses the scale
+//!   matched to the annotated diameter (s = d / (2√3): a ball of radius √3·s answers most at
+//!   s); the blind rules the maximum over `scales_mm`.
 //!
 //! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
 //! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
@@ -26,7 +25,7 @@
 //! `ambiguous`, and the verdict says so.
 
 use super::half_max::RegionShape;
-use super::{Params, Rule};
+use super::{BlobParams, Params, Rule};
 use crate::kernels::filters::distance_inside_mm;
 use crate::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobPeak};
 use crate::volume::Volume;
@@ -46,7 +45,7 @@ pub enum Localize {
 pub const MAX_WEIGHED: usize = 16;
 
 /// Which search a centre is for: the guided rule's (the scale matched to the annotated
-/// diameter, times `guided_scale_ratios`) or the blind rules' (`blob_scales_mm`).
+/// diameter) or the blind rules' (`scales_mm`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Search {
     Guided,
@@ -246,7 +245,7 @@ fn runner_up(taken: &Centre, rival: &Centre) -> Option<RunnerUp> {
 /// The blob a search takes among those it `accepted` (strongest first), with its runner-up:
 /// the strongest by default, the roundest contender with `tie_break = "roundness"`, the best
 /// scored of the strongest few with `"score"`.
-fn pick(mut accepted: Vec<Centre>, params: &Params, tie_break: TieBreak) -> Option<Centre> {
+fn pick(mut accepted: Vec<Centre>, params: &BlobParams, tie_break: TieBreak) -> Option<Centre> {
     let strongest = accepted.first()?.clone();
     let taken_at = match tie_break {
         TieBreak::Response => 0,
@@ -300,7 +299,8 @@ pub fn centres(
     coverage: Option<&[f32]>,
     accept: &(dyn Fn(Search, &Centre) -> Weighed + Sync),
 ) -> Centres {
-    let Params { localize, blob_filter, ref blob_scales_mm, inside_mm, .. } = *params;
+    let (localize, blob) = (params.localize, &params.blob);
+    let (scales_mm, inside_mm) = (&blob.scales_mm, blob.inside_mm);
     let geometry = &density.geometry;
     let (dims, spacing) = (geometry.dims, geometry.spacing_mm);
     let centre = |voxel: [usize; 3], blob: Option<BlobPeak>, rank: usize| Centre {
@@ -344,7 +344,7 @@ pub fn centres(
             let sites = blob_sites(&depth_mm, dims, spacing, inside_mm);
             // How many blobs each search found, and the one it took, with its runner-up.
             let search = |scales: &[f64], which: Search| {
-                let ranked = ranked_blobs(&density.data, dims, spacing, blob_filter, scales, &sites);
+                let ranked = ranked_blobs(&density.data, dims, spacing, scales, &sites);
                 let accepted: Vec<Centre> = ranked
                     .iter()
                     .take(MAX_WEIGHED)
@@ -359,14 +359,14 @@ pub fn centres(
                         }
                     })
                     .collect();
-                (ranked.len(), accepted.clone(), pick(accepted, params, params.tie_break_of(which)))
+                (ranked.len(), accepted.clone(), pick(accepted, blob, blob.tie_break_of(which)))
             };
-            let matched: Option<Vec<f64>> = annotated_diameter_mm
-                .map(|d| params.guided_scale_ratios.iter().map(|r| r * 0.5 * d / 3f64.sqrt()).collect());
+            // The scale a ball of the annotated diameter answers most at: radius √3·s.
+            let matched: Option<Vec<f64>> = annotated_diameter_mm.map(|d| vec![0.5 * d / 3f64.sqrt()]);
             // Independent searches: on two cores, side by side beats each one's own parallelism.
             let ((guided_found, guided_accepted, guided), (blind_found, blind_accepted, blind)) = rayon::join(
                 || matched.as_deref().map_or((0, Vec::new(), None), |s| search(s, Search::Guided)),
-                || search(blob_scales_mm, Search::Blind),
+                || search(scales_mm, Search::Blind),
             );
             let note = match (guided.is_none() && blind.is_none(), guided_found.max(blind_found)) {
                 (false, _) => None,

@@ -25,7 +25,6 @@
 use crate::engine::{Context, Output, Stage};
 use crate::formats::obj;
 use crate::kernels::localization::{ground_truth_on_grid, GroundTruthOnGrid, Localization};
-use crate::kernels::lung_mask::BlobFilter;
 use crate::kernels::marching_cubes::mesh_mask;
 use crate::kernels::mesh::{enclosed_volume_mm3, vertex_normals};
 use crate::stage::drr::CameraSet;
@@ -49,7 +48,7 @@ pub use rules::Analysis;
 pub use shadows::ShadowFit;
 pub use tiles::TileScore;
 
-pub const VERSION: u32 = 17;
+pub const VERSION: u32 = 18;
 
 /// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
 /// full width at half maximum. `half_max_fraction` then only sets where the nodule is cut (its
@@ -60,71 +59,58 @@ const BLOB_WIDTH_FRACTION: f64 = 0.5;
 /// How a search with half-maximum sizing judges a blob: the cut of its region (at
 /// [`BLOB_WIDTH_FRACTION`]; the guided region within its reach of the peak) and, for the guided
 /// search, the range its equivalent diameter must lie in (mm).
-fn blob_check(search: Search, p: &Params, annotated_mm: Option<f64>) -> (Cut, Option<[f64; 2]>) {
+fn blob_check(search: Search, cut: &HalfMaxParams, annotated_mm: Option<f64>) -> (Cut, Option<[f64; 2]>) {
     match search {
         Search::Guided => (
-            Cut { fraction: BLOB_WIDTH_FRACTION, reach_mm: p.guided_reach_mm(annotated_mm) },
-            annotated_mm.map(|d| p.guided_diameter_ratio.map(|r| r * d)),
+            Cut { fraction: BLOB_WIDTH_FRACTION, reach_mm: cut.guided_reach_mm(annotated_mm) },
+            annotated_mm.map(|d| cut.guided_diameter_ratio.map(|r| r * d)),
         ),
         Search::Blind => (Cut::at(BLOB_WIDTH_FRACTION), None),
     }
 }
 
+/// `[select]`: which rule is the result, how each finds the nodule's centre (`localize`, with
+/// `[select.blob]`) and how it sizes it there (`sizing`, with `[select.half_max]`). The defaults
+/// are the shipped method.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Params {
-    /// The selection written as `nodule_mask` and `nodule.obj`, and reported as "ours":
-    /// "guided", "blind_largest" or "blind_persistent".
+    /// The selection written as `nodule_mask` and `nodule.obj`, and reported as "ours".
     pub primary: Rule,
     /// The blind rule reported beside the guided one in the cohort table.
     pub blind: Rule,
-    /// How the nodule is found before it is sized: "none", "origin" or "blob".
+    /// How the nodule is found before it is sized.
     pub localize: Localize,
-    /// The blob search's response: "laplacian" or "hessian".
-    pub blob_filter: BlobFilter,
-    /// Scales (mm) of the blind rules' blob search.
-    pub blob_scales_mm: Vec<f64>,
+    /// How a rule sizes the nodule at its centre.
+    pub sizing: Sizing,
+    /// `localize = "blob"`: the blob search.
+    pub blob: BlobParams,
+    /// `sizing = "half_max"` or `"shadows"`: the half-maximum region.
+    pub half_max: HalfMaxParams,
+}
+
+/// `[select.blob]`: the search for the strongest bright blob of σ inside the lung field.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BlobParams {
+    /// Scales (mm) of the blind search.
+    pub scales_mm: Vec<f64>,
     /// A blob centre lies more than this (mm) inside the lung field.
     pub inside_mm: f64,
-    /// How a rule sizes the nodule at its centre: "candidates" (the sweep's, chosen by the
-    /// rule), "half_max" (the region at half the score's peak, from the image alone) or
-    /// "shadows" (the ellipsoid that best explains that region's shadows in the three views).
-    pub sizing: Sizing,
-    /// `sizing = "half_max"`: the fraction of the peak the region is cut at.
-    pub half_max_fraction: f64,
-    /// `sizing = "half_max"` with `localize = "blob"`: the guided rule passes over a blob whose
-    /// region at half its peak has an equivalent diameter outside [lo, hi] × the annotated diameter.
-    pub guided_diameter_ratio: [f64; 2],
-    /// `sizing = "half_max"`: the guided rule's region holds no node farther from its peak than
-    /// this many annotated diameters (what lies farther is attached to the nodule, not of it).
-    pub guided_reach_diameters: f64,
-    /// `localize = "blob"`: the guided search's scales, as multiples of the scale matched to the
-    /// annotated diameter (d / (2√3)); it takes the strongest response over them.
-    pub guided_scale_ratios: Vec<f64>,
-    /// `localize = "blob"`: a centre whose runner-up (the strongest other blob the search would
-    /// have accepted) answers at this fraction of its response or more is ambiguous, and the
-    /// verdict says so (above 1: never).
+    /// A centre whose runner-up (the strongest other blob the search would have accepted)
+    /// answers at this fraction of its response or more is ambiguous (above 1: never).
     pub rival_ratio: f64,
-    /// `localize = "blob"`: among blobs answering alike (at `rival_ratio` of the strongest or
-    /// more), which a search takes: "response" (the strongest) or "roundness" (the roundest
-    /// region; needs sizing = "half_max" or "shadows"); or "score", which ranks the
-    /// `score_top` strongest ([`TieBreak::Score`]).
+    /// Among blobs answering alike (at `rival_ratio` of the strongest or more), which the
+    /// guided search takes ([`TieBreak`]).
     pub tie_break: TieBreak,
-    /// The blind search's own `tie_break` (none: `tie_break`).
-    pub blind_tie_break: Option<TieBreak>,
+    /// The blind search's own tie-break.
+    pub blind_tie_break: TieBreak,
     /// `tie_break = "score"`: the weight of roundness beside ln(response / peak score).
     pub score_roundness: f64,
-    /// The guided search measures roundness on the largest part of a blob's region that
-    /// survives an opening by a ball of this many lattice steps ([`half_max::opened`]; 0: the
-    /// region itself), so that vessels attached to a nodule do not make it look drawn out. The
-    /// blind search keeps the region as cut. Left out of the cache key at 0, so selections made
-    /// before it existed stay cached.
-    #[serde(skip_serializing_if = "crate::is_zero")]
-    pub roundness_opening: usize,
     /// `tie_break = "score"`: how many of the strongest accepted blobs it ranks.
     pub score_top: usize,
-    /// `localize = "blob"`, with an annotated diameter: where the guided search finds no blob
-    /// it can size, the guided rule takes the blind centre if it passes the guided size check
+    /// With an annotated diameter: where the guided search finds no blob it can size, the
+    /// guided rule takes the blind centre if it passes the guided size check
     /// ([`Centres::fall_back_to_blind`]).
     pub guided_fallback: bool,
     /// `guided_fallback`: the guided rule also takes the blind centre where its own centre's
@@ -132,18 +118,33 @@ pub struct Params {
     pub guided_faint_ratio: f64,
 }
 
+/// `[select.half_max]`: the region around a centre where the sweep's score is at least a
+/// fraction of its peak.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct HalfMaxParams {
+    /// The fraction of the peak the region is cut at.
+    pub fraction: f64,
+    /// With `localize = "blob"`: the guided search passes over a blob whose region at half its
+    /// peak has an equivalent diameter outside [lo, hi] × the annotated diameter.
+    pub guided_diameter_ratio: [f64; 2],
+    /// The guided rule's region holds no node farther from its peak than this many annotated
+    /// diameters (what lies farther is attached to the nodule, not of it).
+    pub guided_reach_diameters: f64,
+}
+
 /// How a rule sizes the nodule once it has chosen where it is.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Sizing {
     /// The paper: every rule picks a candidate of the sweep (holding its centre, if any).
-    #[default]
     Candidates,
-    /// The connected region of the sweep's score at `half_max_fraction` of its peak at the
-    /// rule's centre ([`half_max`]): both blind rules then size the blind centre alike.
+    /// The connected region of the sweep's score at `[select.half_max] fraction` of its peak at
+    /// the rule's centre ([`half_max`]): both blind rules then size the blind centre alike.
     HalfMax,
     /// The half-maximum region finds the nodule; the ellipsoid fitted to its shadows in the
     /// three DRRs sizes it ([`shadows`]).
+    #[default]
     Shadows,
 }
 
@@ -153,6 +154,15 @@ impl Sizing {
     fn cuts_half_max(self) -> bool {
         matches!(self, Sizing::HalfMax | Sizing::Shadows)
     }
+
+    /// The name in `[select] sizing`.
+    fn name(self) -> &'static str {
+        match self {
+            Sizing::Candidates => "candidates",
+            Sizing::HalfMax => "half_max",
+            Sizing::Shadows => "shadows",
+        }
+    }
 }
 
 impl Default for Params {
@@ -161,95 +171,137 @@ impl Default for Params {
             primary: Rule::Guided,
             blind: Rule::BlindPersistent,
             localize: Localize::Blob,
-            blob_filter: BlobFilter::Hessian,
-            blob_scales_mm: vec![6.0, 9.0, 13.0],
-            inside_mm: 8.0,
             sizing: Sizing::default(),
-            half_max_fraction: 0.5,
-            guided_diameter_ratio: [0.5, 2.0],
-            guided_reach_diameters: 1.0,
-            guided_scale_ratios: vec![1.0],
-            rival_ratio: 0.7,
-            tie_break: TieBreak::default(),
-            blind_tie_break: None,
-            score_roundness: 3.0,
-            roundness_opening: 0,
-            score_top: 5,
-            guided_fallback: false,
-            guided_faint_ratio: 0.0,
+            blob: BlobParams::default(),
+            half_max: HalfMaxParams::default(),
         }
     }
 }
 
-impl Params {
+impl Default for BlobParams {
+    fn default() -> Self {
+        BlobParams {
+            scales_mm: vec![6.0, 9.0, 13.0],
+            inside_mm: 8.0,
+            rival_ratio: 0.7,
+            tie_break: TieBreak::Roundness,
+            blind_tie_break: TieBreak::Score,
+            score_roundness: 3.0,
+            score_top: 5,
+            guided_fallback: true,
+            guided_faint_ratio: 0.2,
+        }
+    }
+}
+
+impl Default for HalfMaxParams {
+    fn default() -> Self {
+        HalfMaxParams { fraction: 0.5, guided_diameter_ratio: [0.5, 2.0], guided_reach_diameters: 1.0 }
+    }
+}
+
+impl BlobParams {
     /// How `search` judges between blobs that answer alike.
     pub fn tie_break_of(&self, search: Search) -> TieBreak {
         match search {
             Search::Guided => self.tie_break,
-            Search::Blind => self.blind_tie_break.unwrap_or(self.tie_break),
+            Search::Blind => self.blind_tie_break,
         }
     }
 
+    fn check(&self, sizing: Sizing) -> anyhow::Result<()> {
+        if self.scales_mm.is_empty() || self.scales_mm.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            bail!("[select.blob] scales_mm must be a non-empty list of positive numbers");
+        }
+        if !(self.inside_mm.is_finite() && self.inside_mm >= 0.0) {
+            bail!("[select.blob] inside_mm must be a number ≥ 0 (got {})", self.inside_mm);
+        }
+        if !(self.rival_ratio.is_finite() && self.rival_ratio > 0.0) {
+            bail!("[select.blob] rival_ratio must be a number > 0 (got {})", self.rival_ratio);
+        }
+        for (key, tie_break) in [("tie_break", self.tie_break), ("blind_tie_break", self.blind_tie_break)] {
+            let name = match tie_break {
+                TieBreak::Roundness => "roundness",
+                TieBreak::Score => "score",
+                TieBreak::Response => continue,
+            };
+            if !sizing.cuts_half_max() {
+                bail!(
+                    "[select.blob] {key} = \"{name}\" judges the blobs' half-maximum regions, and [select] sizing = \
+                     \"{}\" cuts none: set sizing to \"half_max\" or \"shadows\", or {key} to \"response\"",
+                    sizing.name()
+                );
+            }
+        }
+        if !(self.guided_faint_ratio.is_finite() && (0.0..=1.0).contains(&self.guided_faint_ratio)) {
+            bail!("[select.blob] guided_faint_ratio must be a number from 0 to 1 (got {})", self.guided_faint_ratio);
+        }
+        if !(self.score_roundness.is_finite() && self.score_roundness >= 0.0) {
+            bail!("[select.blob] score_roundness must be a number ≥ 0 (got {})", self.score_roundness);
+        }
+        if self.score_top == 0 {
+            bail!("[select.blob] score_top must be at least 1");
+        }
+        Ok(())
+    }
+}
+
+impl HalfMaxParams {
     /// How far from its peak the guided region reaches, mm: `guided_reach_diameters` × the
     /// annotated diameter (none without an annotation).
     fn guided_reach_mm(&self, annotated_mm: Option<f64>) -> Option<f64> {
         annotated_mm.map(|d| self.guided_reach_diameters * d)
     }
 
-    pub fn check(&self) -> anyhow::Result<()> {
-        if self.blob_scales_mm.is_empty() || self.blob_scales_mm.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
-            bail!("[select] blob_scales_mm must be a non-empty list of positive numbers");
-        }
-        if !(self.inside_mm.is_finite() && self.inside_mm >= 0.0) {
-            bail!("[select] inside_mm must be a number ≥ 0 (got {})", self.inside_mm);
-        }
-        if !(self.half_max_fraction > 0.0 && self.half_max_fraction < 1.0) {
-            bail!("[select] half_max_fraction must lie strictly between 0 and 1 (got {})", self.half_max_fraction);
+    fn check(&self) -> anyhow::Result<()> {
+        if !(self.fraction > 0.0 && self.fraction < 1.0) {
+            bail!("[select.half_max] fraction must lie strictly between 0 and 1 (got {})", self.fraction);
         }
         let [lo, hi] = self.guided_diameter_ratio;
         if !(lo.is_finite() && hi.is_finite() && 0.0 <= lo && lo < hi) {
-            bail!("[select] guided_diameter_ratio must be [lo, hi] with 0 ≤ lo < hi (got [{lo}, {hi}])");
+            bail!("[select.half_max] guided_diameter_ratio must be [lo, hi] with 0 ≤ lo < hi (got [{lo}, {hi}])");
         }
         if !(self.guided_reach_diameters.is_finite() && self.guided_reach_diameters > 0.0) {
-            bail!("[select] guided_reach_diameters must be a number > 0 (got {})", self.guided_reach_diameters);
+            bail!(
+                "[select.half_max] guided_reach_diameters must be a number > 0 (got {})",
+                self.guided_reach_diameters
+            );
         }
-        if self.guided_scale_ratios.is_empty() || self.guided_scale_ratios.iter().any(|r| !(r.is_finite() && *r > 0.0))
-        {
-            bail!("[select] guided_scale_ratios must be a non-empty list of positive numbers");
-        }
-        if !(self.rival_ratio.is_finite() && self.rival_ratio > 0.0) {
-            bail!("[select] rival_ratio must be a number > 0 (got {})", self.rival_ratio);
-        }
-        for (key, tie_break) in [("tie_break", Some(self.tie_break)), ("blind_tie_break", self.blind_tie_break)] {
-            let name = match tie_break {
-                Some(TieBreak::Roundness) => "roundness",
-                Some(TieBreak::Score) => "score",
-                Some(TieBreak::Response) | None => continue,
-            };
-            if !self.sizing.cuts_half_max() {
-                bail!(
-                    "[select] {key} = \"{name}\" judges the blobs' half-maximum regions: set sizing to \
-                     \"half_max\" or \"shadows\""
-                );
-            }
-        }
-        if !(self.guided_faint_ratio.is_finite() && (0.0..=1.0).contains(&self.guided_faint_ratio)) {
-            bail!("[select] guided_faint_ratio must be a number from 0 to 1 (got {})", self.guided_faint_ratio);
-        }
-        if !(self.score_roundness.is_finite() && self.score_roundness >= 0.0) {
-            bail!("[select] score_roundness must be a number ≥ 0 (got {})", self.score_roundness);
-        }
-        if self.score_top == 0 {
-            bail!("[select] score_top must be at least 1");
-        }
+        Ok(())
+    }
+}
+
+impl Params {
+    pub fn check(&self) -> anyhow::Result<()> {
         if self.sizing.cuts_half_max() && self.localize == Localize::None {
             bail!(
                 "[select] sizing = \"{}\" sizes around a centre, and localize = \"none\" finds none: \
                  set localize to \"blob\" or \"origin\"",
-                if self.sizing == Sizing::Shadows { "shadows" } else { "half_max" }
+                self.sizing.name()
             );
         }
+        if self.localize == Localize::Blob {
+            self.blob.check(self.sizing)?;
+        }
+        if self.sizing.cuts_half_max() {
+            self.half_max.check()?;
+        }
         Ok(())
+    }
+
+    /// The canonical form of what the variants in use read: the stage's cache key.
+    pub fn key(&self) -> serde_json::Value {
+        let mut key = serde_json::json!({
+            "primary": self.primary, "blind": self.blind, "localize": self.localize, "sizing": self.sizing,
+        });
+        let table = key.as_object_mut().expect("a table");
+        if self.localize == Localize::Blob {
+            table.insert("blob".into(), serde_json::to_value(&self.blob).expect("parameters serialise"));
+        }
+        if self.sizing.cuts_half_max() {
+            table.insert("half_max".into(), serde_json::to_value(&self.half_max).expect("parameters serialise"));
+        }
+        key
     }
 }
 
@@ -348,7 +400,7 @@ impl Stage for Select {
         &["ingest", "drr", "grid", "sweep"]
     }
     fn params(&self) -> serde_json::Value {
-        super::params_json(&self.params)
+        self.params.key()
     }
     fn reads(&self, stage: &str, output: &str) -> bool {
         match stage {
@@ -434,15 +486,13 @@ impl Select {
         // With half-maximum sizing a search passes over blobs whose region cannot be the nodule,
         // judged at the blob's full width at half maximum whatever fraction the nodule is then
         // cut at. The guided rule's region reaches no farther than the annotated diameter allows.
-        let guided_cut = Cut { fraction: p.half_max_fraction, reach_mm: p.guided_reach_mm(annotated) };
-        let blind_cut = Cut::at(p.half_max_fraction);
+        let guided_cut = Cut { fraction: p.half_max.fraction, reach_mm: p.half_max.guided_reach_mm(annotated) };
+        let blind_cut = Cut::at(p.half_max.fraction);
         let accept = |search: Search, centre: &Centre| match p.sizing {
             Sizing::Candidates => Weighed::Accepted { region: None },
             Sizing::HalfMax | Sizing::Shadows => {
-                let (cut, range) = blob_check(search, p, annotated);
-                // The blind score's roundness weight was chosen on regions as cut (stop 49).
-                let opening = if search == Search::Guided { p.roundness_opening } else { 0 };
-                match half_max::plausible(&scored, &sweep.params, centre, cut, range, opening) {
+                let (cut, range) = blob_check(search, &p.half_max, annotated);
+                match half_max::plausible(&scored, &sweep.params, centre, cut, range) {
                     Some(region) => Weighed::Accepted { region: Some(region) },
                     None => Weighed::PassedOver,
                 }
@@ -457,8 +507,8 @@ impl Select {
             gt.as_ref().map(|g| g.coverage.as_slice()),
             &accept,
         );
-        if p.guided_fallback && p.localize == Localize::Blob && annotated.is_some() {
-            centres.fall_back_to_blind(p.guided_faint_ratio, |blind| accept(Search::Guided, blind));
+        if p.blob.guided_fallback && p.localize == Localize::Blob && annotated.is_some() {
+            centres.fall_back_to_blind(p.blob.guided_faint_ratio, |blind| accept(Search::Guided, blind));
         }
         let dims = density.geometry.dims;
         // Some(None): any candidate; Some(Some(cell)): those holding the centre; None: the
@@ -623,7 +673,7 @@ fn read_views(ctx: &Context, cameras: &CameraSet) -> anyhow::Result<shadows::Vie
 fn rival_note(centre: &Centre) -> Option<String> {
     let rival = centre.runner_up.as_ref().filter(|_| centre.ambiguous)?;
     Some(format!(
-        "ambiguous: another blob {:.0} mm away answers at {:.2} of this one's response ([select] rival_ratio)",
+        "ambiguous: another blob {:.0} mm away answers at {:.2} of this one's response ([select.blob] rival_ratio)",
         rival.distance_mm, rival.ratio
     ))
 }
@@ -633,11 +683,11 @@ fn fallback_note(centre: &Centre) -> Option<String> {
         (false, _) => return None,
         (true, None) => "the guided search found no blob of the annotated size".to_string(),
         (true, Some(peak)) => format!(
-            "the guided search's blob barely stands out (peak contrast {peak:.3}, under [select] \
+            "the guided search's blob barely stands out (peak contrast {peak:.3}, under [select.blob] \
              guided_faint_ratio of this one's)"
         ),
     };
-    Some(format!("{why}: this is the blind search's centre ([select] guided_fallback)"))
+    Some(format!("{why}: this is the blind search's centre ([select.blob] guided_fallback)"))
 }
 
 /// One line saying whether `primary` can be trusted: "hit", or why not ("MISS: …").
@@ -655,7 +705,7 @@ pub fn verdict(
         }
         (None, _) if params.sizing.cuts_half_max() => "MISS: no nodule centre was found whose half-maximum \
              region is of a nodule's size ([sweep] diameter_mm; for the guided rule also \
-             [select] guided_diameter_ratio × the annotated diameter)"
+             [select.half_max] guided_diameter_ratio × the annotated diameter)"
             .into(),
         (None, _) if params.localize != Localize::None => {
             "MISS: no nodule centre was found, or no candidate of the sweep holds it".into()
@@ -681,46 +731,63 @@ mod tests {
     #[test]
     fn a_blob_is_judged_at_half_its_peak_whatever_fraction_sizes_the_nodule() {
         for fraction in [0.3, 0.5, 0.7] {
-            let p = Params { half_max_fraction: fraction, ..Params::default() };
-            let (guided, range) = blob_check(Search::Guided, &p, Some(20.0));
+            let cut = HalfMaxParams { fraction, ..HalfMaxParams::default() };
+            let (guided, range) = blob_check(Search::Guided, &cut, Some(20.0));
             assert_eq!(guided.fraction, 0.5);
             assert_eq!(guided.reach_mm, Some(20.0));
             assert_eq!(range, Some([10.0, 40.0]));
-            let (blind, range) = blob_check(Search::Blind, &p, Some(20.0));
+            let (blind, range) = blob_check(Search::Blind, &cut, Some(20.0));
             assert_eq!((blind.fraction, blind.reach_mm, range), (0.5, None, None));
         }
     }
 
     #[test]
     fn region_tie_breaks_need_regions_and_the_rival_ratio_a_positive_number() {
-        let p = Params { tie_break: TieBreak::Roundness, sizing: Sizing::Candidates, ..Params::default() };
-        assert!(p.check().unwrap_err().to_string().contains("tie_break = \"roundness\""));
+        let blob = |b: BlobParams| Params { blob: b, ..Params::default() };
+        let response =
+            BlobParams { tie_break: TieBreak::Response, blind_tie_break: TieBreak::Response, ..BlobParams::default() };
+        let p = Params {
+            sizing: Sizing::Candidates,
+            ..blob(BlobParams { tie_break: TieBreak::Roundness, ..response.clone() })
+        };
+        let e = p.check().unwrap_err().to_string();
+        assert!(e.contains("tie_break = \"roundness\"") && e.contains("sizing = \"candidates\""), "{e}");
         assert!(Params { sizing: Sizing::Shadows, ..p }.check().is_ok());
-        let p = Params { blind_tie_break: Some(TieBreak::Score), sizing: Sizing::Candidates, ..Params::default() };
+        let p = Params {
+            sizing: Sizing::Candidates,
+            ..blob(BlobParams { blind_tie_break: TieBreak::Score, ..response.clone() })
+        };
         assert!(p.check().unwrap_err().to_string().contains("blind_tie_break = \"score\""));
         let p = Params { sizing: Sizing::HalfMax, ..p };
         assert!(p.check().is_ok());
         assert_eq!(
-            (p.tie_break_of(Search::Guided), p.tie_break_of(Search::Blind)),
+            (p.blob.tie_break_of(Search::Guided), p.blob.tie_break_of(Search::Blind)),
             (TieBreak::Response, TieBreak::Score)
         );
-        assert!(Params { score_top: 0, ..p.clone() }.check().unwrap_err().to_string().contains("score_top"));
+        assert!(blob(BlobParams { score_top: 0, ..BlobParams::default() })
+            .check()
+            .unwrap_err()
+            .to_string()
+            .contains("score_top"));
         for bad in [-1.0, f64::NAN] {
-            let p = Params { score_roundness: bad, ..p.clone() };
+            let p = blob(BlobParams { score_roundness: bad, ..BlobParams::default() });
             assert!(p.check().unwrap_err().to_string().contains("score_roundness"));
         }
         for bad in [0.0, -1.0, f64::NAN] {
-            let p = Params { rival_ratio: bad, ..Params::default() };
-            assert!(p.check().unwrap_err().to_string().contains("rival_ratio"));
+            let p = blob(BlobParams { rival_ratio: bad, ..BlobParams::default() });
+            assert!(p.check().unwrap_err().to_string().contains("[select.blob] rival_ratio"));
         }
     }
 
     #[test]
-    fn guided_scale_ratios_must_be_positive_and_present() {
-        for bad in [vec![], vec![0.0], vec![1.0, f64::NAN]] {
-            let p = Params { guided_scale_ratios: bad, ..Params::default() };
-            assert!(p.check().unwrap_err().to_string().contains("guided_scale_ratios"));
-        }
-        assert!(Params { guided_scale_ratios: vec![0.71, 1.0], ..Params::default() }.check().is_ok());
+    fn the_key_holds_the_variants_in_use_and_nothing_else() {
+        let shipped = Params::default().key();
+        assert!(shipped.get("blob").is_some() && shipped.get("half_max").is_some(), "{shipped}");
+        let paper = Params { localize: Localize::None, sizing: Sizing::Candidates, ..Params::default() };
+        assert_eq!(paper.key().as_object().unwrap().len(), 4, "{}", paper.key());
+        // A key of an unused variant changes nothing.
+        let other = Params { half_max: HalfMaxParams { fraction: 0.3, ..HalfMaxParams::default() }, ..paper.clone() };
+        assert_eq!(paper.key(), other.key());
+        assert_ne!(Params { half_max: other.half_max.clone(), ..Params::default() }.key(), shipped);
     }
 }
