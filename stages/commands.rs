@@ -19,10 +19,14 @@ use std::path::{Path, PathBuf};
 pub struct RunArgs {
     pub patients: Option<Vec<String>>,
     pub until: Option<String>,
+    /// Stage names to recompute even when cached, or [`FORCE_ALL`] for every stage.
     pub force: Vec<String>,
     pub dry_run: bool,
     pub verify: bool,
 }
+
+/// `--force all`: every stage of the graph.
+pub const FORCE_ALL: &str = "all";
 
 struct Prepared {
     config: Config,
@@ -47,20 +51,16 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     let stop = StopRequest::default();
     stop_on_signals(&stop);
     let p = prepare(config_path, args.patients.as_deref(), args.until.as_deref())?;
-    for f in &args.force {
-        if p.graph.get(f).is_none() {
-            bail!("--force {f}: no such stage in this run (stages: {})", p.graph.names().join(", "));
-        }
-    }
+    let force = forced_stages(&p.graph, &args.force)?;
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
     if args.dry_run {
-        let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &args.force);
+        let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &force);
         print!("{}", preview::describe(&rows));
         return Ok(0);
     }
     let options = RunOptions {
         verify: args.verify,
-        force: args.force.clone(),
+        force,
         workers: p.config.pipeline.stage_workers.clone().into_iter().collect(),
         default_workers: p.config.pipeline.workers,
         out_dir: p.config.out_dir(),
@@ -86,6 +86,19 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     } else {
         0
     })
+}
+
+/// The stages `--force` names, checked against the graph: each a stage's name, or [`FORCE_ALL`]
+/// for all of them (after `--until`'s cut).
+fn forced_stages(graph: &StageGraph, force: &[String]) -> anyhow::Result<Vec<String>> {
+    let names = graph.names();
+    if let Some(unknown) = force.iter().find(|f| *f != FORCE_ALL && !names.contains(&f.as_str())) {
+        bail!("--force {unknown}: no such stage in this run (stages: {}; or `{FORCE_ALL}`)", names.join(", "));
+    }
+    if force.iter().any(|f| f == FORCE_ALL) {
+        return Ok(names.iter().map(|n| n.to_string()).collect());
+    }
+    Ok(force.to_vec())
 }
 
 /// The exit status of a run stopped by a signal (128 + SIGINT, the shells' convention).

@@ -24,7 +24,8 @@ enum Command {
         /// Stop after this stage (and what it needs).
         #[arg(long)]
         until: Option<String>,
-        /// Recompute this stage even when cached (repeat or comma-separate for several).
+        /// Recompute this stage even when cached (repeat or comma-separate for several); `all`
+        /// recomputes every stage (those --until keeps).
         #[arg(long, value_delimiter = ',')]
         force: Vec<String>,
         /// Print, per patient and stage, whether it would run and why; run nothing.

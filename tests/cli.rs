@@ -120,6 +120,29 @@ fn editing_hu_recomputes_hu_only_and_forced_runs_cut_off_early() {
 }
 
 #[test]
+fn force_all_recomputes_every_stage_and_a_misspelt_stage_is_an_error_listing_them() {
+    let p = Project::new(&["P1"], 2);
+    p.run(&[]);
+    let dry = text(&p.aret(&["run", "pipeline.toml", "--dry-run", "--force", "all"]).stdout);
+    assert!(dry.lines().count() > 2 && dry.lines().all(|l| l.contains("forced with --force")), "{dry}");
+    let r = p.run(&["--force", "all"]);
+    let records = r["records"].as_array().unwrap();
+    assert!(records.len() > 2 && records.iter().all(|r| r["outcome"] == "computed"), "{r}");
+    // `all` is every stage --until keeps.
+    let r = p.run(&["--force", "all", "--until", "hu"]);
+    let stages: Vec<&str> = r["records"].as_array().unwrap().iter().map(|r| r["stage"].as_str().unwrap()).collect();
+    assert_eq!(stages, ["ingest", "hu"]);
+    assert_eq!((count(&r, "ingest", "computed"), count(&r, "hu", "computed")), (1, 1));
+
+    for force in ["hue", "all,hue"] {
+        let out = p.aret(&["run", "pipeline.toml", "--force", force]);
+        let stderr = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{stderr}");
+        assert!(stderr.contains("--force hue: no such stage") && stderr.contains("ingest, hu, drr"), "{stderr}");
+    }
+}
+
+#[test]
 fn dry_run_explains_new_and_changed_inputs() {
     let p = Project::new(&["P1"], 3);
     let dry = text(&p.aret(&["run", "pipeline.toml", "--dry-run"]).stdout);
