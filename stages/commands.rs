@@ -3,7 +3,7 @@
 
 use crate::config::Config;
 use crate::engine::lock::FileLock;
-use crate::engine::preview::{self, State};
+use crate::engine::preview::{self, Row, State};
 use crate::engine::progress::{self, Progress};
 use crate::engine::run::{self, RunOptions, RunSummary, StopRequest, Unit};
 use crate::engine::store::{write_atomic, Store};
@@ -12,6 +12,7 @@ use crate::formats::vdb::{self, FloatGrid, GridClass};
 use crate::volume::Volume;
 use crate::{dataset, stage};
 use anyhow::{bail, Context as _};
+use serde::Serialize;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
@@ -22,7 +23,18 @@ pub struct RunArgs {
     /// Stage names to recompute even when cached, or [`FORCE_ALL`] for every stage.
     pub force: Vec<String>,
     pub dry_run: bool,
+    /// With `dry_run`: print the plan as JSON ([`plan_json`]) instead of the text lines.
+    pub json: bool,
     pub verify: bool,
+}
+
+/// What `aret-pipe status` shows.
+#[derive(Debug, Default, Clone)]
+pub struct StatusArgs {
+    pub patients: Option<Vec<String>>,
+    pub verify: bool,
+    /// Print the plan as JSON ([`plan_json`]) instead of the table.
+    pub json: bool,
 }
 
 /// `--force all`: every stage of the graph.
@@ -50,12 +62,22 @@ fn prepare(config_path: &Path, patients: Option<&[String]>, until: Option<&str>)
 pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     let stop = StopRequest::default();
     stop_on_signals(&stop);
+    if args.json && !args.dry_run {
+        bail!(
+            "--json goes with --dry-run: a run prints its progress and end table, and records every \
+             outcome in out_dir/run_report.json"
+        );
+    }
     let p = prepare(config_path, args.patients.as_deref(), args.until.as_deref())?;
     let force = forced_stages(&p.graph, &args.force)?;
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
     if args.dry_run {
         let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &force);
-        print!("{}", preview::describe(&rows));
+        if args.json {
+            print!("{}", plan_json("dry-run", config_path, &p.graph, &rows)?);
+        } else {
+            print!("{}", preview::describe(&rows));
+        }
         return Ok(0);
     }
     let options = RunOptions {
@@ -137,31 +159,91 @@ fn write_report(out_dir: &Path, summary: &RunSummary) -> anyhow::Result<()> {
     write_atomic(&out_dir.join("run_report.json"), &serde_json::to_vec_pretty(summary)?, false)
 }
 
-/// `aret-pipe status`: a table of what is cached and what is stale, and why.
-pub fn status(config_path: &Path, patients: Option<&[String]>, verify: bool) -> anyhow::Result<String> {
-    let p = prepare(config_path, patients, None)?;
+/// `aret-pipe status`: a table of what is cached and what is stale, and why; or, with `json`,
+/// the same as one JSON document ([`plan_json`]).
+pub fn status(config_path: &Path, args: &StatusArgs) -> anyhow::Result<String> {
+    let p = prepare(config_path, args.patients.as_deref(), None)?;
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
-    let rows = preview::preview(&p.graph, &p.store, &p.units, verify, &[]);
+    let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &[]);
+    if args.json {
+        return plan_json("status", config_path, &p.graph, &rows);
+    }
     let mut cells = Vec::new();
     let mut notes = String::new();
     for r in &rows {
-        let (cell, why) = match &r.state {
-            State::Cached { .. } => ("cached", None),
-            State::Compute(reasons) if reasons == &["never run"] => ("new", None),
-            State::Compute(reasons) => ("stale", Some(reasons.join("; "))),
-            State::AfterUpstream { own, .. } if own == &["never run"] => ("new", None),
-            State::AfterUpstream { upstream, own } if own.is_empty() => {
-                ("pending", Some(format!("after `{upstream}`")))
-            }
-            State::AfterUpstream { own, .. } => ("stale", Some(own.join("; "))),
-            State::Blocked(why) => ("blocked", Some(why.clone())),
-        };
+        let (cell, why) = status_cell(&r.state);
         if let Some(why) = why {
             notes.push_str(&format!("{} · {}: {why}\n", r.unit, r.stage));
         }
         cells.push((r.unit.clone(), r.stage.clone(), cell.to_string()));
     }
     Ok(format!("{}{notes}", progress::grid(&cells, &p.graph.names())))
+}
+
+/// The status table's cell for a (unit, stage), and the note that says why, if any.
+fn status_cell(state: &State) -> (&'static str, Option<String>) {
+    match state {
+        State::Cached { .. } => ("cached", None),
+        State::Compute(reasons) if reasons == &["never run"] => ("new", None),
+        State::Compute(reasons) => ("stale", Some(reasons.join("; "))),
+        State::AfterUpstream { own, .. } if own == &["never run"] => ("new", None),
+        State::AfterUpstream { upstream, own } if own.is_empty() => ("pending", Some(format!("after `{upstream}`"))),
+        State::AfterUpstream { own, .. } => ("stale", Some(own.join("; "))),
+        State::Blocked(why) => ("blocked", Some(why.clone())),
+    }
+}
+
+/// The plan of `status --json` and `run --dry-run --json`. The field names are the CLI's
+/// contract, documented on `--json` in main.rs: rename none without changing that text.
+#[derive(Serialize)]
+struct PlanDocument<'a> {
+    command: &'a str,
+    config: String,
+    stages: Vec<&'static str>,
+    rows: Vec<PlanRow<'a>>,
+}
+
+/// One (unit, stage) of a [`PlanDocument`].
+#[derive(Serialize)]
+struct PlanRow<'a> {
+    unit: &'a str,
+    stage: &'a str,
+    status: &'static str,
+    cached: bool,
+    would_run: bool,
+    after: Option<&'a str>,
+    reasons: Vec<&'a str>,
+    key: Option<String>,
+}
+
+/// The preview `rows` as one pretty-printed JSON document (and a newline): `command` is
+/// `status` or `dry-run`. The status table and the dry run's lines say the same in words.
+pub fn plan_json(command: &str, config_path: &Path, graph: &StageGraph, rows: &[Row]) -> anyhow::Result<String> {
+    let rows = rows
+        .iter()
+        .map(|r| {
+            let (would_run, after, reasons): (bool, Option<&str>, Vec<&str>) = match &r.state {
+                State::Cached { .. } => (false, None, vec![]),
+                State::Compute(reasons) => (true, None, reasons.iter().map(String::as_str).collect()),
+                State::AfterUpstream { upstream, own } => {
+                    (!own.is_empty(), Some(upstream.as_str()), own.iter().map(String::as_str).collect())
+                }
+                State::Blocked(why) => (false, None, vec![why.as_str()]),
+            };
+            PlanRow {
+                unit: &r.unit,
+                stage: &r.stage,
+                status: status_cell(&r.state).0,
+                cached: matches!(r.state, State::Cached { .. }),
+                would_run,
+                after,
+                reasons,
+                key: r.key.map(|k| k.hex()),
+            }
+        })
+        .collect();
+    let document = PlanDocument { command, config: config_path.display().to_string(), stages: graph.names(), rows };
+    Ok(serde_json::to_string_pretty(&document)? + "\n")
 }
 
 /// What `aret-pipe gc` forgets besides what no manifest references.

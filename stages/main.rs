@@ -1,7 +1,7 @@
 //! The `aret-pipe` command line: parses arguments, then calls the library. Nothing else.
 
-use aret_pipe::commands::{self, RunArgs};
-use clap::{Parser, Subcommand, ValueEnum};
+use aret_pipe::commands::{self, RunArgs, StatusArgs};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -31,6 +31,8 @@ enum Command {
         /// Print, per patient and stage, whether it would run and why; run nothing.
         #[arg(long)]
         dry_run: bool,
+        #[command(flatten)]
+        json: JsonPlan,
         /// Re-hash cached blobs and input files instead of trusting sizes and timestamps.
         #[arg(long)]
         verify: bool,
@@ -40,6 +42,8 @@ enum Command {
         config: PathBuf,
         #[arg(long, value_delimiter = ',')]
         patients: Option<Vec<String>>,
+        #[command(flatten)]
+        json: JsonPlan,
         /// Re-hash cached blobs and input files.
         #[arg(long)]
         verify: bool,
@@ -105,6 +109,30 @@ enum Command {
     },
 }
 
+/// `--json` of `status` and `run --dry-run`.
+#[derive(Args)]
+struct JsonPlan {
+    /// Print the plan as one JSON document instead of the text, and nothing else on stdout
+    ///
+    /// Its fields (their names are stable):
+    ///   command   "status" or "dry-run"
+    ///   config    the configuration's path as given
+    ///   stages    the stages' names in the graph's order
+    ///   rows      one object per unit (a patient, a patient's replica `PATIENT/PART`, or
+    ///             `cohort`) and stage, in the text's order, with:
+    ///     unit, stage
+    ///     status     the status table's cell: "cached", "new" (never run), "stale" (would run),
+    ///                "pending" (only after `after`) or "blocked" (its inputs cannot be read)
+    ///     cached     true when the cache serves it now
+    ///     would_run  true when a run computes it whatever happens upstream
+    ///     after      the stage computed before it (for `cohort`, as `PATIENT/STAGE`), or null;
+    ///                with would_run false it runs unless that stage's outputs come out unchanged
+    ///     reasons    why it would run, or why it cannot (blocked), as the text says; [] if cached
+    ///     key        its cache key (64 hex digits) when every input it reads is known, else null
+    #[arg(long, verbatim_doc_comment)]
+    json: bool,
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum ClassArg {
     Fog,
@@ -114,11 +142,11 @@ enum ClassArg {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Run { config, patients, until, force, dry_run, verify } => {
-            commands::run(&config, &RunArgs { patients, until, force, dry_run, verify })
+        Command::Run { config, patients, until, force, dry_run, json: JsonPlan { json }, verify } => {
+            commands::run(&config, &RunArgs { patients, until, force, dry_run, json, verify })
         }
-        Command::Status { config, patients, verify } => {
-            commands::status(&config, patients.as_deref(), verify).map(|table| {
+        Command::Status { config, patients, json: JsonPlan { json }, verify } => {
+            commands::status(&config, &StatusArgs { patients, verify, json }).map(|table| {
                 print!("{table}");
                 0
             })

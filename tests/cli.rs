@@ -142,6 +142,111 @@ fn force_all_recomputes_every_stage_and_a_misspelt_stage_is_an_error_listing_the
     }
 }
 
+/// `status --json` and `run --dry-run --json` parsed, and checked fact by fact against the
+/// status table and the dry run's lines.
+#[test]
+fn status_and_dry_run_json_say_what_their_text_says() {
+    let p = Project::new(&["P1", "P2"], 3);
+    p.run(&[]);
+    p.write_config("pipeline.toml", "cache", "out", "[hu]\nhu_max = 500.0\n");
+    let json = |args: &[&str]| -> Value {
+        let out = p.aret(args);
+        assert!(out.status.success(), "{}", text(&out.stderr));
+        serde_json::from_slice(&out.stdout)
+            .unwrap_or_else(|e| panic!("stdout is not one JSON document ({e}):\n{}", text(&out.stdout)))
+    };
+    let status = json(&["status", "pipeline.toml", "--json"]);
+    let dry = json(&["run", "pipeline.toml", "--dry-run", "--json"]);
+    assert_eq!((&status["command"], &dry["command"]), (&Value::from("status"), &Value::from("dry-run")));
+    assert_eq!(status["config"], "pipeline.toml");
+    assert_eq!(status["rows"], dry["rows"], "one plan, two views");
+    let rows = status["rows"].as_array().unwrap();
+    let stages: Vec<&str> = status["stages"].as_array().unwrap().iter().map(|s| s.as_str().unwrap()).collect();
+    let row = |unit: &str, stage: &str| rows.iter().find(|r| r["unit"] == unit && r["stage"] == stage).unwrap();
+
+    // The facts of this plan: ingest cached, hu stale with the key it will have, what follows
+    // pending after it, and the cohort after the first patient's hu.
+    for unit in ["P1", "P2"] {
+        let ingest = row(unit, "ingest");
+        assert_eq!(
+            (&ingest["status"], &ingest["cached"], &ingest["would_run"]),
+            (&"cached".into(), &true.into(), &false.into())
+        );
+        let key = ingest["key"].as_str().unwrap();
+        assert!(p.path(&format!("cache/manifests/ingest/{key}.json")).exists(), "{ingest}");
+        let hu = row(unit, "hu");
+        assert_eq!((&hu["status"], &hu["cached"], &hu["would_run"]), (&"stale".into(), &false.into(), &true.into()));
+        assert_eq!(hu["reasons"], serde_json::json!(["parameter `hu_max` changed: 400.0 → 500.0"]));
+        assert_eq!(hu["key"].as_str().map(str::len), Some(64), "{hu}");
+        let drr = row(unit, "drr");
+        assert_eq!(
+            (&drr["status"], &drr["after"], &drr["would_run"]),
+            (&"pending".into(), &"hu".into(), &false.into())
+        );
+        assert!(drr["key"].is_null() && drr["reasons"] == serde_json::json!([]), "{drr}");
+    }
+    assert_eq!(row("cohort", "metrics")["after"], "P1/hu");
+
+    // The status table: its header, one grid row per unit, then the notes.
+    let table = text(&p.aret(&["status", "pipeline.toml"]).stdout);
+    let mut lines = table.lines();
+    let header: Vec<&str> = lines.next().unwrap().split_whitespace().collect();
+    assert_eq!(header[1..], stages[..], "{table}");
+    let mut units: Vec<&str> = rows.iter().map(|r| r["unit"].as_str().unwrap()).collect();
+    units.dedup();
+    let mut cells = 0;
+    for unit in &units {
+        let line: Vec<&str> = lines.next().unwrap().split_whitespace().collect();
+        assert_eq!(line[0], *unit, "{table}");
+        for (stage, cell) in stages.iter().zip(&line[1..]) {
+            if *cell != "·" {
+                assert_eq!(row(unit, stage)["status"], *cell, "{unit} · {stage}:\n{table}");
+                cells += 1;
+            }
+        }
+    }
+    assert_eq!(cells, rows.len(), "{table}");
+    let notes: Vec<&str> = lines.collect();
+    for r in rows {
+        let why = match r["status"].as_str().unwrap() {
+            "stale" | "blocked" => {
+                r["reasons"].as_array().unwrap().iter().map(|w| w.as_str().unwrap()).collect::<Vec<_>>().join("; ")
+            }
+            "pending" => format!("after `{}`", r["after"].as_str().unwrap()),
+            _ => continue,
+        };
+        let note = format!("{} · {}: {why}", r["unit"].as_str().unwrap(), r["stage"].as_str().unwrap());
+        assert!(notes.contains(&note.as_str()), "{note}:\n{table}");
+    }
+
+    // The dry run's lines, one per row in the same order.
+    let lines = text(&p.aret(&["run", "pipeline.toml", "--dry-run"]).stdout);
+    assert_eq!(lines.lines().count(), rows.len(), "{lines}");
+    for (line, r) in lines.lines().zip(rows) {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        assert_eq!((words[0], words[1]), (r["unit"].as_str().unwrap(), r["stage"].as_str().unwrap()), "{line}");
+        let reasons: Vec<&str> = r["reasons"].as_array().unwrap().iter().map(|w| w.as_str().unwrap()).collect();
+        if r["cached"] == true {
+            assert!(line.ends_with(" cached"), "{line}");
+        } else if r["would_run"] == true {
+            assert!(line.contains(&format!("would run: {}", reasons.join("; "))), "{line}");
+        } else {
+            assert!(line.contains(&format!("would run after `{}`", r["after"].as_str().unwrap())), "{line}");
+        }
+    }
+
+    // The key the plan gave hu is the key hu is cached under once it has run.
+    p.run(&[]);
+    let after = json(&["status", "pipeline.toml", "--json"]);
+    for unit in ["P1", "P2"] {
+        let hu = after["rows"].as_array().unwrap().iter().find(|r| r["unit"] == unit && r["stage"] == "hu").unwrap();
+        assert_eq!((&hu["status"], &hu["key"]), (&"cached".into(), &row(unit, "hu")["key"]));
+    }
+
+    let refused = p.aret(&["run", "pipeline.toml", "--json"]);
+    assert!(!refused.status.success() && text(&refused.stderr).contains("--json goes with --dry-run"));
+}
+
 #[test]
 fn dry_run_explains_new_and_changed_inputs() {
     let p = Project::new(&["P1"], 3);
