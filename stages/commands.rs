@@ -1,5 +1,5 @@
 //! The commands behind the CLI: run, status, gc (each loads the configuration, builds the stage
-//! graph, and hands it to the engine), and the standalone phantom and convert.
+//! graph, and hands it to the engine), and the standalone presets, phantom and convert.
 
 use crate::config::Config;
 use crate::engine::lock::FileLock;
@@ -356,6 +356,43 @@ fn same_dir(a: &Path, b: &Path) -> bool {
         (Ok(a), Ok(b)) => a == b,
         _ => a == b,
     }
+}
+
+/// `aret-pipe presets`: one line per product preset (`*.toml`) in `dir`, sorted by name: its name
+/// (the file name without `.toml`), then its description, the text of the file's first line,
+/// which should be a `# …` comment. A preset without one is listed with a note that says so.
+pub fn presets(dir: &Path) -> anyhow::Result<String> {
+    if !dir.is_dir() {
+        bail!("{}: no such presets directory", dir.display());
+    }
+    let mut presets = Vec::new();
+    for entry in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+        let path = entry.with_context(|| format!("reading {}", dir.display()))?.path();
+        if path.extension().is_some_and(|e| e == "toml") && path.is_file() {
+            let name = path.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+            let text = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+            presets.push((name, preset_description(&String::from_utf8_lossy(&text))));
+        }
+    }
+    if presets.is_empty() {
+        bail!("{}: no presets in it (no *.toml file)", dir.display());
+    }
+    presets.sort();
+    let width = presets.iter().map(|(name, _)| name.chars().count()).max().unwrap_or(0);
+    let mut out = String::new();
+    for (name, description) in &presets {
+        let description =
+            description.as_deref().unwrap_or("(no description: its first line should be a `# ...` comment)");
+        out.push_str(&format!("{name:<width$}  {description}\n"));
+    }
+    Ok(out)
+}
+
+/// A preset's one-line description: its first line's text when that line is a `# …` comment.
+fn preset_description(text: &str) -> Option<String> {
+    let first = text.trim_start_matches('\u{feff}').lines().next()?;
+    let comment = first.trim_end().strip_prefix('#')?.trim();
+    (!comment.is_empty()).then(|| comment.to_string())
 }
 
 /// `aret-pipe phantom`: writes each cohort patient's synthetic CT series, its LIDC XML and PNG

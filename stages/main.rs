@@ -70,6 +70,12 @@ enum Command {
         #[arg(long)]
         dry_run: bool,
     },
+    /// List the product presets: each one's name and the first comment line of its file.
+    Presets {
+        /// The folder of presets (`*.toml`).
+        #[arg(default_value = "presets")]
+        dir: PathBuf,
+    },
     /// Write synthetic CT series around a cohort's real LIDC annotations (DICOM + XML + previews).
     Phantom {
         /// The cohort folder: <patient>.scan.json + <patient>.xml per patient.
@@ -157,6 +163,10 @@ fn main() -> ExitCode {
                 0
             })
         }
+        Command::Presets { dir } => commands::presets(&dir).map(|list| {
+            print!("{list}");
+            0
+        }),
         Command::Phantom { cohort, out, patients, seed } => {
             let defaults = aret_pipe::phantom::PhantomParams::default();
             let params = aret_pipe::phantom::PhantomParams { seed: seed.unwrap_or(defaults.seed), ..defaults };

@@ -248,6 +248,43 @@ fn status_and_dry_run_json_say_what_their_text_says() {
 }
 
 #[test]
+fn presets_lists_each_with_its_first_comment_line_sorted_by_name() {
+    let p = Project::new(&[], 0);
+    let missing = p.aret(&["presets"]);
+    assert!(!missing.status.success() && text(&missing.stderr).contains("presets: no such presets directory"));
+    let dir = p.path("presets");
+    std::fs::create_dir_all(dir.join("old")).unwrap();
+    std::fs::write(dir.join("tiles.toml"), "# Blind, by tiling the lungs.\n# More words.\n[drr]\n").unwrap();
+    std::fs::write(dir.join("blind.toml"), "#Assistance level C\r\n[select]\n").unwrap();
+    std::fs::write(dir.join("bare.toml"), "[train]\n# a comment, but not on the first line\n").unwrap();
+    std::fs::write(dir.join("README.md"), "# not a preset\n").unwrap();
+    std::fs::write(dir.join("old/gone.toml"), "# in a subfolder: not listed\n").unwrap();
+    let out = p.aret(&["presets"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert_eq!(
+        text(&out.stdout),
+        "bare   (no description: its first line should be a `# ...` comment)\n\
+         blind  Assistance level C\n\
+         tiles  Blind, by tiling the lungs.\n"
+    );
+    let elsewhere = p.aret(&["presets", "lab/presets"]);
+    assert!(
+        !elsewhere.status.success() && text(&elsewhere.stderr).contains("lab/presets"),
+        "{}",
+        text(&elsewhere.stderr)
+    );
+
+    // The shipped presets all say what they are.
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("presets");
+    let out = Command::new(BIN).arg("presets").arg(&shipped).output().unwrap();
+    let list = text(&out.stdout);
+    let files =
+        std::fs::read_dir(&shipped).unwrap().flatten().filter(|e| e.path().extension().is_some_and(|x| x == "toml"));
+    assert_eq!(list.lines().count(), files.count(), "{list}");
+    assert!(!list.contains("(no description"), "{list}");
+}
+
+#[test]
 fn dry_run_explains_new_and_changed_inputs() {
     let p = Project::new(&["P1"], 3);
     let dry = text(&p.aret(&["run", "pipeline.toml", "--dry-run"]).stdout);
