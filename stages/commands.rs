@@ -1,5 +1,6 @@
 //! The commands behind the CLI: run, status, gc (each loads the configuration, builds the stage
-//! graph, and hands it to the engine), and the standalone presets, phantom and convert.
+//! graph, and hands it to the engine), and the standalone presets, completions, phantom and
+//! convert.
 
 use crate::config::Config;
 use crate::engine::lock::FileLock;
@@ -393,6 +394,14 @@ fn preset_description(text: &str) -> Option<String> {
     let first = text.trim_start_matches('\u{feff}').lines().next()?;
     let comment = first.trim_end().strip_prefix('#')?.trim();
     (!comment.is_empty()).then(|| comment.to_string())
+}
+
+/// `aret-pipe completions`: the completion script of `cli` (the whole command line) for `shell`.
+pub fn completions(shell: clap_complete::Shell, cli: &mut clap::Command) -> Vec<u8> {
+    let name = cli.get_name().to_string();
+    let mut script = Vec::new();
+    clap_complete::generate(shell, cli, name, &mut script);
+    script
 }
 
 /// `aret-pipe phantom`: writes each cohort patient's synthetic CT series, its LIDC XML and PNG

@@ -1,7 +1,8 @@
 //! The `aret-pipe` command line: parses arguments, then calls the library. Nothing else.
 
 use aret_pipe::commands::{self, RunArgs, StatusArgs};
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, CommandFactory, Parser, Subcommand, ValueEnum};
+use std::io::Write as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -75,6 +76,15 @@ enum Command {
         /// The folder of presets (`*.toml`).
         #[arg(default_value = "presets")]
         dir: PathBuf,
+    },
+    /// Print the shell completion script.
+    ///
+    /// E.g. `aret-pipe completions bash > ~/.local/share/bash-completion/completions/aret-pipe`,
+    /// `aret-pipe completions fish > ~/.config/fish/completions/aret-pipe.fish`.
+    Completions {
+        /// The shell to complete in.
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
     },
     /// Write synthetic CT series around a cohort's real LIDC annotations (DICOM + XML + previews).
     Phantom {
@@ -167,6 +177,10 @@ fn main() -> ExitCode {
             print!("{list}");
             0
         }),
+        Command::Completions { shell } => {
+            let script = commands::completions(shell, &mut Cli::command());
+            std::io::stdout().write_all(&script).map(|()| 0).map_err(anyhow::Error::from)
+        }
         Command::Phantom { cohort, out, patients, seed } => {
             let defaults = aret_pipe::phantom::PhantomParams::default();
             let params = aret_pipe::phantom::PhantomParams { seed: seed.unwrap_or(defaults.seed), ..defaults };

@@ -285,6 +285,21 @@ fn presets_lists_each_with_its_first_comment_line_sorted_by_name() {
 }
 
 #[test]
+fn completions_name_the_subcommands_for_each_shell() {
+    for shell in ["bash", "zsh", "fish"] {
+        let out = Command::new(BIN).args(["completions", shell]).output().unwrap();
+        assert!(out.status.success(), "{shell}: {}", text(&out.stderr));
+        let script = text(&out.stdout);
+        // Subcommands, and flags (fish names them without their dashes).
+        for word in ["run", "status", "gc", "presets", "completions", "dry-run", "patients"] {
+            assert!(script.contains(word), "{shell}'s script does not mention {word}");
+        }
+    }
+    let out = Command::new(BIN).args(["completions", "tcsh"]).output().unwrap();
+    assert!(!out.status.success());
+}
+
+#[test]
 fn dry_run_explains_new_and_changed_inputs() {
     let p = Project::new(&["P1"], 3);
     let dry = text(&p.aret(&["run", "pipeline.toml", "--dry-run"]).stdout);
