@@ -1,9 +1,10 @@
 //! The commands behind the CLI: run, status, gc (each loads the configuration, builds the stage
-//! graph, and hands it to the engine), and the standalone phantom and convert.
+//! graph, and hands it to the engine), and the standalone presets, completions, phantom and
+//! convert.
 
 use crate::config::Config;
 use crate::engine::lock::FileLock;
-use crate::engine::preview::{self, State};
+use crate::engine::preview::{self, Row, State};
 use crate::engine::progress::{self, Progress};
 use crate::engine::run::{self, RunOptions, RunSummary, StopRequest, Unit};
 use crate::engine::store::{write_atomic, Store};
@@ -12,6 +13,7 @@ use crate::formats::vdb::{self, FloatGrid, GridClass};
 use crate::volume::Volume;
 use crate::{dataset, stage};
 use anyhow::{bail, Context as _};
+use serde::Serialize;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
@@ -19,10 +21,25 @@ use std::path::{Path, PathBuf};
 pub struct RunArgs {
     pub patients: Option<Vec<String>>,
     pub until: Option<String>,
+    /// Stage names to recompute even when cached, or [`FORCE_ALL`] for every stage.
     pub force: Vec<String>,
     pub dry_run: bool,
+    /// With `dry_run`: print the plan as JSON ([`plan_json`]) instead of the text lines.
+    pub json: bool,
     pub verify: bool,
 }
+
+/// What `aret-pipe status` shows.
+#[derive(Debug, Default, Clone)]
+pub struct StatusArgs {
+    pub patients: Option<Vec<String>>,
+    pub verify: bool,
+    /// Print the plan as JSON ([`plan_json`]) instead of the table.
+    pub json: bool,
+}
+
+/// `--force all`: every stage of the graph.
+pub const FORCE_ALL: &str = "all";
 
 struct Prepared {
     config: Config,
@@ -46,21 +63,27 @@ fn prepare(config_path: &Path, patients: Option<&[String]>, until: Option<&str>)
 pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     let stop = StopRequest::default();
     stop_on_signals(&stop);
-    let p = prepare(config_path, args.patients.as_deref(), args.until.as_deref())?;
-    for f in &args.force {
-        if p.graph.get(f).is_none() {
-            bail!("--force {f}: no such stage in this run (stages: {})", p.graph.names().join(", "));
-        }
+    if args.json && !args.dry_run {
+        bail!(
+            "--json goes with --dry-run: a run prints its progress and end table, and records every \
+             outcome in out_dir/run_report.json"
+        );
     }
+    let p = prepare(config_path, args.patients.as_deref(), args.until.as_deref())?;
+    let force = forced_stages(&p.graph, &args.force)?;
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
     if args.dry_run {
-        let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &args.force);
-        print!("{}", preview::describe(&rows));
+        let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &force);
+        if args.json {
+            print!("{}", plan_json("dry-run", config_path, &p.graph, &rows)?);
+        } else {
+            print!("{}", preview::describe(&rows));
+        }
         return Ok(0);
     }
     let options = RunOptions {
         verify: args.verify,
-        force: args.force.clone(),
+        force,
         workers: p.config.pipeline.stage_workers.clone().into_iter().collect(),
         default_workers: p.config.pipeline.workers,
         out_dir: p.config.out_dir(),
@@ -86,6 +109,19 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     } else {
         0
     })
+}
+
+/// The stages `--force` names, checked against the graph: each a stage's name, or [`FORCE_ALL`]
+/// for all of them (after `--until`'s cut).
+fn forced_stages(graph: &StageGraph, force: &[String]) -> anyhow::Result<Vec<String>> {
+    let names = graph.names();
+    if let Some(unknown) = force.iter().find(|f| *f != FORCE_ALL && !names.contains(&f.as_str())) {
+        bail!("--force {unknown}: no such stage in this run (stages: {}; or `{FORCE_ALL}`)", names.join(", "));
+    }
+    if force.iter().any(|f| f == FORCE_ALL) {
+        return Ok(names.iter().map(|n| n.to_string()).collect());
+    }
+    Ok(force.to_vec())
 }
 
 /// The exit status of a run stopped by a signal (128 + SIGINT, the shells' convention).
@@ -124,31 +160,91 @@ fn write_report(out_dir: &Path, summary: &RunSummary) -> anyhow::Result<()> {
     write_atomic(&out_dir.join("run_report.json"), &serde_json::to_vec_pretty(summary)?, false)
 }
 
-/// `aret-pipe status`: a table of what is cached and what is stale, and why.
-pub fn status(config_path: &Path, patients: Option<&[String]>, verify: bool) -> anyhow::Result<String> {
-    let p = prepare(config_path, patients, None)?;
+/// `aret-pipe status`: a table of what is cached and what is stale, and why; or, with `json`,
+/// the same as one JSON document ([`plan_json`]).
+pub fn status(config_path: &Path, args: &StatusArgs) -> anyhow::Result<String> {
+    let p = prepare(config_path, args.patients.as_deref(), None)?;
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
-    let rows = preview::preview(&p.graph, &p.store, &p.units, verify, &[]);
+    let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &[]);
+    if args.json {
+        return plan_json("status", config_path, &p.graph, &rows);
+    }
     let mut cells = Vec::new();
     let mut notes = String::new();
     for r in &rows {
-        let (cell, why) = match &r.state {
-            State::Cached { .. } => ("cached", None),
-            State::Compute(reasons) if reasons == &["never run"] => ("new", None),
-            State::Compute(reasons) => ("stale", Some(reasons.join("; "))),
-            State::AfterUpstream { own, .. } if own == &["never run"] => ("new", None),
-            State::AfterUpstream { upstream, own } if own.is_empty() => {
-                ("pending", Some(format!("after `{upstream}`")))
-            }
-            State::AfterUpstream { own, .. } => ("stale", Some(own.join("; "))),
-            State::Blocked(why) => ("blocked", Some(why.clone())),
-        };
+        let (cell, why) = status_cell(&r.state);
         if let Some(why) = why {
             notes.push_str(&format!("{} · {}: {why}\n", r.unit, r.stage));
         }
         cells.push((r.unit.clone(), r.stage.clone(), cell.to_string()));
     }
     Ok(format!("{}{notes}", progress::grid(&cells, &p.graph.names())))
+}
+
+/// The status table's cell for a (unit, stage), and the note that says why, if any.
+fn status_cell(state: &State) -> (&'static str, Option<String>) {
+    match state {
+        State::Cached { .. } => ("cached", None),
+        State::Compute(reasons) if reasons == &["never run"] => ("new", None),
+        State::Compute(reasons) => ("stale", Some(reasons.join("; "))),
+        State::AfterUpstream { own, .. } if own == &["never run"] => ("new", None),
+        State::AfterUpstream { upstream, own } if own.is_empty() => ("pending", Some(format!("after `{upstream}`"))),
+        State::AfterUpstream { own, .. } => ("stale", Some(own.join("; "))),
+        State::Blocked(why) => ("blocked", Some(why.clone())),
+    }
+}
+
+/// The plan of `status --json` and `run --dry-run --json`. The field names are the CLI's
+/// contract, documented on `--json` in main.rs: rename none without changing that text.
+#[derive(Serialize)]
+struct PlanDocument<'a> {
+    command: &'a str,
+    config: String,
+    stages: Vec<&'static str>,
+    rows: Vec<PlanRow<'a>>,
+}
+
+/// One (unit, stage) of a [`PlanDocument`].
+#[derive(Serialize)]
+struct PlanRow<'a> {
+    unit: &'a str,
+    stage: &'a str,
+    status: &'static str,
+    cached: bool,
+    would_run: bool,
+    after: Option<&'a str>,
+    reasons: Vec<&'a str>,
+    key: Option<String>,
+}
+
+/// The preview `rows` as one pretty-printed JSON document (and a newline): `command` is
+/// `status` or `dry-run`. The status table and the dry run's lines say the same in words.
+pub fn plan_json(command: &str, config_path: &Path, graph: &StageGraph, rows: &[Row]) -> anyhow::Result<String> {
+    let rows = rows
+        .iter()
+        .map(|r| {
+            let (would_run, after, reasons): (bool, Option<&str>, Vec<&str>) = match &r.state {
+                State::Cached { .. } => (false, None, vec![]),
+                State::Compute(reasons) => (true, None, reasons.iter().map(String::as_str).collect()),
+                State::AfterUpstream { upstream, own } => {
+                    (!own.is_empty(), Some(upstream.as_str()), own.iter().map(String::as_str).collect())
+                }
+                State::Blocked(why) => (false, None, vec![why.as_str()]),
+            };
+            PlanRow {
+                unit: &r.unit,
+                stage: &r.stage,
+                status: status_cell(&r.state).0,
+                cached: matches!(r.state, State::Cached { .. }),
+                would_run,
+                after,
+                reasons,
+                key: r.key.map(|k| k.hex()),
+            }
+        })
+        .collect();
+    let document = PlanDocument { command, config: config_path.display().to_string(), stages: graph.names(), rows };
+    Ok(serde_json::to_string_pretty(&document)? + "\n")
 }
 
 /// What `aret-pipe gc` forgets besides what no manifest references.
@@ -261,6 +357,51 @@ fn same_dir(a: &Path, b: &Path) -> bool {
         (Ok(a), Ok(b)) => a == b,
         _ => a == b,
     }
+}
+
+/// `aret-pipe presets`: one line per product preset (`*.toml`) in `dir`, sorted by name: its name
+/// (the file name without `.toml`), then its description, the text of the file's first line,
+/// which should be a `# …` comment. A preset without one is listed with a note that says so.
+pub fn presets(dir: &Path) -> anyhow::Result<String> {
+    if !dir.is_dir() {
+        bail!("{}: no such presets directory", dir.display());
+    }
+    let mut presets = Vec::new();
+    for entry in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+        let path = entry.with_context(|| format!("reading {}", dir.display()))?.path();
+        if path.extension().is_some_and(|e| e == "toml") && path.is_file() {
+            let name = path.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+            let text = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+            presets.push((name, preset_description(&String::from_utf8_lossy(&text))));
+        }
+    }
+    if presets.is_empty() {
+        bail!("{}: no presets in it (no *.toml file)", dir.display());
+    }
+    presets.sort();
+    let width = presets.iter().map(|(name, _)| name.chars().count()).max().unwrap_or(0);
+    let mut out = String::new();
+    for (name, description) in &presets {
+        let description =
+            description.as_deref().unwrap_or("(no description: its first line should be a `# ...` comment)");
+        out.push_str(&format!("{name:<width$}  {description}\n"));
+    }
+    Ok(out)
+}
+
+/// A preset's one-line description: its first line's text when that line is a `# …` comment.
+fn preset_description(text: &str) -> Option<String> {
+    let first = text.trim_start_matches('\u{feff}').lines().next()?;
+    let comment = first.trim_end().strip_prefix('#')?.trim();
+    (!comment.is_empty()).then(|| comment.to_string())
+}
+
+/// `aret-pipe completions`: the completion script of `cli` (the whole command line) for `shell`.
+pub fn completions(shell: clap_complete::Shell, cli: &mut clap::Command) -> Vec<u8> {
+    let name = cli.get_name().to_string();
+    let mut script = Vec::new();
+    clap_complete::generate(shell, cli, name, &mut script);
+    script
 }
 
 /// `aret-pipe phantom`: writes each cohort patient's synthetic CT series, its LIDC XML and PNG

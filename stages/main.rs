@@ -1,7 +1,8 @@
 //! The `aret-pipe` command line: parses arguments, then calls the library. Nothing else.
 
-use aret_pipe::commands::{self, RunArgs};
-use clap::{Parser, Subcommand, ValueEnum};
+use aret_pipe::commands::{self, RunArgs, StatusArgs};
+use clap::{Args, CommandFactory, Parser, Subcommand, ValueEnum};
+use std::io::Write as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -24,12 +25,15 @@ enum Command {
         /// Stop after this stage (and what it needs).
         #[arg(long)]
         until: Option<String>,
-        /// Recompute this stage even when cached (repeat or comma-separate for several).
+        /// Recompute this stage even when cached (repeat or comma-separate for several); `all`
+        /// recomputes every stage (those --until keeps).
         #[arg(long, value_delimiter = ',')]
         force: Vec<String>,
         /// Print, per patient and stage, whether it would run and why; run nothing.
         #[arg(long)]
         dry_run: bool,
+        #[command(flatten)]
+        json: JsonPlan,
         /// Re-hash cached blobs and input files instead of trusting sizes and timestamps.
         #[arg(long)]
         verify: bool,
@@ -39,6 +43,8 @@ enum Command {
         config: PathBuf,
         #[arg(long, value_delimiter = ',')]
         patients: Option<Vec<String>>,
+        #[command(flatten)]
+        json: JsonPlan,
         /// Re-hash cached blobs and input files.
         #[arg(long)]
         verify: bool,
@@ -64,6 +70,21 @@ enum Command {
         /// Report what would be deleted; delete nothing.
         #[arg(long)]
         dry_run: bool,
+    },
+    /// List the product presets: each one's name and the first comment line of its file.
+    Presets {
+        /// The folder of presets (`*.toml`).
+        #[arg(default_value = "presets")]
+        dir: PathBuf,
+    },
+    /// Print the shell completion script.
+    ///
+    /// E.g. `aret-pipe completions bash > ~/.local/share/bash-completion/completions/aret-pipe`,
+    /// `aret-pipe completions fish > ~/.config/fish/completions/aret-pipe.fish`.
+    Completions {
+        /// The shell to complete in.
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
     },
     /// Write synthetic CT series around a cohort's real LIDC annotations (DICOM + XML + previews).
     Phantom {
@@ -104,6 +125,30 @@ enum Command {
     },
 }
 
+/// `--json` of `status` and `run --dry-run`.
+#[derive(Args)]
+struct JsonPlan {
+    /// Print the plan as one JSON document instead of the text, and nothing else on stdout
+    ///
+    /// Its fields (their names are stable):
+    ///   command   "status" or "dry-run"
+    ///   config    the configuration's path as given
+    ///   stages    the stages' names in the graph's order
+    ///   rows      one object per unit (a patient, a patient's replica `PATIENT/PART`, or
+    ///             `cohort`) and stage, in the text's order, with:
+    ///     unit, stage
+    ///     status     the status table's cell: "cached", "new" (never run), "stale" (would run),
+    ///                "pending" (only after `after`) or "blocked" (its inputs cannot be read)
+    ///     cached     true when the cache serves it now
+    ///     would_run  true when a run computes it whatever happens upstream
+    ///     after      the stage computed before it (for `cohort`, as `PATIENT/STAGE`), or null;
+    ///                with would_run false it runs unless that stage's outputs come out unchanged
+    ///     reasons    why it would run, or why it cannot (blocked), as the text says; [] if cached
+    ///     key        its cache key (64 hex digits) when every input it reads is known, else null
+    #[arg(long, verbatim_doc_comment)]
+    json: bool,
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum ClassArg {
     Fog,
@@ -113,11 +158,11 @@ enum ClassArg {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Run { config, patients, until, force, dry_run, verify } => {
-            commands::run(&config, &RunArgs { patients, until, force, dry_run, verify })
+        Command::Run { config, patients, until, force, dry_run, json: JsonPlan { json }, verify } => {
+            commands::run(&config, &RunArgs { patients, until, force, dry_run, json, verify })
         }
-        Command::Status { config, patients, verify } => {
-            commands::status(&config, patients.as_deref(), verify).map(|table| {
+        Command::Status { config, patients, json: JsonPlan { json }, verify } => {
+            commands::status(&config, &StatusArgs { patients, verify, json }).map(|table| {
                 print!("{table}");
                 0
             })
@@ -127,6 +172,14 @@ fn main() -> ExitCode {
                 println!("{line}");
                 0
             })
+        }
+        Command::Presets { dir } => commands::presets(&dir).map(|list| {
+            print!("{list}");
+            0
+        }),
+        Command::Completions { shell } => {
+            let script = commands::completions(shell, &mut Cli::command());
+            std::io::stdout().write_all(&script).map(|()| 0).map_err(anyhow::Error::from)
         }
         Command::Phantom { cohort, out, patients, seed } => {
             let defaults = aret_pipe::phantom::PhantomParams::default();

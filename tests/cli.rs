@@ -121,6 +121,186 @@ fn editing_hu_recomputes_hu_only_and_forced_runs_cut_off_early() {
 }
 
 #[test]
+fn force_all_recomputes_every_stage_and_a_misspelt_stage_is_an_error_listing_them() {
+    let p = Project::new(&["P1"], 2);
+    p.run(&[]);
+    let dry = text(&p.aret(&["run", "pipeline.toml", "--dry-run", "--force", "all"]).stdout);
+    assert!(dry.lines().count() > 2 && dry.lines().all(|l| l.contains("forced with --force")), "{dry}");
+    let r = p.run(&["--force", "all"]);
+    let records = r["records"].as_array().unwrap();
+    assert!(records.len() > 2 && records.iter().all(|r| r["outcome"] == "computed"), "{r}");
+    // `all` is every stage --until keeps.
+    let r = p.run(&["--force", "all", "--until", "hu"]);
+    let stages: Vec<&str> = r["records"].as_array().unwrap().iter().map(|r| r["stage"].as_str().unwrap()).collect();
+    assert_eq!(stages, ["ingest", "hu"]);
+    assert_eq!((count(&r, "ingest", "computed"), count(&r, "hu", "computed")), (1, 1));
+
+    for force in ["hue", "all,hue"] {
+        let out = p.aret(&["run", "pipeline.toml", "--force", force]);
+        let stderr = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{stderr}");
+        assert!(stderr.contains("--force hue: no such stage") && stderr.contains("ingest, hu, drr"), "{stderr}");
+    }
+}
+
+/// `status --json` and `run --dry-run --json` parsed, and checked fact by fact against the
+/// status table and the dry run's lines.
+#[test]
+fn status_and_dry_run_json_say_what_their_text_says() {
+    let p = Project::new(&["P1", "P2"], 3);
+    p.run(&[]);
+    p.write_config("pipeline.toml", "cache", "out", "[hu]\nhu_max = 500.0\n");
+    let json = |args: &[&str]| -> Value {
+        let out = p.aret(args);
+        assert!(out.status.success(), "{}", text(&out.stderr));
+        serde_json::from_slice(&out.stdout)
+            .unwrap_or_else(|e| panic!("stdout is not one JSON document ({e}):\n{}", text(&out.stdout)))
+    };
+    let status = json(&["status", "pipeline.toml", "--json"]);
+    let dry = json(&["run", "pipeline.toml", "--dry-run", "--json"]);
+    assert_eq!((&status["command"], &dry["command"]), (&Value::from("status"), &Value::from("dry-run")));
+    assert_eq!(status["config"], "pipeline.toml");
+    assert_eq!(status["rows"], dry["rows"], "one plan, two views");
+    let rows = status["rows"].as_array().unwrap();
+    let stages: Vec<&str> = status["stages"].as_array().unwrap().iter().map(|s| s.as_str().unwrap()).collect();
+    let row = |unit: &str, stage: &str| rows.iter().find(|r| r["unit"] == unit && r["stage"] == stage).unwrap();
+
+    // The facts of this plan: ingest cached, hu stale with the key it will have, what follows
+    // pending after it, and the cohort after the first patient's hu.
+    for unit in ["P1", "P2"] {
+        let ingest = row(unit, "ingest");
+        assert_eq!(
+            (&ingest["status"], &ingest["cached"], &ingest["would_run"]),
+            (&"cached".into(), &true.into(), &false.into())
+        );
+        let key = ingest["key"].as_str().unwrap();
+        assert!(p.path(&format!("cache/manifests/ingest/{key}.json")).exists(), "{ingest}");
+        let hu = row(unit, "hu");
+        assert_eq!((&hu["status"], &hu["cached"], &hu["would_run"]), (&"stale".into(), &false.into(), &true.into()));
+        assert_eq!(hu["reasons"], serde_json::json!(["parameter `hu_max` changed: 400.0 → 500.0"]));
+        assert_eq!(hu["key"].as_str().map(str::len), Some(64), "{hu}");
+        let drr = row(unit, "drr");
+        assert_eq!(
+            (&drr["status"], &drr["after"], &drr["would_run"]),
+            (&"pending".into(), &"hu".into(), &false.into())
+        );
+        assert!(drr["key"].is_null() && drr["reasons"] == serde_json::json!([]), "{drr}");
+    }
+    assert_eq!(row("cohort", "metrics")["after"], "P1/hu");
+
+    // The status table: its header, one grid row per unit, then the notes.
+    let table = text(&p.aret(&["status", "pipeline.toml"]).stdout);
+    let mut lines = table.lines();
+    let header: Vec<&str> = lines.next().unwrap().split_whitespace().collect();
+    assert_eq!(header[1..], stages[..], "{table}");
+    let mut units: Vec<&str> = rows.iter().map(|r| r["unit"].as_str().unwrap()).collect();
+    units.dedup();
+    let mut cells = 0;
+    for unit in &units {
+        let line: Vec<&str> = lines.next().unwrap().split_whitespace().collect();
+        assert_eq!(line[0], *unit, "{table}");
+        for (stage, cell) in stages.iter().zip(&line[1..]) {
+            if *cell != "·" {
+                assert_eq!(row(unit, stage)["status"], *cell, "{unit} · {stage}:\n{table}");
+                cells += 1;
+            }
+        }
+    }
+    assert_eq!(cells, rows.len(), "{table}");
+    let notes: Vec<&str> = lines.collect();
+    for r in rows {
+        let why = match r["status"].as_str().unwrap() {
+            "stale" | "blocked" => {
+                r["reasons"].as_array().unwrap().iter().map(|w| w.as_str().unwrap()).collect::<Vec<_>>().join("; ")
+            }
+            "pending" => format!("after `{}`", r["after"].as_str().unwrap()),
+            _ => continue,
+        };
+        let note = format!("{} · {}: {why}", r["unit"].as_str().unwrap(), r["stage"].as_str().unwrap());
+        assert!(notes.contains(&note.as_str()), "{note}:\n{table}");
+    }
+
+    // The dry run's lines, one per row in the same order.
+    let lines = text(&p.aret(&["run", "pipeline.toml", "--dry-run"]).stdout);
+    assert_eq!(lines.lines().count(), rows.len(), "{lines}");
+    for (line, r) in lines.lines().zip(rows) {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        assert_eq!((words[0], words[1]), (r["unit"].as_str().unwrap(), r["stage"].as_str().unwrap()), "{line}");
+        let reasons: Vec<&str> = r["reasons"].as_array().unwrap().iter().map(|w| w.as_str().unwrap()).collect();
+        if r["cached"] == true {
+            assert!(line.ends_with(" cached"), "{line}");
+        } else if r["would_run"] == true {
+            assert!(line.contains(&format!("would run: {}", reasons.join("; "))), "{line}");
+        } else {
+            assert!(line.contains(&format!("would run after `{}`", r["after"].as_str().unwrap())), "{line}");
+        }
+    }
+
+    // The key the plan gave hu is the key hu is cached under once it has run.
+    p.run(&[]);
+    let after = json(&["status", "pipeline.toml", "--json"]);
+    for unit in ["P1", "P2"] {
+        let hu = after["rows"].as_array().unwrap().iter().find(|r| r["unit"] == unit && r["stage"] == "hu").unwrap();
+        assert_eq!((&hu["status"], &hu["key"]), (&"cached".into(), &row(unit, "hu")["key"]));
+    }
+
+    let refused = p.aret(&["run", "pipeline.toml", "--json"]);
+    assert!(!refused.status.success() && text(&refused.stderr).contains("--json goes with --dry-run"));
+}
+
+#[test]
+fn presets_lists_each_with_its_first_comment_line_sorted_by_name() {
+    let p = Project::new(&[], 0);
+    let missing = p.aret(&["presets"]);
+    assert!(!missing.status.success() && text(&missing.stderr).contains("presets: no such presets directory"));
+    let dir = p.path("presets");
+    std::fs::create_dir_all(dir.join("old")).unwrap();
+    std::fs::write(dir.join("tiles.toml"), "# Blind, by tiling the lungs.\n# More words.\n[drr]\n").unwrap();
+    std::fs::write(dir.join("blind.toml"), "#Assistance level C\r\n[select]\n").unwrap();
+    std::fs::write(dir.join("bare.toml"), "[train]\n# a comment, but not on the first line\n").unwrap();
+    std::fs::write(dir.join("README.md"), "# not a preset\n").unwrap();
+    std::fs::write(dir.join("old/gone.toml"), "# in a subfolder: not listed\n").unwrap();
+    let out = p.aret(&["presets"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert_eq!(
+        text(&out.stdout),
+        "bare   (no description: its first line should be a `# ...` comment)\n\
+         blind  Assistance level C\n\
+         tiles  Blind, by tiling the lungs.\n"
+    );
+    let elsewhere = p.aret(&["presets", "lab/presets"]);
+    assert!(
+        !elsewhere.status.success() && text(&elsewhere.stderr).contains("lab/presets"),
+        "{}",
+        text(&elsewhere.stderr)
+    );
+
+    // The shipped presets all say what they are.
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("presets");
+    let out = Command::new(BIN).arg("presets").arg(&shipped).output().unwrap();
+    let list = text(&out.stdout);
+    let files =
+        std::fs::read_dir(&shipped).unwrap().flatten().filter(|e| e.path().extension().is_some_and(|x| x == "toml"));
+    assert_eq!(list.lines().count(), files.count(), "{list}");
+    assert!(!list.contains("(no description"), "{list}");
+}
+
+#[test]
+fn completions_name_the_subcommands_for_each_shell() {
+    for shell in ["bash", "zsh", "fish"] {
+        let out = Command::new(BIN).args(["completions", shell]).output().unwrap();
+        assert!(out.status.success(), "{shell}: {}", text(&out.stderr));
+        let script = text(&out.stdout);
+        // Subcommands, and flags (fish names them without their dashes).
+        for word in ["run", "status", "gc", "presets", "completions", "dry-run", "patients"] {
+            assert!(script.contains(word), "{shell}'s script does not mention {word}");
+        }
+    }
+    let out = Command::new(BIN).args(["completions", "tcsh"]).output().unwrap();
+    assert!(!out.status.success());
+}
+
+#[test]
 fn dry_run_explains_new_and_changed_inputs() {
     let p = Project::new(&["P1"], 3);
     let dry = text(&p.aret(&["run", "pipeline.toml", "--dry-run"]).stdout);

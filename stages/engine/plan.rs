@@ -85,9 +85,12 @@ pub enum Decision {
     Compute(Vec<String>),
 }
 
+/// The reason a forced stage computes.
+pub const FORCED: &str = "forced with --force";
+
 pub fn decide(store: &Store, stage: &dyn Stage, unit: &str, keyed: &Keyed, verify: bool, forced: bool) -> Decision {
     if forced {
-        return Decision::Compute(vec!["forced with --force".into()]);
+        return Decision::Compute(vec![FORCED.into()]);
     }
     match store.lookup(stage.name(), &keyed.key, verify) {
         Lookup::Hit(m) => Decision::Cached(m),

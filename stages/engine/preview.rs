@@ -27,6 +27,10 @@ pub struct Row {
     pub unit: String,
     pub stage: String,
     pub state: State,
+    /// The stage's cache key for this unit as things stand: known when every input it reads is
+    /// (it is cached, or would compute from cached inputs); `None` after an upstream stage that
+    /// would compute first, or when its inputs cannot be read.
+    pub key: Option<Hash>,
 }
 
 /// One unit's (or replica's) way through the per-patient stages while previewing.
@@ -62,30 +66,32 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
                 base.pending = base.pending.take().or_else(|| replicas.iter().find_map(|l| l.pending.clone()));
             }
             let lanes: Vec<&mut Lane> = if in_span { replicas.iter_mut().collect() } else { vec![&mut base] };
+            let forced = force.iter().any(|f| f == stage.name());
             for lane in lanes {
-                let state = match (&sources, &lane.pending) {
-                    (Err(e), _) if stage.inputs().contains(&SOURCE) => State::Blocked(format!("{e:#}")),
+                let (state, key) = match (&sources, &lane.pending) {
+                    (Err(e), _) if stage.inputs().contains(&SOURCE) => (State::Blocked(format!("{e:#}")), None),
                     (_, Some(up)) if depends_on(graph, stage, up) => {
-                        State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, &lane.unit) }
+                        let own = own_changes(store, stage, &lane.unit, forced);
+                        (State::AfterUpstream { upstream: up.clone(), own }, None)
                     }
                     _ => {
                         let inputs =
                             gathered.clone().unwrap_or_else(|| plan::patient_inputs(stage, files, &lane.finished));
                         let keyed = plan::key(stage, &lane.unit, inputs);
-                        let forced = force.iter().any(|f| f == stage.name());
-                        match plan::decide(store, stage, &lane.unit, &keyed, verify, forced) {
+                        let state = match plan::decide(store, stage, &lane.unit, &keyed, verify, forced) {
                             Decision::Cached(m) => {
                                 lane.finished.insert(stage.name(), m.outputs);
                                 State::Cached { key: keyed.key }
                             }
                             Decision::Compute(reasons) => State::Compute(reasons),
-                        }
+                        };
+                        (state, Some(keyed.key))
                     }
                 };
                 if !matches!(state, State::Cached { .. }) && lane.pending.is_none() {
                     lane.pending = Some(stage.name().to_string());
                 }
-                rows.push(Row { unit: lane.unit.clone(), stage: stage.name().into(), state });
+                rows.push(Row { unit: lane.unit.clone(), stage: stage.name().into(), state, key });
             }
         }
         // A graph cut inside the span ends on the replicas.
@@ -98,14 +104,14 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
     let mut cohort_finished = Finished::new();
     for stage in graph.stages().iter().filter(|s| s.is_cohort()) {
         let stage = stage.as_ref();
-        let state = if let Some(up) = &cohort_blocker {
-            State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, COHORT) }
+        let forced = force.iter().any(|f| f == stage.name());
+        let (state, key) = if let Some(up) = &cohort_blocker {
+            (State::AfterUpstream { upstream: up.clone(), own: own_changes(store, stage, COHORT, forced) }, None)
         } else {
             let names = span.as_ref().map_or(&[][..], |s| &s.names[..]);
             let replicas = plan::CohortReplicas { finished: &cohort_replicas, names };
             let keyed = plan::key(stage, COHORT, plan::cohort_inputs(stage, &cohort, &replicas, &cohort_finished, &[]));
-            let forced = force.iter().any(|f| f == stage.name());
-            match plan::decide(store, stage, COHORT, &keyed, verify, forced) {
+            let state = match plan::decide(store, stage, COHORT, &keyed, verify, forced) {
                 Decision::Cached(m) => {
                     cohort_finished.insert(stage.name(), m.outputs);
                     State::Cached { key: keyed.key }
@@ -114,9 +120,10 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
                     cohort_blocker = Some(stage.name().to_string());
                     State::Compute(reasons)
                 }
-            }
+            };
+            (state, Some(keyed.key))
         };
-        rows.push(Row { unit: COHORT.into(), stage: stage.name().into(), state });
+        rows.push(Row { unit: COHORT.into(), stage: stage.name().into(), state, key });
     }
     rows
 }
@@ -126,8 +133,12 @@ fn depends_on(graph: &StageGraph, stage: &dyn Stage, upstream: &str) -> bool {
     stage.inputs().iter().any(|&i| i == upstream || graph.get(i).is_some_and(|s| depends_on(graph, s, upstream)))
 }
 
-/// Changes of the stage itself since it last ran for `unit` ("never run" if it never did).
-fn own_changes(store: &Store, stage: &dyn Stage, unit: &str) -> Vec<String> {
+/// Changes of the stage itself since it last ran for `unit` ("never run" if it never did); a
+/// forced stage runs whatever they are, as `plan::decide` says.
+fn own_changes(store: &Store, stage: &dyn Stage, unit: &str, forced: bool) -> Vec<String> {
+    if forced {
+        return vec![plan::FORCED.into()];
+    }
     match store.latest(stage.name(), unit) {
         None => vec!["never run".into()],
         Some(last) => plan::own_changes(&last, stage, &stage.params()),
