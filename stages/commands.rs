@@ -19,6 +19,8 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, Default, Clone)]
 pub struct RunArgs {
+    /// `section.key=value` over the configuration ([`Config::load_with`]).
+    pub sets: Vec<String>,
     pub patients: Option<Vec<String>>,
     pub until: Option<String>,
     /// Stage names to recompute even when cached, or [`FORCE_ALL`] for every stage.
@@ -32,6 +34,8 @@ pub struct RunArgs {
 /// What `aret-pipe status` shows.
 #[derive(Debug, Default, Clone)]
 pub struct StatusArgs {
+    /// `section.key=value` over the configuration ([`Config::load_with`]).
+    pub sets: Vec<String>,
     pub patients: Option<Vec<String>>,
     pub verify: bool,
     /// Print the plan as JSON ([`plan_json`]) instead of the table.
@@ -48,8 +52,13 @@ struct Prepared {
     store: Store,
 }
 
-fn prepare(config_path: &Path, patients: Option<&[String]>, until: Option<&str>) -> anyhow::Result<Prepared> {
-    let config = Config::load(config_path)?;
+fn prepare(
+    config_path: &Path,
+    sets: &[String],
+    patients: Option<&[String]>,
+    until: Option<&str>,
+) -> anyhow::Result<Prepared> {
+    let config = Config::load_with(config_path, sets)?;
     let mut graph = stage::graph(&config)?;
     if let Some(last) = until {
         graph = graph.until(last)?;
@@ -69,7 +78,7 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
              outcome in out_dir/run_report.json"
         );
     }
-    let p = prepare(config_path, args.patients.as_deref(), args.until.as_deref())?;
+    let p = prepare(config_path, &args.sets, args.patients.as_deref(), args.until.as_deref())?;
     let force = forced_stages(&p.graph, &args.force)?;
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
     if args.dry_run {
@@ -163,7 +172,7 @@ fn write_report(out_dir: &Path, summary: &RunSummary) -> anyhow::Result<()> {
 /// `aret-pipe status`: a table of what is cached and what is stale, and why; or, with `json`,
 /// the same as one JSON document ([`plan_json`]).
 pub fn status(config_path: &Path, args: &StatusArgs) -> anyhow::Result<String> {
-    let p = prepare(config_path, args.patients.as_deref(), None)?;
+    let p = prepare(config_path, &args.sets, args.patients.as_deref(), None)?;
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
     let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &[]);
     if args.json {
@@ -250,6 +259,8 @@ pub fn plan_json(command: &str, config_path: &Path, graph: &StageGraph, rows: &[
 /// What `aret-pipe gc` forgets besides what no manifest references.
 #[derive(Debug, Default, Clone)]
 pub struct GcArgs {
+    /// `section.key=value` over every configuration ([`Config::load_with`]).
+    pub sets: Vec<String>,
     /// Keep only the results the configurations use now.
     pub prune: bool,
     /// Forget every result of these stages (cheap to compute again; early cutoff then serves
@@ -264,12 +275,12 @@ pub struct GcArgs {
 /// result of the stages in `forget`. With `dry_run` it only reports what it would delete.
 /// Returns a one-line report.
 pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
-    let GcArgs { prune, ref forget, dry_run } = *args;
+    let GcArgs { ref sets, prune, ref forget, dry_run } = *args;
     let Some(first) = config_paths.first() else { bail!("gc needs a configuration file") };
     if config_paths.len() > 1 && !prune {
         bail!("gc reads only the cache of its configuration; more than one matters only with --prune");
     }
-    let config = Config::load(first)?;
+    let config = Config::load_with(first, sets)?;
     let stages = stage::graph(&config)?.names();
     if let Some(unknown) = forget.iter().find(|f| !stages.contains(&f.as_str())) {
         bail!("--forget {unknown}: no such stage in {} (stages: {})", first.display(), stages.join(", "));
@@ -288,7 +299,7 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
             ),
         }
     };
-    let keep = if prune { Some(results_in_use(config_paths, &cache_dir)?) } else { None };
+    let keep = if prune { Some(results_in_use(config_paths, sets, &cache_dir)?) } else { None };
     let garbage = store.garbage(keep.as_ref(), forget)?;
     if !dry_run {
         garbage.delete()?;
@@ -329,10 +340,14 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
 
 /// The (stage, key) of every result the configurations at `config_paths` would take from the
 /// cache now: what `gc --prune` keeps. Refuses a configuration with another cache.
-fn results_in_use(config_paths: &[PathBuf], cache_dir: &Path) -> anyhow::Result<HashSet<(String, Hash)>> {
+fn results_in_use(
+    config_paths: &[PathBuf],
+    sets: &[String],
+    cache_dir: &Path,
+) -> anyhow::Result<HashSet<(String, Hash)>> {
     let mut keep = HashSet::new();
     for path in config_paths {
-        let p = prepare(path, None, None)?;
+        let p = prepare(path, sets, None, None)?;
         if !same_dir(&p.config.cache_dir(), cache_dir) {
             bail!(
                 "{} uses the cache {}, not {} like {}: prune one cache at a time",

@@ -19,6 +19,8 @@ enum Command {
     Run {
         /// The pipeline configuration (e.g. pipeline.toml).
         config: PathBuf,
+        #[command(flatten)]
+        sets: Sets,
         /// Only these patients (comma-separated IDs).
         #[arg(long, value_delimiter = ',')]
         patients: Option<Vec<String>>,
@@ -41,6 +43,8 @@ enum Command {
     /// Show what is cached and what is stale, and why.
     Status {
         config: PathBuf,
+        #[command(flatten)]
+        sets: Sets,
         #[arg(long, value_delimiter = ',')]
         patients: Option<Vec<String>>,
         #[command(flatten)]
@@ -59,6 +63,8 @@ enum Command {
         /// current results to keep (all sharing one cache).
         #[arg(required = true)]
         configs: Vec<PathBuf>,
+        #[command(flatten)]
+        sets: Sets,
         /// Keep only the results these configurations use now.
         #[arg(long)]
         prune: bool,
@@ -125,6 +131,16 @@ enum Command {
     },
 }
 
+/// `--set` of `run`, `status` and `gc`.
+#[derive(Args)]
+struct Sets {
+    /// Set `section.key` (or `section.variant.key`) to VALUE over the configuration, as an edit
+    /// of the file would: typed and checked alike, and part of the cache key. Repeatable. VALUE
+    /// is TOML (`64`, `[1, 2]`, `"text"`); a bare word is a string: `--set train.model=vm`.
+    #[arg(long = "set", value_name = "SECTION.KEY=VALUE")]
+    sets: Vec<String>,
+}
+
 /// `--json` of `status` and `run --dry-run`.
 #[derive(Args)]
 struct JsonPlan {
@@ -158,17 +174,24 @@ enum ClassArg {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Run { config, patients, until, force, dry_run, json: JsonPlan { json }, verify } => {
-            commands::run(&config, &RunArgs { patients, until, force, dry_run, json, verify })
-        }
-        Command::Status { config, patients, json: JsonPlan { json }, verify } => {
-            commands::status(&config, &StatusArgs { patients, verify, json }).map(|table| {
+        Command::Run {
+            config,
+            sets: Sets { sets },
+            patients,
+            until,
+            force,
+            dry_run,
+            json: JsonPlan { json },
+            verify,
+        } => commands::run(&config, &RunArgs { sets, patients, until, force, dry_run, json, verify }),
+        Command::Status { config, sets: Sets { sets }, patients, json: JsonPlan { json }, verify } => {
+            commands::status(&config, &StatusArgs { sets, patients, verify, json }).map(|table| {
                 print!("{table}");
                 0
             })
         }
-        Command::Gc { configs, prune, forget, dry_run } => {
-            commands::gc(&configs, &commands::GcArgs { prune, forget, dry_run }).map(|line| {
+        Command::Gc { configs, sets: Sets { sets }, prune, forget, dry_run } => {
+            commands::gc(&configs, &commands::GcArgs { sets, prune, forget, dry_run }).map(|line| {
                 println!("{line}");
                 0
             })

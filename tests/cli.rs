@@ -382,7 +382,7 @@ fn config_errors_name_key_and_line_and_bad_patients_are_listed() {
     let out = p.aret(&["run", "pipeline.toml"]);
     assert_eq!(out.status.code(), Some(2));
     let err = text(&out.stderr);
-    assert!(err.contains("pipeline.toml") && err.contains("line 25") && err.contains("hu_mx"), "{err}");
+    assert!(err.contains("pipeline.toml") && err.contains("line 28") && err.contains("hu_mx"), "{err}");
 
     p.write_config("pipeline.toml", "cache", "out", "");
     let err = text(&p.aret(&["run", "pipeline.toml", "--patients", "P1,P7"]).stderr);

@@ -288,11 +288,28 @@ fn relocate_paths(table: &mut Table, dir: &Path) -> anyhow::Result<()> {
             continue;
         };
         if Path::new(path.as_str()).is_relative() {
-            let joined = std::path::absolute(dir.join(&*path)).context("the current folder")?;
+            let joined = lexically_normal(&std::path::absolute(dir.join(&*path)).context("the current folder")?);
             *path = joined.to_str().ok_or_else(|| anyhow!("[{section}] {key}: the path is not UTF-8"))?.to_string();
         }
     }
     Ok(())
+}
+
+/// `path` without `.` and with each `..` taking the folder before it away (an absolute path:
+/// nothing climbs above its root).
+fn lexically_normal(path: &Path) -> PathBuf {
+    use std::path::Component;
+    let mut normal = PathBuf::new();
+    for part in path.components() {
+        match part {
+            Component::CurDir => {}
+            Component::ParentDir => {
+                normal.pop();
+            }
+            other => normal.push(other),
+        }
+    }
+    normal
 }
 
 /// Whether `table` gives the key at `keys`.
