@@ -1,7 +1,7 @@
 //! aret-pipe: measure lung nodules in 3D from only three X-rays.
 //!
 //! A streaming pipeline of cached stages (SPEC §3): DICOM CT ingest → HU normalisation → DRRs →
-//! TensoRF fit → density grid → threshold sweep → nodule selection → cohort metrics (DRRs and
+//! attenuation-field fit → density grid → threshold sweep → nodule selection → cohort metrics (DRRs and
 //! fit on the CPU, or on a GPU through wgpu: [`gpu`]). The [`engine`] runs any graph of pure
 //! [`engine::Stage`]s with content-hashed caching and knows nothing about CT; [`stage`] holds
 //! the stages; [`formats`] the file formats; [`config`] the `pipeline.toml` schema;

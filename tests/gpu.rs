@@ -1,4 +1,4 @@
-//! The GPU backend against the CPU backend (issue 9), on a Vulkan adapter — in CI, Mesa's
+//! The GPU backend against the CPU backend, on a Vulkan adapter — in CI, Mesa's
 //! lavapipe. DRR pixels within 1e-5 relative; one training step's factor gradients within
 //! 1e-4; a 300-iteration fit within 1% in loss, repeated bit for bit; a missing adapter is an error that names the key, `auto` falls back once and
 //! records the backend that ran, and the cache key never says `auto`.

@@ -16,7 +16,7 @@
 use aret_pipe::gpu::dense_fit::DeviceFista;
 use aret_pipe::gpu::Gpu;
 use aret_pipe::stage::drr::CameraSet;
-use aret_pipe::train::dense_tv::{CpuFista, DenseProblem, FistaSolver, Toward};
+use aret_pipe::train::dense_tv::{CpuFista, DenseProblem, FistaSolver};
 use aret_pipe::train::fit::{renderer, Views};
 use aret_pipe::train::params::{DenseTvParams, TrainParams};
 use aret_pipe::train::render::Ray;
@@ -61,7 +61,7 @@ fn main() -> anyhow::Result<()> {
         solver.solve(
             &problem,
             &mut sigma,
-            &Toward { depths: &problem.measured, l1: &[] },
+            &problem.measured,
             steps,
             &none,
             &mut |_, _| {},

@@ -30,7 +30,7 @@ fn main() -> anyhow::Result<()> {
     println!("adapter: {}", gpu.describe());
     let (set, images) = CameraSet::read_published(&dir)?;
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
-    // The paper's configuration: the defaults without the 3-D TV (issue 8's addition).
+    // The paper's configuration: the defaults without the 3-D TV of the composed field.
     let vm = VmParams { iterations, lambda_tv3d: 0.0, ..VmParams::default() };
     let params = TrainParams { log_every: iterations, vm, ..TrainParams::tensorf() };
     let (mut on_gpu, mut on_cpu) = (Vec::new(), Vec::new());

@@ -35,7 +35,7 @@ fn bench() -> anyhow::Result<()> {
     let runs: usize = args.next().map(|s| s.parse()).transpose()?.unwrap_or(3);
     let (set, images) = CameraSet::read_published(&dir)?;
     let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
-    // The paper's configuration: the defaults without the 3-D TV (issue 8's addition).
+    // The paper's configuration: the defaults without the 3-D TV of the composed field.
     let params =
         TrainParams { vm: VmParams { iterations, lambda_tv3d: 0.0, ..VmParams::default() }, ..TrainParams::tensorf() };
     let (mut per_iteration, mut in_loop, mut steps) = (Vec::new(), Vec::new(), Vec::new());

@@ -1,4 +1,4 @@
-//! The lung field found in a reconstruction itself (issue 8: "find first, then size"), and
+//! The lung field found in a reconstruction itself (find first, then size), and
 //! the strongest bright blob inside it. No annotation and no CT are used: only σ.
 //!
 //! The density box of the paper cuts through the chest, so the lungs touch its faces and
@@ -25,7 +25,7 @@ const MIN_LUNG_FRACTION: f64 = 0.02;
 /// Radius of the closing that takes in nodules bulging from a lung's wall, as a fraction of the
 /// lattice's nodes per axis, so that it spans the same millimetres at any resolution: 3 nodes
 /// at 64³, 6 at 128³ (11 × 6 × 7 mm in the paper's box). At 128³ three nodes left juxtapleural
-/// nodules and the ends of the lung outside the field and cost the sizing (docs/experiments.md).
+/// nodules and the ends of the lung outside the field and cost the sizing (lab/log.md).
 const CLOSING_FRACTION: f64 = 3.0 / 64.0;
 
 /// The lungs of a reconstruction.

@@ -57,7 +57,7 @@ pub enum RoiMode {
     Nodule,
     /// Centroid of the lung field found by thresholding the CT (blind).
     Lungs,
-    /// Boxes tiling the lungs (blind): `tiles` boxes on a grid `tile_step_mm` apart, centred on
+    /// Boxes tiling the lungs (blind): `[drr.tiles] counts` boxes on a grid `step_mm` apart, centred on
     /// the lung field's centroid. Each is a replica with its own views, fit and grid; `select`
     /// compares them ([`crate::stage::select`]).
     Tiles,

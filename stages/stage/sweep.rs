@@ -8,7 +8,7 @@
 //! which regenerates candidate masks with [`levels`]), and `lung_field.mhd/.raw` when the
 //! region is the lung field.
 //!
-//! Two switches (issue 8; the paper's sweep is `score = "density"`, `region = "box"`): the
+//! Two switches (the paper's sweep is `score = "density"`, `region = "box"`): the
 //! thresholded `score` may be the local contrast σ − G(σ, `background_mm`) instead of σ, and
 //! the `region` may be the lung field found in σ itself ([`lung_field`]): percentiles are then
 //! taken over the region's values and candidates lie inside it.

@@ -1,5 +1,5 @@
 //! `[train] model = "dense_tv"`: the attenuation field as a dense N³ lattice of σ (no factors),
-//! fitted to the three views' optical depths under a smoothed 3-D total variation (issue 8).
+//! fitted to the three views' optical depths under a smoothed 3-D total variation.
 //!
 //! Optical depths are line integrals, so the projection is linear in σ: `τ̂ = A σ`, with `A` the
 //! renderer's own midpoint samples and trilinear weights (times `s·δ`). The fit minimises

@@ -1,7 +1,7 @@
 //! `[train] model = "truth"`: no fit. Each lattice node's σ is the true CT's attenuation
 //! averaged over the node's cell, in the units the fits use (`Î = exp(−s Σ σ δ)`). This is the
 //! field a perfect fit would reach on that lattice, so the stages after `train` can be measured
-//! with the reconstruction taken out of the question (docs/experiments.md, "A perfect field").
+//! with the reconstruction taken out of the question (lab/log.md, "A perfect field").
 //! It reads the CT, which no method may: a ceiling, never a configuration to report as a result.
 
 use crate::kernels::raymarch::VolumeField;

@@ -29,9 +29,10 @@ from test_vdb_openvdb import READER, SYSTEM_PYTHON, openvdb_module, require
 CONFIG = (
     '[pipeline]\nname = "grid"\n[dataset]\nkind = "dicom"\nroot = "data"\n'
     "[drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n"
-    "[train]\ngrid = 24\nrank = 4\niterations = 150\nbatch_rays = 512\nlog_every = 50\nseed = 3\n"
+    '[train]\nmodel = "vm"\ngrid = 24\nlog_every = 50\n'
+    "[train.vm]\nrank = 4\niterations = 150\nbatch_rays = 512\nseed = 3\n"
     '[sweep]\nmin_voxels = 4\ndiameter_mm = [5.0, 400.0]\nscore = "density"\nregion = "box"\n'
-    '[select]\nprimary = "blind_largest"\nlocalize = "none"\n'
+    '[select]\nprimary = "blind_largest"\nlocalize = "none"\nsizing = "candidates"\n'
 )
 
 
@@ -154,7 +155,9 @@ def test_half_max_sizing_equals_scipy(out):
     """`[select] sizing = "half_max"` at the scene origin: the region of σ ≥ ½ of its peak beside
     the centre that holds the peak, re-done with scipy.ndimage.label (26-connected)."""
     tmp = out.parent.parent
-    config = CONFIG.replace('localize = "none"\n', 'localize = "origin"\nsizing = "half_max"\n').replace(
+    config = CONFIG.replace('localize = "none"\nsizing = "candidates"\n', 'localize = "origin"\nsizing = "half_max"\n')
+    assert config != CONFIG
+    config = config.replace(
         '[pipeline]\nname = "grid"\n', '[pipeline]\nname = "grid"\nout_dir = "out-half-max"\n'
     )
     (tmp / "half_max.toml").write_text(config)

@@ -26,7 +26,8 @@ NODULE_MM, NODULE_RADIUS_MM = (35.0, -5.0, 8.0), 12.0  # phantom_hu's sphere
 CONFIG = (
     '[pipeline]\nname = "shadows"\nout_dir = "OUT"\n[dataset]\nkind = "dicom"\nroot = "data"\n'
     "[drr]\nroi_center = [35.0, -5.0, 8.0]\nwidth_px = 96\nheight_px = 96\n"
-    "[train]\ngrid = 32\nrank = 4\niterations = 300\nbatch_rays = 1024\nlog_every = 100\nseed = 3\n"
+    '[train]\nmodel = "vm"\ngrid = 32\nlog_every = 100\n'
+    "[train.vm]\nrank = 4\niterations = 300\nbatch_rays = 1024\nseed = 3\n"
     '[sweep]\nmin_voxels = 4\ndiameter_mm = [5.0, 400.0]\nscore = "local_contrast"\nregion = "box"\n'
     '[select]\nprimary = "blind_largest"\nlocalize = "origin"\nsizing = "SIZING"\n'
 )

@@ -7,7 +7,8 @@ objective `1/(2B) Σ (τ̂ − τ)² + λ mean √(|∇σ|² + ε²)`; then:
 - the logged final loss is that objective at the stored σ;
 - scipy's L-BFGS-B (bounds σ ≥ 0) on the same objective reaches no lower, and its σ is close;
 - `density.mhd` is the stored σ; same inputs give the same bytes, and the VM-only keys
-  (`seed`, `lr`, `iterations`) do not enter the dense fit's cache key.
+  (`[train.vm]` seed, lr, iterations, in a configuration it `extends`) do not enter the dense
+  fit's cache key.
 """
 import csv
 import json
@@ -28,21 +29,22 @@ from test_train_safetensors import BIN
 
 N, LAMBDA, EPSILON = 12, 2e-3, 1e-2
 TRAIN = (
-    f'[train]\nmodel = "dense_tv"\ngrid = {N}\ndense_tv_iterations = 400\nlog_every = 100\n'
-    f"dense_tv_lambda = {LAMBDA}\ndense_tv_epsilon = {EPSILON}\n"
+    f'[train]\nmodel = "dense_tv"\ngrid = {N}\nlog_every = 100\n'
+    f"[train.dense_tv]\niterations = 400\nlambda = {LAMBDA}\nepsilon = {EPSILON}\n"
 )
 
 
-def config(name, extra=""):
+def config(name, extends=None):
     return (
-        f'[pipeline]\nname = "{name}"\ncache_dir = "cache-{name}"\nout_dir = "out-{name}"\n'
+        (f'extends = "{extends}"\n' if extends else "")
+        + f'[pipeline]\nname = "{name}"\ncache_dir = "cache-{name}"\nout_dir = "out-{name}"\n'
         '[dataset]\nkind = "dicom"\nroot = "data"\n'
-        "[drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n" + TRAIN + extra
+        "[drr]\nroi_center = [0.0, 0.0, 0.0]\nwidth_px = 32\nheight_px = 32\n" + TRAIN
     )
 
 
-def run(tmp, name, extra=""):
-    (tmp / f"{name}.toml").write_text(config(name, extra))
+def run(tmp, name, extends=None):
+    (tmp / f"{name}.toml").write_text(config(name, extends))
     proc = subprocess.run([BIN, "run", f"{name}.toml", "--until", "grid"], cwd=tmp, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return tmp / f"out-{name}" / "P1", proc.stdout + proc.stderr
@@ -150,7 +152,13 @@ def test_density_volume_is_the_stored_lattice(out):
 def test_deterministic_and_keyed_only_by_what_it_reads(tmp, out):
     again, _ = run(tmp, "b")
     assert (again / "model.safetensors").read_bytes() == (out / "model.safetensors").read_bytes()
-    # Same cache as "a", with keys only the VM fit reads: the dense fit is not redone.
+    # Same cache as "a", over a VM configuration with keys only the VM fit reads ([train.vm]):
+    # picking the dense model drops them, and the dense fit is not redone.
     (tmp / "cache-c").symlink_to(tmp / "cache-a")
-    _, log = run(tmp, "c", "seed = 9\nlr = 0.5\niterations = 7\n")
+    (tmp / "vm.toml").write_text('[train]\nmodel = "vm"\n[train.vm]\nseed = 9\nlr = 0.5\niterations = 7\n')
+    _, log = run(tmp, "c", extends="vm.toml")
     assert "grid P1: computed" not in log and "train P1: computed" not in log, log
+    # Written in the dense configuration itself, a [train.vm] key is refused, not ignored.
+    (tmp / "d.toml").write_text(config("d") + "[train.vm]\nseed = 9\n")
+    proc = subprocess.run([BIN, "run", "d.toml", "--until", "grid"], cwd=tmp, capture_output=True, text=True)
+    assert proc.returncode != 0 and "[train.vm]" in proc.stderr, proc.stdout + proc.stderr

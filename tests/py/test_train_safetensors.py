@@ -19,7 +19,11 @@ from test_drr_numpy import phantom_hu, write_series
 
 REPO = Path(__file__).resolve().parents[2]
 BIN = os.environ.get("ARET_PIPE_BIN", str(REPO / "target" / "debug" / "aret-pipe"))
-TRAIN = "[train]\ngrid = 16\nrank = 4\niterations = 60\nbatch_rays = 512\nlog_every = 20\nseed = {seed}\n"
+# TensoRF's VM field (its keys in [train.vm]), not the built-in dense one.
+TRAIN = (
+    '[train]\nmodel = "vm"\ngrid = 16\nlog_every = 20\n'
+    "[train.vm]\nrank = 4\niterations = 60\nbatch_rays = 512\nseed = {seed}\n"
+)
 
 
 def run(tmp: Path, name: str, seed: int) -> Path:

@@ -52,7 +52,7 @@ pub struct HitRates {
     pub centre_rate_guided: Option<f64>,
     pub centre_rate_blind: Option<f64>,
     /// The primary and the blind rule's selections whose blob centre had no close rival
-    /// (select's `ambiguous`, `[select] rival_ratio`), and how many of those hit: how far a
+    /// (select's `ambiguous`, `[select.blob] rival_ratio`), and how many of those hit: how far a
     /// user may trust a volume the tool does not flag. `None` without blob centres.
     pub unambiguous_ours: Option<Unambiguous>,
     pub unambiguous_blind: Option<Unambiguous>,

@@ -1,5 +1,5 @@
 //! Sizing from the image instead of from the annotated diameter (`[select] sizing =
-//! "half_max"`, issue 8). A rule's nodule is the connected region, holding its centre, where the
+//! "half_max"`). A rule's nodule is the connected region, holding its centre, where the
 //! sweep's score (σ's local contrast by default) is at least half its peak at the centre, inside
 //! the sweep's region: the blob's full width at half maximum, as PET volumetry sizes a lesion by
 //! a fraction of its maximum.

@@ -1,4 +1,4 @@
-//! Where the nodule is, before any candidate is sized (issue 8: "find first, then size").
+//! Where the nodule is, before any candidate is sized ("find first, then size").
 //! Each rule then chooses only among the candidates that hold its centre.
 //!
 //! - `none` (the paper): no centre; every candidate competes.
@@ -150,7 +150,7 @@ pub enum TieBreak {
 /// roundness then favours the compact blob over the drawn-out one. Over the nine sets of
 /// cached fits the blind search's centre lay on the nodule in 91 of 128 cases with it (93
 /// hits) against 75 with the roundest of near-ties, the weight chosen leave-one-patient-out
-/// (docs/experiments.md, "Ranking the blind search's blobs"). `None` without a region.
+/// (lab/log.md, "Ranking the blind search's blobs"). `None` without a region.
 pub fn blob_score(centre: &Centre, roundness_weight: f64) -> Option<f64> {
     let (blob, region) = (centre.blob?, centre.region?);
     (region.peak_score > 0.0 && blob.response > 0.0)

@@ -51,9 +51,9 @@ pub use tiles::TileScore;
 pub const VERSION: u32 = 18;
 
 /// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
-/// full width at half maximum. `half_max_fraction` then only sets where the nodule is cut (its
-/// volume), not which blob is the nodule: a lower fraction grows every region, and judged at
-/// that fraction it passed over nodules (docs/experiments.md, "Sizing calibrated on spheres").
+/// full width at half maximum. `[select.half_max] fraction` then only sets where the nodule is
+/// cut (its volume), not which blob is the nodule: a lower fraction grows every region, and
+/// judged at that fraction a search passes over nodules.
 const BLOB_WIDTH_FRACTION: f64 = 0.5;
 
 /// How a search with half-maximum sizing judges a blob: the cut of its region (at

@@ -1,8 +1,8 @@
-//! Sizing in the views (`[select] sizing = "shadows"`, issue 8): the fitted field finds the
+//! Sizing in the views (`[select] sizing = "shadows"`): the fitted field finds the
 //! nodule, its three shadows size it.
 //!
 //! A field fitted to three views blurs a nodule by a few millimetres, and a region cut at half
-//! its peak loses what the blur spreads (docs/experiments.md). The DRRs themselves are sharp:
+//! its peak loses what the blur spreads (lab/log.md). The DRRs themselves are sharp:
 //! each pixel spans 0.9 mm at the box. So once a rule has its half-maximum region, an
 //! ellipsoid is fitted to the nodule's shadow in all three views at once: in a window around
 //! where the region projects, each view's optical depth −ln I is modelled as a background plus

@@ -5,7 +5,7 @@
 //! Why depth: across boxes the hilum answers as strongly as a nodule or more, but its blind
 //! centres lie near the lung field's edge (9–15 mm deep) while nodules in the parenchyma lie
 //! deeper (29–43 mm). The rule was fixed on two pilot patients and then tested on seven held
-//! out (docs/experiments.md, "Tiling the lungs with the paper's box").
+//! out (lab/log.md, "Tiling the lungs with the paper's box").
 
 use super::{Centre, Chosen, Oracle, Rule, Selection};
 use serde::{Deserialize, Serialize};
