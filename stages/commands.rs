@@ -11,7 +11,7 @@ use crate::engine::store::{write_atomic, Store};
 use crate::engine::{Hash, StageGraph};
 use crate::formats::vdb::{self, FloatGrid, GridClass};
 use crate::volume::Volume;
-use crate::{dataset, stage};
+use crate::{dataset, pipeline};
 use anyhow::{bail, Context as _};
 use serde::Serialize;
 use std::collections::HashSet;
@@ -59,7 +59,7 @@ fn prepare(
     until: Option<&str>,
 ) -> anyhow::Result<Prepared> {
     let config = Config::load_with(config_path, sets)?;
-    let mut graph = stage::graph(&config)?;
+    let mut graph = pipeline::graph(&config)?;
     if let Some(last) = until {
         graph = graph.until(last)?;
     }
@@ -281,7 +281,7 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
         bail!("gc reads only the cache of its configuration; more than one matters only with --prune");
     }
     let config = Config::load_with(first, sets)?;
-    let stages = stage::graph(&config)?.names();
+    let stages = pipeline::graph(&config)?.names();
     if let Some(unknown) = forget.iter().find(|f| !stages.contains(&f.as_str())) {
         bail!("--forget {unknown}: no such stage in {} (stages: {})", first.display(), stages.join(", "));
     }

@@ -7,6 +7,7 @@
 //! the stages; [`formats`] the file formats; [`config`] the `pipeline.toml` schema;
 //! [`commands`] what the CLI calls.
 
+pub mod backend;
 pub mod commands;
 pub mod config;
 pub mod dataset;
@@ -17,6 +18,7 @@ pub mod gpu;
 pub mod kernel_command;
 pub mod kernels;
 pub mod phantom;
+pub mod pipeline;
 pub mod stage;
 pub mod train;
 pub mod volume;

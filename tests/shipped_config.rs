@@ -3,7 +3,7 @@
 //! the configuration does not pick is an error.
 
 use aret_pipe::config::Config;
-use aret_pipe::stage;
+use aret_pipe::pipeline;
 use std::path::{Path, PathBuf};
 
 fn root() -> PathBuf {
@@ -12,7 +12,7 @@ fn root() -> PathBuf {
 
 /// Each stage's cache key but for its inputs' hashes: name, version, inputs and parameters.
 fn stage_keys(config: &Config) -> Vec<(String, u32, Vec<String>, serde_json::Value)> {
-    let graph = stage::graph(config).unwrap();
+    let graph = pipeline::graph(config).unwrap();
     graph
         .stages()
         .iter()

@@ -58,14 +58,7 @@ fn main() -> anyhow::Result<()> {
     let solve = |solver: &mut dyn FistaSolver| -> anyhow::Result<(f64, Vec<f64>)> {
         let mut sigma = vec![0.0; problem.nodes()];
         let t = Instant::now();
-        solver.solve(
-            &problem,
-            &mut sigma,
-            &problem.measured,
-            steps,
-            &none,
-            &mut |_, _| {},
-        )?;
+        solver.solve(&problem, &mut sigma, &problem.measured, steps, &none, &mut |_, _| {})?;
         Ok((t.elapsed().as_secs_f64(), sigma))
     };
     let t = Instant::now();

@@ -10,9 +10,9 @@ cells (a Gaussian of 0.4 cells) and sampled at its nodes: the best a 64³ recons
 be. Its lung field is the parenchyma band 0.03 < v < 0.3 (after a 1-cell blur), components of at
 least 2 % of the box, holes filled slice by slice along each axis. The reconstruction's own field
 is the stage's `lung_field.mhd`. On each volume the strongest response more than 8 mm inside the
-field is taken, as `select` takes it, for the Laplacian (`blob_filter = "laplacian"`) and the
-Hessian (`"hessian"`) response, at the scale matched to the annotated diameter (the guided
-search) and at the blind search's 6, 9 and 13 mm. A centre is on the nodule when it lies within
+field is taken, as `select` takes it, for the Laplacian (lab-v1's `blob_filter = "laplacian"`,
+since gone from the code) and the Hessian (the stage's only filter now) response, at the scale
+matched to the annotated diameter (the guided search) and at the blind search's 6, 9 and 13 mm. A centre is on the nodule when it lies within
 half the annotated diameter of the consensus centroid (`gt_mask.mhd`). Counts are over the
 patients whose annotated diameter is at least 10 mm. Needs numpy and scipy.
 """

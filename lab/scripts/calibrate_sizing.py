@@ -1,17 +1,20 @@
 #!/usr/bin/env python3
 """Calibrates the half-maximum sizing on spheres of known size, outside the cohorts it is used on.
 
-    lab/scripts/calibrate_sizing.py                       # presets/calibration_spheres.toml, the ladder below
+    lab/scripts/calibrate_sizing.py                       # lab/presets/calibration_spheres.toml, the ladder below
     lab/scripts/calibrate_sizing.py --fractions 0.4 0.5   # other fractions
     lab/scripts/calibrate_sizing.py --no-run              # re-read the out dirs already written
     lab/scripts/calibrate_sizing.py --preset pipeline.toml --fractions 0.4   # measure a fraction on a cohort
 
-Runs the calibration preset once per `[select] half_max_fraction` on the ladder (the phantoms,
+Runs the calibration preset once per `[select.half_max] fraction` on the ladder (`aret-pipe run
+PRESET --set select.half_max.fraction=F`, each into the preset's out dir + `-fF`; the phantoms,
 views and fits are cached after the first; each further fraction recomputes only select and
 metrics), reads every run's results.csv, and prints, per fraction, how the guided rule's hits
 size the spheres: the median ratio of measured to true volume, the median APE and the hit count.
 The calibrated fraction is the one whose median ratio is nearest 1: the rule sizes a nodule of
 known shape without bias. It is chosen here, on spheres, and only then applied to a cohort.
+The preset must size at half maximum or by the shadows (`[select] sizing`), which read the
+fraction.
 
 `--json FILE` also writes every number (per fraction and per sphere); `--plot FILE.png` draws
 each sphere's measured-to-true volume ratio against its diameter at the shipped fraction (0.5)
@@ -25,25 +28,28 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
-from preset_config import load_absolute, toml_text
+from preset_config import load_absolute, toml_value
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 LADDER = [round(0.25 + 0.025 * n, 3) for n in range(15)]  # 0.25 … 0.60
+# The sizings that cut the half-maximum region (and read [select.half_max]); the built-in one.
+HALF_MAX_SIZINGS, DEFAULT_SIZING = ("half_max", "shadows"), "shadows"
 
 
-def config_at(preset, fraction, folder):
-    """The preset with half_max_fraction = `fraction`, paths made absolute, its own out dir."""
+def run_at(preset, fraction):
+    """The `--set` arguments that run `preset` at `[select.half_max] fraction = fraction` into
+    its own out dir (the preset's + `-fF`), and that out dir."""
     cfg = load_absolute(preset)
+    sizing = cfg.get("select", {}).get("sizing", DEFAULT_SIZING)
+    if sizing not in HALF_MAX_SIZINGS:
+        sys.exit(f"{preset}: [select] sizing = {sizing!r} reads no [select.half_max] fraction: "
+                 "calibrate a preset with sizing = \"half_max\" or \"shadows\"")
     pipeline = cfg["pipeline"]
     out = pipeline["out_dir"] + f"-f{fraction:.3f}"
-    pipeline["out_dir"] = out
-    pipeline["name"] = f"{pipeline.get('name', 'calibration')} at {fraction:.3f}"
-    cfg.setdefault("select", {})["half_max_fraction"] = fraction
-    path = os.path.join(folder, f"calibration-{fraction:.3f}.toml")
-    with open(path, "w") as f:
-        f.write(toml_text(cfg))
-    return path, out
+    name = f"{pipeline.get('name', 'calibration')} at {fraction:.3f}"
+    sets = [f"select.half_max.fraction={fraction!r}", f"pipeline.out_dir={toml_value(out)}",
+            f"pipeline.name={toml_value(name)}"]
+    return [a for s in sets for a in ("--set", s)], out
 
 
 def spheres(out):
@@ -77,7 +83,7 @@ def summarise(rows):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--preset", default=os.path.join(ROOT, "presets", "calibration_spheres.toml"))
+    ap.add_argument("--preset", default=os.path.join(ROOT, "lab", "presets", "calibration_spheres.toml"))
     ap.add_argument("--binary", default=os.path.join(ROOT, "target", "release", "aret-pipe"))
     ap.add_argument("--fractions", type=float, nargs="+", default=LADDER)
     ap.add_argument("--no-run", action="store_true", help="only read the out dirs already written")
@@ -86,17 +92,17 @@ def main():
     args = ap.parse_args()
 
     results = {}
-    with tempfile.TemporaryDirectory(prefix="calibrate.") as folder:
-        for fraction in args.fractions:
-            config, out = config_at(args.preset, fraction, folder)
-            if not args.no_run:
-                subprocess.run([args.binary, "run", config], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-            if not os.path.exists(os.path.join(out, "results.csv")):
-                sys.exit(f"{out} has no results.csv: run without --no-run first")
-            rows = spheres(out)
-            results[fraction] = {"summary": summarise(rows), "spheres": rows}
+    preset = os.path.abspath(args.preset)
+    for fraction in args.fractions:
+        sets, out = run_at(preset, fraction)
+        if not args.no_run:
+            subprocess.run([args.binary, "run", preset, *sets], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+        if not os.path.exists(os.path.join(out, "results.csv")):
+            sys.exit(f"{out} has no results.csv: run without --no-run first")
+        rows = spheres(out)
+        results[fraction] = {"summary": summarise(rows), "spheres": rows}
 
-    print("| half_max_fraction | guided hits | median volume ratio (hits) | median APE (hits) | median Dice |")
+    print("| [select.half_max] fraction | guided hits | median volume ratio (hits) | median APE (hits) | median Dice |")
     print("| --- | --- | --- | --- | --- |")
     for fraction, r in results.items():
         s = r["summary"]
@@ -110,7 +116,7 @@ def main():
     best = min(scored)[1]
     # Only on a calibration cohort is this a calibration; on a cohort under study it is a
     # measurement (the value must not be chosen there).
-    print(f"\nmedian volume ratio nearest 1 at half_max_fraction {best:.3f} "
+    print(f"\nmedian volume ratio nearest 1 at [select.half_max] fraction {best:.3f} "
           f"({results[best]['summary']['median_ratio']:.3f} over {results[best]['summary']['hits']} hits)")
     if args.json:
         with open(args.json, "w") as f:
@@ -142,7 +148,7 @@ def plot(results, fractions, path):
     ax.minorticks_off()
     ax.set_xlabel("sphere's annotated diameter (mm)")
     ax.set_ylabel("measured / true volume (guided rule)")
-    ax.set_title("Half-maximum sizing on the calibration spheres, by half_max_fraction", fontsize=10)
+    ax.set_title("Half-maximum sizing on the calibration spheres, by [select.half_max] fraction", fontsize=10)
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     fig.savefig(path)

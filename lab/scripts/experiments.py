@@ -11,6 +11,12 @@ Every configuration is a preset in presets/ (or pipeline.toml itself) run with
 `aret-pipe run`; presets share cache/, so a row that changes only a downstream stage recomputes
 only that stage. The numbers are read back from each run's summary.json and results.csv.
 Only the standard library is needed.
+
+The rows are the lab's experiments as of tag lab-v1, and they re-run there: most of their
+presets (default_seed2, phantom_union_256, drr128, …) and the keys they set are gone from this
+checkout, and a preset that kept its name may now hold another configuration. A row whose
+preset is missing here is not run: the script says so and keeps the row's line. To re-run it:
+`git checkout lab-v1`, then `tools/experiments.py --only NAME` (the script's place there).
 """
 import argparse
 import csv
@@ -20,7 +26,8 @@ import statistics
 import subprocess
 import sys
 import time
-import tomllib
+
+from preset_config import load_absolute
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -135,8 +142,13 @@ COLUMNS = 14
 # The column added last (0-based, after the row name's empty lead cell): rows kept from the doc
 # that predate it get – there.
 UNAMBIGUOUS_COLUMN = 7
-# The phantom's nodule where a config does not name one (`[dataset.phantom] nodule_extent`).
-DEFAULT_EXTENT = "union"
+# The phantom's nodule where a config does not name one (`[dataset.phantom] nodule_extent`):
+# the built-in default since the configuration's defaults became the shipped method (at lab-v1
+# it was "union").
+DEFAULT_EXTENT = "consensus"
+# Where the rows re-run.
+LAB_V1 = ("the experiment rows re-run at tag lab-v1, where every preset they name exists: "
+          "`git checkout lab-v1`, then `tools/experiments.py --only NAME`")
 START, END = "<!-- table: written by lab/scripts/experiments.py -->", "<!-- end of table -->"
 LEVELS = {
     "A": "location and diameter known",
@@ -146,19 +158,25 @@ LEVELS = {
 }
 
 
-def load(config_path):
-    with open(config_path, "rb") as f:
-        return tomllib.load(f)
+# Rows whose preset name lives on in the product with another configuration: they too re-run
+# only at lab-v1, or a run here would write new numbers under the old description.
+RENAMED_SINCE = {"presets/origin.toml", "presets/phantom_readers.toml"}
+
+
+def missing(config):
+    """Whether the row's config (relative to the repository) is not the one the row measured in
+    this checkout: absent, or a product preset that kept the name with another configuration."""
+    return config in RENAMED_SINCE or not os.path.exists(os.path.join(ROOT, config))
 
 
 def out_dir(config_path):
-    out = load(config_path).get("pipeline", {}).get("out_dir", "out")
-    return os.path.normpath(os.path.join(os.path.dirname(config_path), out))
+    """The config's out dir, absolute (through the files it extends)."""
+    return load_absolute(config_path)["pipeline"]["out_dir"]
 
 
 def nodule_extent(config_path):
     """How the config's phantom draws each nodule: "union", "readers" or "consensus"."""
-    return load(config_path).get("dataset", {}).get("phantom", {}).get("nodule_extent", DEFAULT_EXTENT)
+    return load_absolute(config_path)["dataset"].get("phantom", {}).get("nodule_extent", DEFAULT_EXTENT)
 
 
 def run(binary, config_path):
@@ -267,9 +285,11 @@ def table(results, kept):
     ]
     for name, config, level, blind_level, _ in ROWS:
         r = results.get(name)
-        extent = nodule_extent(os.path.join(ROOT, config))
+        # A config missing here (its row re-runs at lab-v1) names no phantom.
+        extent = "–" if missing(config) else nodule_extent(os.path.join(ROOT, config))
         if r is None:
-            lines.append(kept.get(name, f"| {name} | `{config}` | {extent} | {level} / {blind_level} | not run |" + " |" * (COLUMNS - 5)))
+            status = "only at lab-v1" if missing(config) else "not run"
+            lines.append(kept.get(name, f"| {name} | `{config}` | {extent} | {level} / {blind_level} | {status} |" + " |" * (COLUMNS - 5)))
             continue
         g, a = r["ge10"], r["all"]
         lines.append(
@@ -281,16 +301,32 @@ def table(results, kept):
     return "\n".join(lines)
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--only", nargs="*", help="row names to (re)run")
     ap.add_argument("--no-run", action="store_true", help="only rebuild the table")
     ap.add_argument("--bin", default=os.path.join(ROOT, "target", "release", "aret-pipe"))
-    ap.add_argument("--doc", default=os.path.join(ROOT, "docs", "experiments.md"))
-    args = ap.parse_args()
+    ap.add_argument("--doc", default=os.path.join(ROOT, "lab", "log.md"))
+    args = ap.parse_args(argv)
+    names = [name for name, *_ in ROWS]
+    unknown = [name for name in args.only or [] if name not in names]
+    if unknown:
+        sys.exit(f"no row {', '.join(unknown)}: the rows are {', '.join(names)}")
+    absent = [(name, config) for name, config, *_ in ROWS if missing(config)]
+    if not args.no_run:
+        asked = [(name, config) for name, config in absent if not args.only or name in args.only]
+        listed = ", ".join(f"{name} ({config})" for name, config in asked)
+        if args.only and asked:
+            # Before running anything: the rows asked for cannot all run here.
+            sys.exit(f"{listed}: not in this checkout; {LAB_V1}")
+        if asked:
+            print(f"not run, their presets are not in this checkout: {listed};\n{LAB_V1}", file=sys.stderr,
+                  flush=True)
     results = {}
     for name, config, *_ in ROWS:
         path = os.path.join(ROOT, config)
+        if (name, config) in absent:
+            continue  # the table keeps its line
         if not args.no_run and (not args.only or name in args.only):
             print(f"== {name}: aret-pipe run {config}", flush=True)
             at = commit()  # the code that runs, even if the checkout moves on meanwhile

@@ -4,14 +4,17 @@
     lab/scripts/fit_vs_truth.py out out-perfect-field      # a run's out dir, then the same patients'
                                                            # run with [train] model = "truth"
 
-The perfect field (`presets/perfect_field.toml`, docs/train.md "A perfect field") is the true CT
-on the fit's own lattice, in its units, so the two `density.mhd` compare node for node. For
+The perfect field (`lab/presets/perfect_field.toml`, docs/train.md "A perfect field") is the true CT
+on the fit's own lattice, in its units, so the two `density.mhd` compare node for node: for a
+run of another configuration, run that configuration again with `--set train.model=truth` and
+`--set pipeline.out_dir=…` (e.g. `aret-pipe run pipeline.toml --set dataset.phantom.seed=2
+--set train.model=truth --set pipeline.out_dir=out-perfect-field-seed2`). For
 every patient whose annotated diameter is at least `--min-diameter-mm`, on both fields:
 
 - **contrast**: the mean σ over the consensus mask (`gt_mask.mhd`, sampled at the lattice's
   nodes) above the median σ of the shell 4–10 mm outside it; `kept` is the fit's over the truth's;
-- **nodule / decoy**: the strongest Hessian blob response (s²·max(0, −λ₁), the stage's
-  `blob_filter = "hessian"`, the maximum over the blind search's 6, 9 and 13 mm) on the nodule's
+- **nodule / decoy**: the strongest Hessian blob response (s²·max(0, −λ₁), the stage's blob
+  filter, the maximum over the blind search's 6, 9 and 13 mm) on the nodule's
   nodes, and the strongest more than 8 mm inside the fit's lung field (`lung_field.mhd`) and
   more than 3 mm from the nodule. Above 1, a plain strongest-blob search takes the nodule, if
   it can reach it: `reach` says whether any of the nodule's nodes lies in that search region;
@@ -95,8 +98,8 @@ def load(fit_out, truth_out, patient):
     fit_dir, truth_dir = (os.path.join(d, patient) for d in (fit_out, truth_out))
     truth_mhd = os.path.join(truth_dir, "density.mhd")
     if not os.path.exists(truth_mhd):
-        sys.exit(f"{truth_mhd}: missing; run presets/perfect_field.toml (or the same run with "
-                 f"[train] model = \"truth\") into {truth_out} first")
+        sys.exit(f"{truth_mhd}: missing; run lab/presets/perfect_field.toml (or the fit's configuration with "
+                 f"--set train.model=truth) into {truth_out} first")
     fit, spacing, origin = read_mhd(os.path.join(fit_dir, "density.mhd"))
     truth, truth_spacing, truth_origin = read_mhd(truth_mhd)
     if truth.shape != fit.shape or not np.allclose(truth_spacing, spacing) or not np.allclose(truth_origin, origin):

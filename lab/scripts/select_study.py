@@ -1,16 +1,23 @@
 #!/usr/bin/env python3
 """One [select] variant on every set of fits the experiments cached: hits ≥ 10 mm per set.
 
-    lab/scripts/select_study.py line-0.5 'rival_ratio = 0.5'          # run it on the nine sets
-    lab/scripts/select_study.py line-0.5 'rival_ratio = 0.5' --sets consensus-1,spheres-2
+    lab/scripts/select_study.py line-0.5 'blob.rival_ratio = 0.5'     # run it on the nine sets
+    lab/scripts/select_study.py line-0.5 'blob.rival_ratio = 0.5' --sets consensus-1,spheres-2
     lab/scripts/select_study.py shipped ''                             # the shipped select itself
-    lab/scripts/select_study.py line-0.5 'rival_ratio = 0.5' --no-run  # summarise what is on disk
+    lab/scripts/select_study.py line-0.5 'blob.rival_ratio = 0.5' --no-run  # summarise what is on disk
 
-Each set is a preset's phantom, views and fit, sized by the shipped select (`pipeline.toml`'s
-[select]) with the variant's keys on top. Only select and metrics recompute: with every fit in
-cache/ the nine sets take about five minutes on two cores (a set whose fits are not cached
-trains first: 15–20 minutes). lab/log.md's select-only tables over "the nine sets"
-were measured this way. Two more sets are held out (`--sets views128-consensus,views128-union`:
+The variant is TOML of [select] keys, ';' between keys; a key of [select.blob] or
+[select.half_max] is written with its table, `blob.rival_ratio = 0.5`,
+`half_max.fraction = 0.4` (a key spelt as before those tables existed is refused with its new
+spelling).
+
+Each set is the shipped configuration (`pipeline.toml`) with its phantom, views or fit changed as
+the set says, sized by the shipped select (pipeline.toml's [select]) with the variant's keys on
+top: its config, out-study/NAME/SET/config.toml, `extends` pipeline.toml and holds only that
+difference. Only select and metrics recompute: with every fit in cache/ the nine sets take
+about five minutes on two cores (a set whose fits are not cached trains first: 15–20 minutes).
+lab/log.md's select-only tables over "the nine sets" were measured this way, at tag lab-v1,
+where each set was a preset. Two more sets are held out (`--sets views128-consensus,views128-union`:
 fits to SPEC §3's 128² views, on which no rule was chosen): run them to check a rule the nine
 chose. Out dirs: out-study/NAME/SET/. Only the standard library is needed.
 
@@ -26,54 +33,100 @@ import subprocess
 import sys
 import tomllib
 
-from preset_config import load_absolute, toml_text
+from preset_config import toml_text
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+# Every set extends the shipped configuration.
+BASE = "pipeline.toml"
+SEED = "dataset.phantom"
+UNION = {"nodule_extent": "union"}
+# The calibration spheres as lab/presets/calibration_spheres.toml draws them (its fits; the
+# cohort is relative to the repository).
+SPHERES = {"dataset": {"cohort": "tools/cohorts/spheres16"}, SEED: UNION}
+VIEWS_128 = {"drr": {"width_px": 128, "height_px": 128}}
 
-# (set, preset, keys set on top of the preset, as {table: {key: value}})
+# (set, keys set on top of pipeline.toml, as {table: {key: value}}); at tag lab-v1 each was a
+# preset: default_seedN, phantom_union_256, phantom_readers_256, calibration_spheres.
 SETS = [
-    ("consensus-1", "pipeline.toml", {}),
-    ("consensus-2", "presets/default_seed2.toml", {}),
-    ("consensus-3", "presets/default_seed3.toml", {}),
-    ("consensus-4", "presets/default_seed4.toml", {}),
-    ("union-1", "presets/phantom_union_256.toml", {}),
-    ("union-2", "presets/phantom_union_256.toml", {"dataset.phantom": {"seed": 2}}),
-    ("readers", "presets/phantom_readers_256.toml", {}),
-    ("spheres-1", "presets/calibration_spheres.toml", {}),
-    ("spheres-2", "presets/calibration_spheres.toml", {"dataset.phantom": {"seed": 2}}),
+    ("consensus-1", {}),
+    ("consensus-2", {SEED: {"seed": 2}}),
+    ("consensus-3", {SEED: {"seed": 3}}),
+    ("consensus-4", {SEED: {"seed": 4}}),
+    ("union-1", {SEED: UNION}),
+    ("union-2", {SEED: {**UNION, "seed": 2}}),
+    ("readers", {SEED: {"nodule_extent": "readers"}}),
+    ("spheres-1", SPHERES),
+    ("spheres-2", {**SPHERES, SEED: {**UNION, "seed": 2}}),
 ]
 # Held out: fits no select rule was chosen on (SPEC §3's 128² views, on the consensus and the
-# union phantom; the fifth to eighth consensus anatomies, first trained at stop 48, the ninth at
-# stop 49). Run only
-# when --sets names them, so that they stay held out.
+# union phantom: drr128 and phantom_union at lab-v1; the fifth to eighth consensus anatomies,
+# first trained at stop 48, the ninth at stop 49). Run only when --sets names them, so that
+# they stay held out.
 HELD_OUT = [
-    ("views128-consensus", "presets/drr128.toml", {}),
-    ("views128-union", "presets/phantom_union.toml", {}),
-    ("consensus-5", "presets/default_seed5.toml", {}),
-    ("consensus-6", "presets/default_seed6.toml", {}),
-    ("consensus-7", "presets/default_seed6.toml", {"dataset.phantom": {"seed": 7}}),
-    ("consensus-8", "presets/default_seed6.toml", {"dataset.phantom": {"seed": 8}}),
+    ("views128-consensus", VIEWS_128),
+    ("views128-union", {**VIEWS_128, SEED: UNION}),
+    ("consensus-5", {SEED: {"seed": 5}}),
+    ("consensus-6", {SEED: {"seed": 6}}),
+    ("consensus-7", {SEED: {"seed": 7}}),
+    ("consensus-8", {SEED: {"seed": 8}}),
     # Trained at stop 49 (2026-11-28) with nothing looked at but the fit: kept for judging
-    # `roundness_opening` (lab/log.md, "A perfect field").
-    ("consensus-9", "presets/default_seed6.toml", {"dataset.phantom": {"seed": 9}}),
+    # `roundness_opening`, since gone from the code (lab/log.md, "A perfect field").
+    ("consensus-9", {SEED: {"seed": 9}}),
 ]
+# [select] keys that moved into a variant's table, and keys that left the code (lab-v1 has them).
+MOVED = {
+    **{k: f"blob.{k}" for k in ("inside_mm", "rival_ratio", "tie_break", "blind_tie_break", "score_roundness",
+                                "score_top", "guided_fallback", "guided_faint_ratio")},
+    "blob_scales_mm": "blob.scales_mm",
+    "half_max_fraction": "half_max.fraction",
+    "guided_diameter_ratio": "half_max.guided_diameter_ratio",
+    "guided_reach_diameters": "half_max.guided_reach_diameters",
+}
+REMOVED = ("blob_filter", "guided_scale_ratios", "roundness_opening")
 
 
-def study_config(preset, overrides, variant, out_dir, perfect_field=False):
-    """The preset at `preset` (relative to the repository) with `overrides`, the shipped
-    [select] and then `variant` (TOML text of [select] keys) on top, writing to `out_dir`;
-    every path absolute. With `perfect_field`, the true CT on the fit's lattice instead of it."""
-    config = load_absolute(os.path.join(ROOT, preset))
+def parse_variant(variant):
+    """The variant's [select] keys ({key: value}, a sub-table's as {"blob": {...}}); ';' may
+    separate them. A key spelt as before [select.blob] and [select.half_max] exits naming its
+    new spelling."""
+    try:
+        keys = tomllib.loads(variant.replace(";", "\n"))
+    except tomllib.TOMLDecodeError as e:
+        sys.exit(f"the variant {variant!r} is not TOML of [select] keys: {e}")
+    for key, value in keys.items():
+        if key in MOVED:
+            table, new = MOVED[key].split(".")
+            sys.exit(f"[select] {key} is now [select.{table}] {new}: write '{MOVED[key]} = …' in the variant")
+        if key in REMOVED:
+            sys.exit(f"[select] {key} has left the code: it runs only at tag lab-v1 (`git checkout lab-v1`)")
+    return keys
+
+
+def absolute(overrides):
+    """`overrides` with the paths they give (relative to the repository) made absolute."""
+    out = {table: dict(keys) for table, keys in overrides.items()}
+    for table, key in (("dataset", "cohort"), ("dataset", "root")):
+        if key in out.get(table, {}):
+            out[table][key] = os.path.join(ROOT, out[table][key])
+    return out
+
+
+def study_config(overrides, variant, out_dir, perfect_field=False):
+    """The configuration of one set: `extends` pipeline.toml (its cache, its [select]) and holds
+    the set's `overrides`, then `variant` ([select] keys as parsed by `parse_variant`) and the
+    out dir; every path absolute. With `perfect_field`, the true CT on the fit's lattice instead
+    of the fit."""
+    config = {"extends": os.path.join(ROOT, BASE), "pipeline": {"out_dir": out_dir}}
+    overrides = absolute(overrides)
     if perfect_field:
-        overrides = {**overrides, "train": {"model": "truth"}}
+        overrides["train"] = {**overrides.get("train", {}), "model": "truth"}
     for dotted, keys in overrides.items():
         t = config
         for part in dotted.split("."):
             t = t.setdefault(part, {})
         t.update(keys)
-    shipped = load_absolute(os.path.join(ROOT, "pipeline.toml")).get("select", {})
-    config["select"] = {**shipped, **tomllib.loads(variant)}
-    config["pipeline"]["out_dir"] = out_dir
+    if variant:
+        config["select"] = variant
     return config
 
 
@@ -91,7 +144,7 @@ def summarise(out):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("name", help="the study's name (its out dirs: out-study/NAME/SET)")
-    ap.add_argument("variant", help="[select] keys as TOML, ';' between keys: 'rival_ratio = 0.5; …'")
+    ap.add_argument("variant", help="[select] keys as TOML, ';' between keys: 'blob.rival_ratio = 0.5; …'")
     ap.add_argument("--sets", help="comma-separated sets (default: the nine): "
                     + ", ".join(s for s, *_ in SETS + HELD_OUT))
     ap.add_argument("--no-run", action="store_true", help="summarise the out dirs already written")
@@ -104,10 +157,10 @@ def main():
     unknown = set(wanted) - {s for s, *_ in known}
     if unknown:
         sys.exit(f"unknown set(s) {', '.join(sorted(unknown))}: choose from {', '.join(s for s, *_ in known)}")
-    variant = args.variant.replace(";", "\n")
+    variant = parse_variant(args.variant)
     total = {"n": 0, "guided": 0, "blind": 0}
     print(f"{'set':<18} {'≥10 mm':>6} {'guided':>6} {'blind':>6} {'APE over guided hits':>21} {'hits beating the sphere':>24}")
-    for name, preset, overrides in known:
+    for name, overrides in known:
         if name not in wanted:
             continue
         out = os.path.join(ROOT, "out-study", args.name, name)
@@ -115,7 +168,7 @@ def main():
             os.makedirs(out, exist_ok=True)
             path = os.path.join(out, "config.toml")
             with open(path, "w") as f:
-                f.write(toml_text(study_config(preset, overrides, variant, out, args.perfect_field)))
+                f.write(toml_text(study_config(overrides, variant, out, args.perfect_field)))
             r = subprocess.run([args.binary, "run", path], capture_output=True, text=True,
                                env={**os.environ, "CI": "true"})
             if r.returncode:

@@ -4,7 +4,7 @@
     lab/scripts/sphere_cohort.py tools/cohorts/spheres16 --binary target/release/aret-pipe
 
 Writes <patient>.scan.json + <patient>.xml per patient, the layout of tools/cohorts/paper19, so
-`[dataset] kind = "phantom"` reads it like the real cohort (presets/calibration_spheres.toml).
+`[dataset] kind = "phantom"` reads it like the real cohort (lab/presets/calibration_spheres.toml).
 Each patient is a scan geometry drawn from the range LIDC-IDRI scans span (pixel 0.62–0.86 mm,
 slices 1.25–2.5 mm) holding one sphere, drawn identically by four readers (so its union, its
 readers' grading and its 50 % consensus are the same object), with a diameter from an even

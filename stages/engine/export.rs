@@ -1,8 +1,7 @@
 //! Publishing results: `out_dir/<patient>/<name>` entries are hard links to cache blobs where
 //! the filesystem allows, else copies. Each entry is replaced atomically.
 
-use super::stage::OutputRef;
-use super::store::{temp_name, Store};
+use super::store::{temp_name, OutputRef, Store};
 use anyhow::Context as _;
 use std::fs;
 use std::path::Path;

@@ -15,6 +15,7 @@ pub mod run;
 pub mod source;
 pub mod stage;
 pub mod store;
+pub mod summary;
 
 pub use key::Hash;
 pub use stage::{Context, InputFile, Output, OutputRef, Stage, StageGraph, SOURCE};

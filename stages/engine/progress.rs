@@ -3,7 +3,7 @@
 //! On a terminal: one indicatif bar per stage (done/cached/failed of total). Not on a terminal:
 //! a plain line per computed or failed stage. In CI (`CI` set): only failures until the end table.
 
-use super::run::{Outcome, RunSummary};
+use super::summary::{Outcome, RunSummary};
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::collections::BTreeMap;
 use std::io::IsTerminal;

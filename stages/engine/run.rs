@@ -17,11 +17,12 @@ use super::export::publish;
 use super::lock::FileLock;
 use super::plan::{self, Decision};
 use super::progress::Progress;
+pub use super::source::Unit;
 use super::source::{self, SourceFile};
 use super::stage::{Context, Finished, OutputRef, ReplicaSpan, Stage, StageGraph, SOURCE};
 use super::store::{InputRef, Manifest, Store};
+pub use super::summary::{Outcome, Record, RunSummary};
 use crossbeam_channel::{bounded, Receiver};
-use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::PathBuf;
@@ -31,24 +32,6 @@ use std::time::Instant;
 
 /// The unit a cohort stage runs for, and its folder name under `out_dir` (none: `out_dir` itself).
 pub const COHORT: &str = "cohort";
-
-/// One patient: an ID and its own files.
-#[derive(Debug, Clone)]
-pub struct Unit {
-    pub id: String,
-    /// The folder holding the patient's files.
-    pub source_dir: PathBuf,
-    /// When set, only these files (relative to `source_dir`) are the patient's; otherwise every
-    /// file under the folder is.
-    pub source_files: Option<Vec<String>>,
-}
-
-impl Unit {
-    /// A patient whose files are everything under `dir`.
-    pub fn folder(id: impl Into<String>, dir: PathBuf) -> Unit {
-        Unit { id: id.into(), source_dir: dir, source_files: None }
-    }
-}
 
 pub struct RunOptions {
     /// Re-hash every cached blob and source file instead of trusting sizes and fingerprints.
@@ -82,58 +65,6 @@ impl StopRequest {
 impl RunOptions {
     fn workers_for(&self, stage: &str) -> usize {
         self.workers.get(stage).copied().unwrap_or(self.default_workers).max(1)
-    }
-}
-
-/// What happened to one (unit, stage).
-#[derive(Debug, Clone, Serialize)]
-#[serde(tag = "outcome", rename_all = "snake_case")]
-pub enum Outcome {
-    /// Served from the cache (the seconds it originally took to compute).
-    Cached {
-        seconds: f64,
-    },
-    Computed {
-        seconds: f64,
-    },
-    Failed {
-        cause: String,
-    },
-    /// Not attempted because an upstream stage failed.
-    Skipped {
-        upstream: String,
-    },
-    /// Not started because the run was asked to stop ([`StopRequest`]).
-    Interrupted,
-}
-
-#[derive(Debug, Clone, Serialize)]
-pub struct Record {
-    pub unit: String,
-    pub stage: String,
-    #[serde(flatten)]
-    pub outcome: Outcome,
-}
-
-/// Everything a run did, in unit order then stage order.
-#[derive(Debug, Default, Serialize)]
-pub struct RunSummary {
-    pub records: Vec<Record>,
-    pub wall_seconds: f64,
-}
-
-impl RunSummary {
-    pub fn failures(&self) -> impl Iterator<Item = &Record> {
-        self.records.iter().filter(|r| matches!(r.outcome, Outcome::Failed { .. }))
-    }
-
-    pub fn count(&self, stage: &str, pred: impl Fn(&Outcome) -> bool) -> usize {
-        self.records.iter().filter(|r| r.stage == stage && pred(&r.outcome)).count()
-    }
-
-    /// Whether a stop request left some stage unstarted.
-    pub fn interrupted(&self) -> bool {
-        self.records.iter().any(|r| matches!(r.outcome, Outcome::Interrupted))
     }
 }
 

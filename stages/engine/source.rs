@@ -6,12 +6,29 @@
 //! cutoff keeps everything downstream cached.
 
 use super::key::Hash;
-use super::run::Unit;
 use super::store::{hash_file, write_atomic, Store};
 use anyhow::{anyhow, Context as _};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::PathBuf;
+
+/// One patient: an ID and its own files.
+#[derive(Debug, Clone)]
+pub struct Unit {
+    pub id: String,
+    /// The folder holding the patient's files.
+    pub source_dir: PathBuf,
+    /// When set, only these files (relative to `source_dir`) are the patient's; otherwise every
+    /// file under the folder is.
+    pub source_files: Option<Vec<String>>,
+}
+
+impl Unit {
+    /// A patient whose files are everything under `dir`.
+    pub fn folder(id: impl Into<String>, dir: PathBuf) -> Unit {
+        Unit { id: id.into(), source_dir: dir, source_files: None }
+    }
+}
 
 /// One input file of a patient.
 #[derive(Debug, Clone)]

@@ -1,10 +1,9 @@
 //! The one trait through which the engine calls stages, and the graph they form.
 
-use super::key::Hash;
 use super::source::SourceFile;
+pub use super::store::OutputRef;
 use super::store::Store;
 use anyhow::{anyhow, Context as _};
-use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
@@ -28,14 +27,6 @@ impl Output {
 pub struct InputFile {
     pub name: String,
     pub path: PathBuf,
-}
-
-/// A stored output: its file name and the content hash of its bytes.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct OutputRef {
-    pub name: String,
-    pub hash: Hash,
-    pub size: u64,
 }
 
 /// A pure function of its inputs and its own parameters.

@@ -12,7 +12,6 @@
 //! names exists with its recorded size (and, with `verify`, re-hashes to its name).
 
 use super::key::Hash;
-use super::stage::OutputRef;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
@@ -20,6 +19,14 @@ use std::fs;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+
+/// A stored output: its file name and the content hash of its bytes.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OutputRef {
+    pub name: String,
+    pub hash: Hash,
+    pub size: u64,
+}
 
 /// Everything recorded about one computed (stage, key).
 #[derive(Debug, Clone, Serialize, Deserialize)]

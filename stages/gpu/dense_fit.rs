@@ -68,7 +68,7 @@ pub struct DeviceFista {
 impl DeviceFista {
     /// Uploads `problem`'s matrices and allocates the solve's buffers.
     pub fn new(gpu: Arc<Gpu>, problem: &DenseProblem) -> anyhow::Result<DeviceFista> {
-        let kernels = gpu.dense_kernels()?;
+        let kernels = gpu.compiled(DenseKernels::new)?;
         let (n, nodes) = (problem.n, problem.nodes());
         let rays = problem.seen.len();
         let rows = DeviceCsr::upload(&gpu, "the projection A", &problem.projector.rows)?;

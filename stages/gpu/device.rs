@@ -1,5 +1,7 @@
 //! The wgpu adapter and device: one per process, shared by every stage and worker.
 
+use std::any::{Any, TypeId};
+use std::collections::HashMap;
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -12,9 +14,8 @@ pub struct Gpu {
     /// The first validation or device error wgpu reported since the last [`Gpu::check`]
     /// (wgpu's default is to panic on them; we turn them into errors).
     errors: Arc<Mutex<Option<String>>>,
-    kernels: OnceLock<Result<Arc<crate::gpu::fit::Kernels>, String>>,
-    drr: OnceLock<Result<Arc<crate::gpu::drr_march::DrrMarch>, String>>,
-    dense: OnceLock<Result<Arc<crate::gpu::dense_fit::DenseKernels>, String>>,
+    /// Kernels compiled for this device, by their host type ([`Gpu::compiled`]).
+    compiled: Mutex<HashMap<TypeId, Arc<dyn Any + Send + Sync>>>,
 }
 
 /// How to open a device.
@@ -68,16 +69,7 @@ impl Gpu {
                 first.get_or_insert_with(|| e.to_string());
             }
         }));
-        Ok(Gpu {
-            device,
-            queue,
-            info,
-            limits,
-            errors,
-            kernels: OnceLock::new(),
-            drr: OnceLock::new(),
-            dense: OnceLock::new(),
-        })
+        Ok(Gpu { device, queue, info, limits, errors, compiled: Mutex::new(HashMap::new()) })
     }
 
     /// The process's device (opened on first use from [`GpuOptions::from_env`]), or why there is none.
@@ -112,28 +104,21 @@ impl Gpu {
         self.check()
     }
 
-    /// The training kernels, compiled once per device.
-    pub(crate) fn train_kernels(&self) -> anyhow::Result<Arc<crate::gpu::fit::Kernels>> {
-        let built = self
-            .kernels
-            .get_or_init(|| crate::gpu::fit::Kernels::new(self).map(Arc::new).map_err(|e| format!("{e:#}")));
-        built.clone().map_err(|e| anyhow::anyhow!(e))
-    }
-
-    /// The DRR kernel, compiled once per device.
-    pub(crate) fn drr_kernel(&self) -> anyhow::Result<Arc<crate::gpu::drr_march::DrrMarch>> {
-        let built = self
-            .drr
-            .get_or_init(|| crate::gpu::drr_march::DrrMarch::new(self).map(Arc::new).map_err(|e| format!("{e:#}")));
-        built.clone().map_err(|e| anyhow::anyhow!(e))
-    }
-
-    /// The dense fit's kernels, compiled once per device.
-    pub(crate) fn dense_kernels(&self) -> anyhow::Result<Arc<crate::gpu::dense_fit::DenseKernels>> {
-        let built = self
-            .dense
-            .get_or_init(|| crate::gpu::dense_fit::DenseKernels::new(self).map(Arc::new).map_err(|e| format!("{e:#}")));
-        built.clone().map_err(|e| anyhow::anyhow!(e))
+    /// The kernels of host type `T`, compiled by `build` once per device and shared after.
+    pub(crate) fn compiled<T: Any + Send + Sync>(
+        &self,
+        build: impl FnOnce(&Gpu) -> anyhow::Result<T>,
+    ) -> anyhow::Result<Arc<T>> {
+        let mut compiled = self.compiled.lock().map_err(|_| anyhow::anyhow!("a GPU kernel build panicked"))?;
+        let kernels = match compiled.get(&TypeId::of::<T>()) {
+            Some(kernels) => kernels.clone(),
+            None => {
+                let kernels: Arc<dyn Any + Send + Sync> = Arc::new(build(self)?);
+                compiled.insert(TypeId::of::<T>(), kernels.clone());
+                kernels
+            }
+        };
+        Ok(kernels.downcast::<T>().expect("kernels are stored under their own type"))
     }
 }
 

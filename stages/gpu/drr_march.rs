@@ -88,7 +88,7 @@ pub fn render(
     cameras: &[Camera],
     attenuation: f64,
 ) -> anyhow::Result<Vec<Vec<f32>>> {
-    let march = gpu.drr_kernel()?;
+    let march = gpu.compiled(DrrMarch::new)?;
     let volume = upload_volume(gpu, field)?;
     let view = volume.create_view(&Default::default());
     let mut segments = Vec::new();

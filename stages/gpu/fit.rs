@@ -217,7 +217,7 @@ impl<'g> DeviceFit<'g> {
                 params.vm.batch_rays
             );
         }
-        let kernels = gpu.train_kernels()?;
+        let kernels = gpu.compiled(Kernels::new)?;
         let (n, rank) = (field.n, field.rank);
         let nodes = n * n * n;
         let flat: Vec<f32> = field.params().flatten().copied().collect();

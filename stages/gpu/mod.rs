@@ -34,48 +34,28 @@ pub mod tv_direction;
 
 pub use device::Gpu;
 
-use serde::{Deserialize, Serialize};
 use std::collections::BTreeSet;
 use std::sync::Mutex;
 
-/// Where a stage computes (`[drr] backend`, `[train] backend`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Backend {
-    Cpu,
-    Gpu,
-    /// A hardware GPU when one exists, else the CPU (a software adapter such as lavapipe is
-    /// slower than the CPU backend, so `auto` does not pick it; `gpu` does).
-    Auto,
-}
+pub use crate::backend::Backend;
 
-impl Backend {
-    pub fn name(self) -> &'static str {
-        match self {
-            Backend::Cpu => "cpu",
-            Backend::Gpu => "gpu",
-            Backend::Auto => "auto",
-        }
+/// The concrete backend for `backend`: `Auto` becomes `Gpu` when a hardware adapter opens, else
+/// `Cpu` (said once per `table`, e.g. `"[train]"`, on stderr). Stages resolve before they name
+/// their cache key, so a key never says `auto`.
+pub fn resolve(backend: Backend, table: &str) -> Backend {
+    if backend != Backend::Auto {
+        return backend;
     }
-
-    /// The concrete backend: `Auto` becomes `Gpu` when a hardware adapter opens, else `Cpu`
-    /// (said once per `table`, e.g. `"[train]"`, on stderr). Stages resolve before they name
-    /// their cache key, so a key never says `auto`.
-    pub fn resolve(self, table: &str) -> Backend {
-        if self != Backend::Auto {
-            return self;
-        }
-        let why_not = match Gpu::shared() {
-            Ok(gpu) if !gpu.is_software() => return Backend::Gpu,
-            Ok(gpu) => format!("only the software adapter {} was found", gpu.describe()),
-            Err(e) => format!("no GPU adapter found ({e})"),
-        };
-        static SAID: Mutex<BTreeSet<String>> = Mutex::new(BTreeSet::new());
-        if SAID.lock().map(|mut said| said.insert(table.to_string())).unwrap_or(false) {
-            eprintln!("{why_not}; {table} backend = \"auto\" runs on the CPU");
-        }
-        Backend::Cpu
+    let why_not = match Gpu::shared() {
+        Ok(gpu) if !gpu.is_software() => return Backend::Gpu,
+        Ok(gpu) => format!("only the software adapter {} was found", gpu.describe()),
+        Err(e) => format!("no GPU adapter found ({e})"),
+    };
+    static SAID: Mutex<BTreeSet<String>> = Mutex::new(BTreeSet::new());
+    if SAID.lock().map(|mut said| said.insert(table.to_string())).unwrap_or(false) {
+        eprintln!("{why_not}; {table} backend = \"auto\" runs on the CPU");
     }
+    Backend::Cpu
 }
 
 /// The shared device for a stage whose `table` asked for `backend = "gpu"`, or an error that

@@ -4,8 +4,7 @@
 //! Index convention, as pylidc's: `i` = row (`yCoord`), `j` = column (`xCoord`), `k` = index
 //! into the ascending slice z positions; bounding boxes are inclusive.
 
-use super::consensus::GroundTruthError;
-use super::mask::{BBox, BoxMask};
+use super::mask::{BBox, BoxMask, GroundTruthError};
 use super::polygon::MplPolygon;
 use crate::formats::lidc_xml::NoduleRead;
 use std::cmp::Ordering;
@@ -231,6 +230,16 @@ fn for_each_inside(contour: &Contour, mut f: impl FnMut(usize, usize)) {
 fn switch_off_points(mask: &mut BoxMask, contour: &Contour) {
     for &[i, j] in &contour.points_ij {
         mask.set(i as usize, j as usize, contour.k, false);
+    }
+}
+
+/// Every annotation must have a contour: an empty one has no bbox (pylidc fails on it too).
+pub(crate) fn check_not_empty<'a>(
+    annotations: impl IntoIterator<Item = &'a Annotation>,
+) -> Result<(), GroundTruthError> {
+    match annotations.into_iter().position(|a| a.contours.is_empty()) {
+        Some(n) => Err(GroundTruthError::EmptyAnnotation(format!("#{n}"))),
+        None => Ok(()),
     }
 }
 

@@ -1,9 +1,9 @@
 //! Grouping annotations into nodules exactly as pylidc 0.2.3's `Scan.cluster_annotations()`
 //! (metric `'min'`); see [`cluster_annotations`] for the rule.
 
-use super::annotation::Annotation;
-use super::consensus::{check_not_empty, GroundTruthError};
+use super::annotation::{check_not_empty, Annotation};
 use super::mask::BBox;
+use super::mask::GroundTruthError;
 use std::cmp::Ordering;
 
 /// Parameters of [`cluster_annotations`], pylidc's defaults by [`Default`].

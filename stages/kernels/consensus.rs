@@ -12,45 +12,14 @@
 //! [`crate::volume::Volume`]'s `[slice][row][col]` (which names its fastest axis, the column,
 //! "i").
 
+use super::annotation::check_not_empty;
 pub use super::annotation::{Annotation, Contour, ScanGeometry};
 pub use super::cluster::{cluster_annotations, ClusterParams, Clustering};
-pub use super::mask::{BBox, BoxMask};
+pub use super::mask::{BBox, BoxMask, GroundTruthError};
 use crate::formats::lidc_xml::ReadMessage;
 
 /// pylidc's default consensus level.
 pub const DEFAULT_CLEVEL: f64 = 0.5;
-
-#[derive(Debug, thiserror::Error, PartialEq)]
-pub enum GroundTruthError {
-    #[error("scan geometry: {0}")]
-    Geometry(String),
-    #[error(
-        "ROI at z = {z_mm} mm matches no slice: the nearest slice is at {nearest_mm} mm, \
-         more than {tolerance_mm} mm away"
-    )]
-    ZOffGrid { z_mm: f64, nearest_mm: f64, tolerance_mm: f64 },
-    #[error("ROI point (x = {x}, y = {y}) at z = {z_mm} mm lies outside the {cols}×{rows} image")]
-    PointOutsideImage { x: i32, y: i32, z_mm: f64, cols: usize, rows: usize },
-    /// Names the read's `noduleID`, or `#n` for the n-th annotation passed to a kernel.
-    #[error("annotation {0} has no contour")]
-    EmptyAnnotation(String),
-    #[error(
-        "cannot split the annotations into nodules of at most {max_annotations}: the clustering \
-         tolerance fell to {tol} (< min_tol {min_tol}) with a cluster of {largest} (pylidc's \
-         ClusterError)"
-    )]
-    ClusterTolerance { max_annotations: usize, tol: f64, min_tol: f64, largest: usize },
-    #[error("clustering parameter {0}")]
-    ClusterParams(String),
-    #[error("clevel {0} is outside (0, 1]")]
-    Clevel(f64),
-    #[error("a consensus needs at least one annotation")]
-    NoAnnotations,
-    #[error("annotation index {index} is out of range ({count} annotations)")]
-    AnnotationIndex { index: usize, count: usize },
-    #[error("cannot paint a mask with bbox {bbox:?} into a volume of dims {dims:?} ({len} values)")]
-    PaintDims { bbox: BBox, dims: [usize; 3], len: usize },
-}
 
 /// The consensus of a set of annotations.
 #[derive(Debug, Clone, PartialEq)]
@@ -75,16 +44,6 @@ pub fn consensus(annotations: &[&Annotation], clevel: f64) -> Result<Consensus, 
     let masks: Vec<BoxMask> = annotations.iter().map(|a| a.boolean_mask(&bbox)).collect();
     let mask = threshold_votes(&masks, bbox, clevel);
     Ok(Consensus { bbox, mask, masks })
-}
-
-/// Every annotation must have a contour: an empty one has no bbox (pylidc fails on it too).
-pub(crate) fn check_not_empty<'a>(
-    annotations: impl IntoIterator<Item = &'a Annotation>,
-) -> Result<(), GroundTruthError> {
-    match annotations.into_iter().position(|a| a.contours.is_empty()) {
-        Some(n) => Err(GroundTruthError::EmptyAnnotation(format!("#{n}"))),
-        None => Ok(()),
-    }
 }
 
 fn threshold_votes(masks: &[BoxMask], bbox: BBox, clevel: f64) -> BoxMask {

@@ -1,7 +1,38 @@
 //! Inclusive voxel boxes and boolean masks local to a box, in the `(i, j, k)` = (row, column,
 //! slice) indices of [`super::annotation`]; painting a box mask into a full volume buffer.
 
-use super::consensus::GroundTruthError;
+/// Why a ground truth cannot be computed from an XML's annotations.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum GroundTruthError {
+    #[error("scan geometry: {0}")]
+    Geometry(String),
+    #[error(
+        "ROI at z = {z_mm} mm matches no slice: the nearest slice is at {nearest_mm} mm, \
+         more than {tolerance_mm} mm away"
+    )]
+    ZOffGrid { z_mm: f64, nearest_mm: f64, tolerance_mm: f64 },
+    #[error("ROI point (x = {x}, y = {y}) at z = {z_mm} mm lies outside the {cols}×{rows} image")]
+    PointOutsideImage { x: i32, y: i32, z_mm: f64, cols: usize, rows: usize },
+    /// Names the read's `noduleID`, or `#n` for the n-th annotation passed to a kernel.
+    #[error("annotation {0} has no contour")]
+    EmptyAnnotation(String),
+    #[error(
+        "cannot split the annotations into nodules of at most {max_annotations}: the clustering \
+         tolerance fell to {tol} (< min_tol {min_tol}) with a cluster of {largest} (pylidc's \
+         ClusterError)"
+    )]
+    ClusterTolerance { max_annotations: usize, tol: f64, min_tol: f64, largest: usize },
+    #[error("clustering parameter {0}")]
+    ClusterParams(String),
+    #[error("clevel {0} is outside (0, 1]")]
+    Clevel(f64),
+    #[error("a consensus needs at least one annotation")]
+    NoAnnotations,
+    #[error("annotation index {index} is out of range ({count} annotations)")]
+    AnnotationIndex { index: usize, count: usize },
+    #[error("cannot paint a mask with bbox {bbox:?} into a volume of dims {dims:?} ({len} values)")]
+    PaintDims { bbox: BBox, dims: [usize; 3], len: usize },
+}
 
 /// An inclusive voxel box in `(i, j, k)` = (row, column, slice) indices.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

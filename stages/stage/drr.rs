@@ -260,7 +260,7 @@ impl Stage for Drr {
         &["ingest", "hu"]
     }
     fn params(&self) -> serde_json::Value {
-        let backend = self.params.backend.resolve("[drr]");
+        let backend = gpu::resolve(self.params.backend, "[drr]");
         let mut json = super::params_json(&Params { backend, ..self.params.clone() });
         // The boxes' grid is read only by a tiling.
         if !self.params.tiling() {
@@ -367,7 +367,7 @@ pub fn render_views(
         cameras.clone()
     };
     let field = VolumeField::new(ct_unit, &frame);
-    let mut images: Vec<Vec<f32>> = match params.backend.resolve("[drr]") {
+    let mut images: Vec<Vec<f32>> = match gpu::resolve(params.backend, "[drr]") {
         Backend::Gpu => {
             let device = gpu::require("[drr]")?;
             gpu::drr_march::render(&device, &field, &aabb, &rendered, params.attenuation_scale)?

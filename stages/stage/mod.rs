@@ -1,4 +1,4 @@
-//! The pipeline's stages, one module each, and the one place their graph is declared.
+//! The pipeline's stages, one module each (their graph is declared in [`crate::pipeline`]).
 //!
 //! Each module reads like the SPEC: its `Params`, its inputs and outputs, a `VERSION`, and one
 //! pure `run`. Stages know nothing about caching.
@@ -13,33 +13,8 @@ pub mod select;
 pub mod sweep;
 pub mod train;
 
-use crate::config::{Config, DatasetKind};
-use crate::engine::{Stage, StageGraph, SOURCE};
-
-/// Every stage name, in pipeline order (`phantom` only for phantom datasets; later stages
-/// arrive in later releases).
+/// Every stage name, in pipeline order (`phantom` only for phantom datasets).
 pub const STAGE_NAMES: &[&str] = &["phantom", "ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics"];
-
-/// The per-patient and cohort stages this build runs, configured from `config`.
-pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
-    let mut stages: Vec<Box<dyn Stage>> = Vec::new();
-    // A phantom dataset generates each patient's DICOM first; ingest then reads those files.
-    let ingest_input: &'static [&'static str] = if config.dataset.kind == DatasetKind::Phantom {
-        stages.push(Box::new(phantom::Phantom { params: config.dataset.phantom.clone().unwrap_or_default() }));
-        &["phantom"]
-    } else {
-        &[SOURCE]
-    };
-    stages.push(Box::new(ingest::Ingest { params: config.ingest.clone(), input: ingest_input }));
-    stages.push(Box::new(hu::Hu { params: config.hu.clone() }));
-    stages.push(Box::new(drr::Drr { params: config.drr.clone() }));
-    stages.push(Box::new(train::Train { params: config.train.clone() }));
-    stages.push(Box::new(grid::Grid { params: config.grid.clone() }));
-    stages.push(Box::new(sweep::Sweep { params: config.sweep.clone() }));
-    stages.push(Box::new(select::Select { params: config.select.clone() }));
-    stages.push(Box::new(metrics::Metrics { params: config.metrics.clone() }));
-    StageGraph::new(stages)
-}
 
 /// Serialises a stage's parameters for its cache key.
 pub(crate) fn params_json<P: serde::Serialize>(params: &P) -> serde_json::Value {

@@ -32,7 +32,7 @@ pub struct Train {
 impl Train {
     /// Where this stage runs: `auto` resolved to `cpu` or `gpu` (for the key and the run alike).
     fn backend(&self) -> Backend {
-        self.params.backend.resolve("[train]")
+        gpu::resolve(self.params.backend, "[train]")
     }
 
     /// Runs `work` on `[train] threads` workers (0: rayon's global pool, all cores).

@@ -8,8 +8,7 @@ use super::render::{PhotoLoss, MAX_GRID};
 use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
-/// Where a fit runs (shared with `[drr] backend`).
-pub use crate::gpu::Backend;
+pub use crate::backend::Backend;
 
 /// What `train` fits.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]

@@ -13,7 +13,7 @@
 //! A blob search passes over the blobs whose region cannot be the nodule ([`plausible`]): its
 //! size is not a nodule's, or (guided) not that of the annotated diameter.
 
-use super::localize::Centre;
+use super::localize::{Centre, RegionShape};
 use super::Rule;
 use super::Selection;
 use crate::kernels::components::{component_within, label, Components};
@@ -21,7 +21,6 @@ use crate::kernels::eigen3::eigenvalues;
 use crate::kernels::localization::GroundTruthOnGrid;
 use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params as SweepParams, Scored};
 use crate::volume::Geometry;
-use serde::{Deserialize, Serialize};
 
 /// How far below and above the fraction the volume interval looks (absolute, in units of the peak).
 const INTERVAL_STEP: f64 = 0.1;
@@ -40,18 +39,6 @@ impl Cut {
     pub fn at(fraction: f64) -> Cut {
         Cut { fraction, reach_mm: None }
     }
-}
-
-/// What a search learns of a blob from the region it cut around it: what a ranker of blobs can
-/// weigh besides the blob response. Recorded in `result.json` for every blob a search accepted.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct RegionShape {
-    /// [`roundness`]: 1 for a ball, towards 0 for a rod or a plate.
-    pub roundness: f64,
-    /// The region's equivalent diameter.
-    pub diameter_mm: f64,
-    /// The score at the region's peak (σ's local contrast by default).
-    pub peak_score: f32,
 }
 
 /// Whether the half-maximum region at `centre` can be the nodule: the score has a positive

@@ -24,7 +24,6 @@
 //! between two objects: at `rival_ratio` of the taken blob's response or more, the centre is
 //! `ambiguous`, and the verdict says so.
 
-use super::half_max::RegionShape;
 use super::{BlobParams, Params, Rule};
 use crate::kernels::filters::distance_inside_mm;
 use crate::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobPeak};
@@ -104,6 +103,18 @@ pub struct Centre {
     /// fainter than `guided_faint_ratio` × the blind centre's (none: it found no centre).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub replaced_guided_peak: Option<f32>,
+}
+
+/// What a search learns of a blob from the region it cut around it: what a ranker of blobs can
+/// weigh besides the blob response. Recorded in `result.json` for every blob a search accepted.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RegionShape {
+    /// [`super::half_max::roundness`]: 1 for a ball, towards 0 for a rod or a plate.
+    pub roundness: f64,
+    /// The region's equivalent diameter.
+    pub diameter_mm: f64,
+    /// The score at the region's peak (σ's local contrast by default).
+    pub peak_score: f32,
 }
 
 /// What a search's caller says of one blob.

@@ -42,8 +42,7 @@ mod rules;
 mod shadows;
 mod tiles;
 
-pub use half_max::RegionShape;
-pub use localize::{blob_score, centres, Centre, Centres, Localize, RunnerUp, Search, TieBreak, Weighed};
+pub use localize::{blob_score, centres, Centre, Centres, Localize, RegionShape, RunnerUp, Search, TieBreak, Weighed};
 pub use rules::Analysis;
 pub use shadows::ShadowFit;
 pub use tiles::TileScore;

@@ -1,0 +1,27 @@
+//! The one place the stage graph is declared: which stages a configuration runs, in order, each
+//! with its own typed parameters.
+
+use crate::config::{Config, DatasetKind};
+use crate::engine::{Stage, StageGraph, SOURCE};
+use crate::stage::{drr, grid, hu, ingest, metrics, phantom, select, sweep, train};
+
+/// The per-patient and cohort stages, configured from `config`.
+pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
+    let mut stages: Vec<Box<dyn Stage>> = Vec::new();
+    // A phantom dataset generates each patient's DICOM first; ingest then reads those files.
+    let ingest_input: &'static [&'static str] = if config.dataset.kind == DatasetKind::Phantom {
+        stages.push(Box::new(phantom::Phantom { params: config.dataset.phantom.clone().unwrap_or_default() }));
+        &["phantom"]
+    } else {
+        &[SOURCE]
+    };
+    stages.push(Box::new(ingest::Ingest { params: config.ingest.clone(), input: ingest_input }));
+    stages.push(Box::new(hu::Hu { params: config.hu.clone() }));
+    stages.push(Box::new(drr::Drr { params: config.drr.clone() }));
+    stages.push(Box::new(train::Train { params: config.train.clone() }));
+    stages.push(Box::new(grid::Grid { params: config.grid.clone() }));
+    stages.push(Box::new(sweep::Sweep { params: config.sweep.clone() }));
+    stages.push(Box::new(select::Select { params: config.select.clone() }));
+    stages.push(Box::new(metrics::Metrics { params: config.metrics.clone() }));
+    StageGraph::new(stages)
+}
