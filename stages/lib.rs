@@ -11,7 +11,7 @@ pub mod backend;
 pub mod commands;
 pub mod config;
 pub mod dataset;
-pub mod engine;
+pub use aret_pipe_engine as engine;
 pub mod formats;
 pub mod geometry;
 pub mod gpu;

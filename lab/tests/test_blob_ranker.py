@@ -1,14 +1,11 @@
 """lab/scripts/blob_ranker.py judges the score tie-break on a select study's recorded blobs."""
 import csv
-import importlib.util
 import json
 import math
-from pathlib import Path
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
-spec = importlib.util.spec_from_file_location("blob_ranker", SCRIPTS / "blob_ranker.py")
-ranker = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(ranker)
+from lab_scripts import load
+
+ranker = load("blob_ranker")
 
 
 def blob(response, peak, roundness, on):

@@ -1,22 +1,13 @@
 """lab/scripts/calibrate_sizing.py runs its preset at each fraction with `--set`: the key it sets is
 the one the preset's sizing reads, and each fraction gets its own out dir."""
-import importlib.util
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-SCRIPTS = ROOT / "lab" / "scripts"
-sys.path.insert(0, str(SCRIPTS))  # the scripts import their shared preset_config
+from lab_scripts import BIN, ROOT, load
 
-spec = importlib.util.spec_from_file_location("calibrate_sizing", SCRIPTS / "calibrate_sizing.py")
-calibrate = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(calibrate)
-
-BIN = os.environ.get("ARET_PIPE_BIN", str(ROOT / "target" / "debug" / "aret-pipe"))
+calibrate = load("calibrate_sizing")
 PRESET = ROOT / "lab" / "presets" / "calibration_spheres.toml"
 
 

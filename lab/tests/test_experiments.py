@@ -1,18 +1,11 @@
 """lab/scripts/experiments.py at a checkout past lab-v1: rows whose presets are gone keep their
 lines and say where they re-run, instead of crashing."""
-import importlib.util
-import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-SCRIPTS = ROOT / "lab" / "scripts"
-sys.path.insert(0, str(SCRIPTS))  # the scripts import their shared preset_config
+from lab_scripts import ROOT, load
 
-spec = importlib.util.spec_from_file_location("experiments", SCRIPTS / "experiments.py")
-experiments = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(experiments)
+experiments = load("experiments")
 
 
 def block(doc):

@@ -4,26 +4,18 @@ phantom, views or fit, the shipped select, the variant.
 A study compares select variants on fits other runs cached, so its configs must reach the
 same cache and cohort as the runs that fitted them and change nothing upstream of select.
 """
-import importlib.util
 import json
-import os
 import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-SCRIPTS = ROOT / "lab" / "scripts"
-sys.path.insert(0, str(SCRIPTS))  # the scripts import their shared preset_config
-import preset_config  # noqa: E402
+from lab_scripts import BIN, ROOT, load
 
-spec = importlib.util.spec_from_file_location("select_study", SCRIPTS / "select_study.py")
-study = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(study)
+import preset_config  # noqa: E402  (lab_scripts puts lab/scripts on the path)
 
-BIN = os.environ.get("ARET_PIPE_BIN", str(ROOT / "target" / "debug" / "aret-pipe"))
+study = load("select_study")
 UPSTREAM = ("ingest", "hu", "drr", "train", "grid", "sweep")
 VARIANT = "blob.rival_ratio = 0.5; half_max.fraction = 0.4; primary = \"blind_persistent\""
 

@@ -348,7 +348,7 @@ fn run_stage(
     shared: &Shared,
     stage: &dyn Stage,
     unit: &str,
-    inputs: Vec<(String, String, crate::engine::Hash)>,
+    inputs: Vec<(String, String, crate::Hash)>,
     ctx: &Context,
     publish_dir: &std::path::Path,
 ) -> (Outcome, Option<Vec<OutputRef>>) {
