@@ -40,11 +40,11 @@ fn code(path: &Path) -> String {
 
 /// The module a path written in `module` names (the longest module prefix), if it is the crate's.
 fn target(modules: &BTreeMap<String, PathBuf>, module: &str, path: &[&str]) -> Option<String> {
-    let (mut base, rest): (Vec<&str>, &[&str]) = match path.first()? {
+    let (mut base, rest): (Vec<&str>, &[&str]) = match *path.first()? {
         // The engine is a crate of its own under stages/engine: its `crate` is `engine`.
-        &"crate" if module == "engine" || module.starts_with("engine::") => (vec!["engine"], &path[1..]),
-        &"crate" => (vec![], &path[1..]),
-        &"super" => {
+        "crate" if module == "engine" || module.starts_with("engine::") => (vec!["engine"], &path[1..]),
+        "crate" => (vec![], &path[1..]),
+        "super" => {
             let mut base: Vec<&str> = module.split("::").filter(|s| !s.is_empty()).collect();
             let mut rest = path;
             while rest.first() == Some(&"super") {
