@@ -34,6 +34,7 @@ use dicom_core::Tag;
 use dicom_dictionary_std::{tags, uids};
 use dicom_object::file::ReadPreamble;
 use dicom_object::{FileMetaTable, InMemDicomObject, OpenFileOptions, ReadError};
+use glam::DVec3;
 use rayon::prelude::*;
 use std::borrow::Cow;
 use std::fmt;
@@ -811,33 +812,18 @@ fn transfer_syntax_name(uid: &str) -> &'static str {
 // ---------------------------------------------------------------------------------------
 // Geometry
 
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
-fn norm(a: [f64; 3]) -> f64 {
-    dot(a, a).sqrt()
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn unit(a: [f64; 3]) -> [f64; 3] {
-    let n = norm(a);
+/// `a` over its length (itself when it has none).
+fn unit(a: DVec3) -> DVec3 {
+    let n = a.length();
     if n > 0.0 {
-        [a[0] / n, a[1] / n, a[2] / n]
+        a / n
     } else {
         a
     }
 }
 
-fn row_col(iop: &[f64; 6]) -> ([f64; 3], [f64; 3]) {
-    ([iop[0], iop[1], iop[2]], [iop[3], iop[4], iop[5]])
+fn row_col(iop: &[f64; 6]) -> (DVec3, DVec3) {
+    (DVec3::new(iop[0], iop[1], iop[2]), DVec3::new(iop[3], iop[4], iop[5]))
 }
 
 /// Index-axis directions in patient space: columns step along `row`, rows along `col`.
@@ -853,15 +839,15 @@ impl Axes {
     fn from_iop(iop: &[f64; 6]) -> Axes {
         let (row, col) = row_col(iop);
         let (row, col) = (unit(row), unit(col));
-        Axes { row, col, normal: unit(cross(row, col)) }
+        Axes { row: row.to_array(), col: col.to_array(), normal: unit(row.cross(col)).to_array() }
     }
 }
 
 fn check_orthonormal(path: &Path, iop: &[f64; 6]) -> Result<(), DicomError> {
     let (row, col) = row_col(iop);
-    let (row_len, col_len) = (norm(row), norm(col));
+    let (row_len, col_len) = (row.length(), col.length());
     let cos = if row_len > 0.0 && col_len > 0.0 {
-        dot(row, col) / (row_len * col_len)
+        row.dot(col) / (row_len * col_len)
     } else {
         1.0 // degenerate: report as parallel
     };
@@ -936,7 +922,8 @@ fn check_consistent(slices: &[CtSlice]) -> Result<(), DicomError> {
 
 /// Slices sorted by position along the normal (ascending), with those positions.
 fn sort_along_normal(slices: Vec<CtSlice>, axes: &Axes) -> (Vec<CtSlice>, Vec<f64>) {
-    let mut keyed: Vec<(f64, CtSlice)> = slices.into_iter().map(|s| (dot(s.ipp, axes.normal), s)).collect();
+    let mut keyed: Vec<(f64, CtSlice)> =
+        slices.into_iter().map(|s| (DVec3::from(s.ipp).dot(DVec3::from(axes.normal)), s)).collect();
     // Stable, so equal positions keep path order and the duplicate message is deterministic.
     keyed.sort_by(|a, b| a.0.total_cmp(&b.0));
     let positions = keyed.iter().map(|(p, _)| *p).collect();
@@ -960,9 +947,9 @@ fn check_no_duplicates(slices: &[CtSlice], positions: &[f64]) -> Result<(), Dico
 /// gantry-tilted (sheared) stack, which a rectilinear volume would misplace.
 fn check_no_tilt(slices: &[CtSlice], axes: &Axes, gap_tolerance: f64) -> Result<(), DicomError> {
     for pair in slices.windows(2) {
-        let step = sub(pair[1].ipp, pair[0].ipp);
-        let along = dot(step, axes.normal);
-        let lateral = norm(sub(step, axes.normal.map(|c| c * along)));
+        let (step, normal) = (DVec3::from(pair[1].ipp) - DVec3::from(pair[0].ipp), DVec3::from(axes.normal));
+        let along = step.dot(normal);
+        let lateral = (step - normal * along).length();
         if lateral > gap_tolerance * along.abs() {
             return Err(DicomError::GantryTilt {
                 path: pair[1].path.clone(),

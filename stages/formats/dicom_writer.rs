@@ -21,6 +21,7 @@ use dicom_core::value::PrimitiveValue;
 use dicom_core::{DataElement, Tag, VR};
 use dicom_dictionary_std::{tags, uids};
 use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+use glam::DVec3;
 
 /// HU = stored + this (RescaleSlope 1).
 pub const RESCALE_INTERCEPT: f64 = -1024.0;
@@ -85,8 +86,8 @@ pub fn write_ct_series<T: Copy + Into<f64>>(
     if cols16 == 0 || rows16 == 0 {
         return Err(DicomWriteError::SliceSize { cols, rows });
     }
-    let normal = cross(g.direction[0], g.direction[1]);
-    if slices > 1 && dot(normal, g.direction[2]) <= 0.0 {
+    let normal = DVec3::from(g.direction[0]).cross(DVec3::from(g.direction[1]));
+    if slices > 1 && normal.dot(DVec3::from(g.direction[2])) <= 0.0 {
         return Err(DicomWriteError::LeftHanded);
     }
     let sop_uids: Vec<String> = match meta.sop_instance_uids.len() {
@@ -136,7 +137,7 @@ pub fn write_ct_series<T: Copy + Into<f64>>(
             text(tags::IMAGE_ORIENTATION_PATIENT, VR::DS, &ds(&iop)),
             text(tags::FRAME_OF_REFERENCE_UID, VR::UI, &frame_of_reference),
             text(tags::POSITION_REFERENCE_INDICATOR, VR::LO, ""),
-            text(tags::SLICE_LOCATION, VR::DS, &ds(&[dot(ipp, normal)])),
+            text(tags::SLICE_LOCATION, VR::DS, &ds(&[DVec3::from(ipp).dot(normal)])),
             us(tags::SAMPLES_PER_PIXEL, 1),
             text(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2"),
             us(tags::ROWS, rows16),
@@ -197,14 +198,6 @@ fn ds_value(v: f64) -> String {
         }
     }
     format!("{v:.6e}")
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 #[cfg(test)]

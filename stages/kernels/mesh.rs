@@ -1,6 +1,7 @@
 //! Triangle meshes with shared vertices, and what is measured on them: the volume they enclose
 //! (divergence theorem), whether they are closed and consistently oriented, vertex normals.
 
+use glam::DVec3;
 use std::collections::HashMap;
 
 /// Vertices (patient mm) and triangles indexing them, counter-clockwise seen from outside
@@ -18,13 +19,13 @@ pub fn enclosed_volume_mm3(mesh: &Mesh) -> f64 {
     // The tetrahedra's apex is the vertices' mean rather than the origin: patient coordinates
     // are hundreds of mm away from a nodule a few mm wide, and the terms would cancel badly.
     let n = mesh.vertices.len().max(1) as f64;
-    let apex = mesh.vertices.iter().fold([0.0; 3], |s, v| [s[0] + v[0] / n, s[1] + v[1] / n, s[2] + v[2] / n]);
+    let apex = mesh.vertices.iter().fold(DVec3::ZERO, |s, &v| s + DVec3::from(v) / n);
     let sum: f64 = mesh
         .triangles
         .iter()
         .map(|t| {
-            let [a, b, c] = t.map(|i| sub(mesh.vertices[i as usize], apex));
-            dot(a, cross(b, c))
+            let [a, b, c] = t.map(|i| DVec3::from(mesh.vertices[i as usize]) - apex);
+            a.dot(b.cross(c))
         })
         .sum();
     sum / 6.0
@@ -84,37 +85,22 @@ pub fn check_edges(mesh: &Mesh) -> EdgeReport {
 /// Unit normal per vertex: the area-weighted mean of its triangles' normals (outward for an
 /// outward mesh); zero for a vertex no triangle uses.
 pub fn vertex_normals(mesh: &Mesh) -> Vec<[f64; 3]> {
-    let mut normals = vec![[0.0; 3]; mesh.vertices.len()];
+    let mut normals = vec![DVec3::ZERO; mesh.vertices.len()];
     for t in &mesh.triangles {
-        let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+        let [a, b, c] = t.map(|i| DVec3::from(mesh.vertices[i as usize]));
         // |(b − a) × (c − a)| is twice the area: the weight comes with the direction.
-        let n = cross(sub(b, a), sub(c, a));
+        let n = (b - a).cross(c - a);
         for &i in t {
-            let acc = &mut normals[i as usize];
-            for k in 0..3 {
-                acc[k] += n[k];
-            }
-        }
-    }
-    for n in &mut normals {
-        let len = dot(*n, *n).sqrt();
-        if len > 0.0 {
-            *n = n.map(|c| c / len);
+            normals[i as usize] += n;
         }
     }
     normals
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+        .into_iter()
+        .map(|n| {
+            let len = n.length();
+            if len > 0.0 { n / len } else { n }.to_array()
+        })
+        .collect()
 }
 
 #[cfg(test)]
