@@ -23,7 +23,7 @@ fn volume(dims: [usize; 3], spacing_mm: [f64; 3], origin_mm: [f64; 3], value: im
 }
 
 fn params_at_origin() -> Params {
-    Params { roi_center: RoiCenter::Mm([0.0; 3]), ..Params::default() }
+    Params { roi_center: RoiCenter::Mm([0.0; 3]), width_px: 128, height_px: 128, ..Params::default() }
 }
 
 #[test]

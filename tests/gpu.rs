@@ -237,7 +237,8 @@ fn a_batch_past_the_exact_scatter_limit_is_an_error_naming_the_key() {
     let (set, images) = render_views(&wide, &chest_ct(true), [0.0; 3], "explicit").unwrap();
     let (cameras, aabb) = (set.cameras, set.aabb);
     let views = Views { cameras: &cameras, images: &images, aabb };
-    let params = small(VmParams { batch_rays: 1_000_000, iterations: 1, ..VmParams::default() });
+    let vm = VmParams { rank: 6, batch_rays: 1_000_000, iterations: 1, ..VmParams::default() };
+    let params = TrainParams { grid: 24, vm, ..TrainParams::tensorf() };
     let most = aret_pipe::gpu::grad_from_fixed::max_batch_rays(&renderer(&params, aabb));
     assert!(ray_pool(&views.rays(), &aabb).len() > most, "the views hold more rays than one batch may");
     let e = aret_pipe::gpu::fit::fit(&gpu, &params, &views, |_| {}).err().expect("refused");
