@@ -107,7 +107,7 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         r.stage == "metrics" && matches!(r.outcome, run::Outcome::Cached { .. } | run::Outcome::Computed { .. })
     });
     if metrics_done {
-        if let Ok(json) = std::fs::read(options.out_dir.join("summary.json")) {
+        if let Ok(json) = std::fs::read(options.out_dir.join(crate::artifacts::SUMMARY.file)) {
             print!("{}", crate::stage::metrics::summary::headline(&json)?);
         }
     }

@@ -7,6 +7,7 @@
 //! the stages; [`formats`] the file formats; [`config`] the `pipeline.toml` schema;
 //! [`commands`] what the CLI calls.
 
+pub mod artifacts;
 pub mod backend;
 pub mod commands;
 pub mod config;

@@ -8,6 +8,7 @@
 //! pose error, non-orthogonal views) are off by default; a pose error moves only the cameras
 //! the images are rendered with, while `cameras.json` keeps the nominal poses.
 
+use crate::artifacts::{drr_image, drr_preview, CAMERAS, CT_HU, CT_UNIT, GROUND_TRUTH};
 use crate::engine::{Context, Output, Stage};
 use crate::formats::exr_image::{self, DrrImage};
 use crate::formats::png;
@@ -230,13 +231,13 @@ impl CameraSet {
         use anyhow::Context as _;
         let read =
             |name: &str| std::fs::read(dir.join(name)).with_context(|| format!("reading {}", dir.join(name).display()));
-        let set: CameraSet = serde_json::from_slice(&read("cameras.json")?)
-            .with_context(|| format!("parsing {}", dir.join("cameras.json").display()))?;
+        let set: CameraSet = serde_json::from_slice(&read(CAMERAS.file)?)
+            .with_context(|| format!("parsing {}", dir.join(CAMERAS.file).display()))?;
         let images = set
             .cameras
             .iter()
             .map(|c| {
-                let name = format!("drr_{}.exr", c.view.name());
+                let name = drr_image(c.view.name());
                 let image = exr_image::decode(&read(&name)?).with_context(|| format!("decoding {name}"))?;
                 Ok(image.pixels)
             })
@@ -278,17 +279,17 @@ impl Stage for Drr {
     /// The normalised CT, and from ingest only what the ROI centre needs.
     fn reads(&self, stage: &str, output: &str) -> bool {
         match (stage, self.params.roi_center) {
-            ("hu", _) => output.starts_with("ct_unit."),
-            (_, RoiCenter::Mode(RoiMode::Nodule)) => output == "ground_truth.json",
-            (_, RoiCenter::Mode(RoiMode::Lungs | RoiMode::Tiles)) => output.starts_with("ct_hu."),
+            ("hu", _) => CT_UNIT.holds(output),
+            (_, RoiCenter::Mode(RoiMode::Nodule)) => output == GROUND_TRUTH.file,
+            (_, RoiCenter::Mode(RoiMode::Lungs | RoiMode::Tiles)) => CT_HU.holds(output),
             (_, RoiCenter::Mm(_)) => false,
         }
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        let ct_unit: Volume<f32> = super::read_volume(ctx, "hu", "ct_unit")?;
+        let ct_unit: Volume<f32> = super::read_volume(ctx, CT_UNIT)?;
         let (roi_center_mm, mode) = self.roi_center(ctx)?;
         let (set, images) = render_views(&self.params, &ct_unit, roi_center_mm, &mode)?;
-        let mut outputs = vec![Output::new("cameras.json", serde_json::to_vec_pretty(&set)?)];
+        let mut outputs = vec![Output::new(CAMERAS.file, serde_json::to_vec_pretty(&set)?)];
         for (camera, pixels) in set.cameras.iter().zip(images) {
             let view = camera.view.name();
             let image = DrrImage {
@@ -300,8 +301,8 @@ impl Stage for Drr {
                 units: format!("I/I0 (Beer-Lambert); scene units of {} mm", set.frame.mm_per_unit),
                 view: view.to_string(),
             };
-            outputs.push(Output::new(format!("drr_{view}.png"), preview(&image)));
-            outputs.push(Output::new(format!("drr_{view}.exr"), exr_image::encode(&image)?));
+            outputs.push(Output::new(drr_preview(view), preview(&image)));
+            outputs.push(Output::new(drr_image(view), exr_image::encode(&image)?));
         }
         Ok(outputs)
     }
@@ -313,7 +314,7 @@ impl Drr {
         match self.params.roi_center {
             RoiCenter::Mm(c) => Ok((c, "explicit".into())),
             RoiCenter::Mode(RoiMode::Nodule) => {
-                let truth: GroundTruth = serde_json::from_slice(&ctx.read("ingest", "ground_truth.json")?)?;
+                let truth: GroundTruth = super::read_json(ctx, GROUND_TRUTH)?;
                 let centre = truth.target.and_then(|t| truth.nodules[t].centroid_mm);
                 match centre {
                     Some(c) => Ok((c, "nodule".into())),
@@ -325,7 +326,7 @@ impl Drr {
                 }
             }
             RoiCenter::Mode(mode @ (RoiMode::Lungs | RoiMode::Tiles)) => {
-                let ct_hu: Volume<i16> = super::read_volume(ctx, "ingest", "ct_hu")?;
+                let ct_hu: Volume<i16> = super::read_volume(ctx, CT_HU)?;
                 let Some(lungs) = lung_field_centroid_mm(&ct_hu, LUNG_THRESHOLD_HU) else {
                     let name = if mode == RoiMode::Lungs { "lungs" } else { "tiles" };
                     bail!("[drr] roi_center = \"{name}\": no air enclosed by the body below {LUNG_THRESHOLD_HU} HU")

@@ -8,9 +8,10 @@
 //! differences in mm, scaled to [0, 1]) and `density.vdb` holding both as FloatGrids, all in
 //! patient millimetres.
 
+use crate::artifacts::{CAMERAS, DENSITY, DENSITY_VDB, MODEL, UNCERTAINTY};
 use crate::engine::{Context, Output, Stage};
+use crate::formats::model;
 use crate::formats::vdb::{self, FloatGrid, GridClass};
-use crate::formats::{mhd, model};
 use crate::geometry::{Aabb, SceneFrame};
 use crate::stage::drr::CameraSet;
 use crate::train::render::AlphaMask;
@@ -43,25 +44,21 @@ impl Stage for Grid {
         super::params_json(&self.params)
     }
     fn reads(&self, stage: &str, output: &str) -> bool {
-        (stage, output) == ("drr", "cameras.json") || (stage, output) == ("train", "model.safetensors")
+        [CAMERAS, MODEL].iter().any(|a| (a.stage, a.file) == (stage, output))
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        let set: CameraSet = serde_json::from_slice(&ctx.read("drr", "cameras.json")?)?;
-        let (field, mask, meta) = model::decode(&ctx.read("train", "model.safetensors")?)?;
+        let set: CameraSet = super::read_json(ctx, CAMERAS)?;
+        let (field, mask, meta) = model::decode(&super::read(ctx, MODEL)?)?;
         let geometry = lattice_geometry(meta.grid, &meta.aabb, &set.frame);
         let density = Volume { geometry: geometry.clone(), data: node_density(field, mask, &meta) };
         let uncertainty = Volume { geometry, data: gradient_magnitude_unit(&density) };
         let vdb_bytes = vdb::encode(&[
-            vdb_grid("density", &density, GridClass::FogVolume),
-            vdb_grid("uncertainty", &uncertainty, GridClass::Unknown),
+            vdb_grid(DENSITY.name, &density, GridClass::FogVolume),
+            vdb_grid(UNCERTAINTY.name, &uncertainty, GridClass::Unknown),
         ])?;
-        let mut outputs = Vec::new();
-        for (name, volume) in [("density", &density), ("uncertainty", &uncertainty)] {
-            let (header, raw) = mhd::encode(volume, &format!("{name}.raw"));
-            outputs.push(Output::new(format!("{name}.mhd"), header));
-            outputs.push(Output::new(format!("{name}.raw"), raw));
-        }
-        outputs.push(Output::new("density.vdb", vdb_bytes));
+        let mut outputs = Vec::from(super::volume_outputs(DENSITY, &density));
+        outputs.extend(super::volume_outputs(UNCERTAINTY, &uncertainty));
+        outputs.push(Output::new(DENSITY_VDB.file, vdb_bytes));
         Ok(outputs)
     }
 }

@@ -3,8 +3,8 @@
 //! Input: `ingest/ct_hu.mhd` + `ct_hu.raw` (int16 HU). Output: `ct_unit.mhd` + `ct_unit.raw`,
 //! float32 `v = (clip(HU, hu_min, hu_max) − hu_min) / (hu_max − hu_min)` ∈ [0, 1], same geometry.
 
+use crate::artifacts::{CT_HU, CT_UNIT};
 use crate::engine::{Context, Output, Stage};
-use crate::formats::mhd;
 use crate::volume::Volume;
 use anyhow::bail;
 use serde::{Deserialize, Serialize};
@@ -63,12 +63,11 @@ impl Stage for Hu {
         super::params_json(&self.params)
     }
     fn reads(&self, _stage: &str, output: &str) -> bool {
-        output.starts_with("ct_hu.")
+        CT_HU.holds(output)
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        let ct_hu: Volume<i16> = super::read_volume(ctx, "ingest", "ct_hu")?;
-        let (header, raw) = mhd::encode(&normalise(&ct_hu, &self.params), "ct_unit.raw");
-        Ok(vec![Output::new("ct_unit.mhd", header), Output::new("ct_unit.raw", raw)])
+        let ct_hu: Volume<i16> = super::read_volume(ctx, CT_HU)?;
+        Ok(Vec::from(super::volume_outputs(CT_UNIT, &normalise(&ct_hu, &self.params))))
     }
 }
 

@@ -13,6 +13,10 @@ pub mod select;
 pub mod sweep;
 pub mod train;
 
+use crate::artifacts::{Artifact, VolumeArtifact};
+use crate::engine::{Context, Output};
+use anyhow::Context as _;
+
 /// Every stage name, in pipeline order (`phantom` only for phantom datasets).
 pub const STAGE_NAMES: &[&str] = &["phantom", "ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics"];
 
@@ -21,14 +25,31 @@ pub(crate) fn params_json<P: serde::Serialize>(params: &P) -> serde_json::Value 
     serde_json::to_value(params).expect("stage parameters serialise to JSON")
 }
 
-/// The MetaImage volume `<name>.mhd` + `<name>.raw` that input stage `stage` produced.
+/// The bytes of input artifact `a`.
+pub(crate) fn read(ctx: &Context, a: Artifact) -> anyhow::Result<Vec<u8>> {
+    ctx.read(a.stage, a.file)
+}
+
+/// Input artifact `a`, a JSON document.
+pub(crate) fn read_json<T: serde::de::DeserializeOwned>(ctx: &Context, a: Artifact) -> anyhow::Result<T> {
+    serde_json::from_slice(&read(ctx, a)?).with_context(|| format!("{}/{}", a.stage, a.file))
+}
+
+/// Input volume `v`, its header and its data.
 pub(crate) fn read_volume<T: crate::formats::mhd::MetaElement>(
-    ctx: &crate::engine::Context,
-    stage: &str,
-    name: &str,
+    ctx: &Context,
+    v: VolumeArtifact,
 ) -> anyhow::Result<crate::volume::Volume<T>> {
-    use anyhow::Context as _;
-    let header = String::from_utf8(ctx.read(stage, &format!("{name}.mhd"))?)
-        .with_context(|| format!("{stage}/{name}.mhd is not text"))?;
-    Ok(crate::formats::mhd::decode(&header, &ctx.read(stage, &format!("{name}.raw"))?)?)
+    let header = String::from_utf8(ctx.read(v.stage, v.header)?)
+        .with_context(|| format!("{}/{} is not text", v.stage, v.header))?;
+    Ok(crate::formats::mhd::decode(&header, &ctx.read(v.stage, v.raw)?)?)
+}
+
+/// Volume `v` as this stage's two outputs, header and data.
+pub(crate) fn volume_outputs<T: crate::formats::mhd::MetaElement>(
+    v: VolumeArtifact,
+    volume: &crate::volume::Volume<T>,
+) -> [Output; 2] {
+    let (header, raw) = crate::formats::mhd::encode(volume, v.raw);
+    [Output::new(v.header, header), Output::new(v.raw, raw)]
 }

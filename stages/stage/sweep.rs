@@ -13,8 +13,8 @@
 //! the `region` may be the lung field found in σ itself ([`lung_field`]): percentiles are then
 //! taken over the region's values and candidates lie inside it.
 
+use crate::artifacts::{DENSITY, LUNG_FIELD, SWEEP, SWEEP_CSV};
 use crate::engine::{Context, Output, Stage};
-use crate::formats::mhd;
 use crate::kernels::components::{label, Components, Connectivity};
 use crate::kernels::lung_mask::{local_contrast, lung_field};
 use crate::kernels::{morphology, stats};
@@ -26,9 +26,6 @@ use std::fmt::Write as _;
 
 // 3: writes the lung field it swept.
 pub const VERSION: u32 = 4;
-
-/// The lung field output (`.mhd/.raw`, 1 inside), written when `region = "lung_field"`.
-pub const LUNG_FIELD: &str = "lung_field";
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -283,26 +280,24 @@ impl Stage for Sweep {
         super::params_json(&self.params)
     }
     fn reads(&self, _stage: &str, output: &str) -> bool {
-        output == "density.mhd" || output == "density.raw"
+        DENSITY.holds(output)
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         self.params.check()?;
-        let density: Volume<f32> = super::read_volume(ctx, "grid", "density")?;
+        let density: Volume<f32> = super::read_volume(ctx, DENSITY)?;
         let scored = scored(&density, &self.params, None)?;
         let candidates: Vec<Candidate> =
             levels_of(&scored, &self.params)?.into_iter().flat_map(|l| l.candidates).collect();
         let file = SweepFile { params: self.params.clone(), candidates };
         let mut outputs = vec![
-            Output::new("sweep.csv", sweep_csv(&file.candidates)),
-            Output::new("sweep.json", serde_json::to_vec_pretty(&file)?),
+            Output::new(SWEEP_CSV.file, sweep_csv(&file.candidates)),
+            Output::new(SWEEP.file, serde_json::to_vec_pretty(&file)?),
         ];
         // The lung field, for select (which would otherwise find it again) and for viewing.
         if let Some(region) = &scored.region {
             let volume =
                 Volume { geometry: density.geometry.clone(), data: region.iter().map(|&b| u8::from(b)).collect() };
-            let (header, raw) = mhd::encode(&volume, &format!("{LUNG_FIELD}.raw"));
-            outputs.push(Output::new(format!("{LUNG_FIELD}.mhd"), header));
-            outputs.push(Output::new(format!("{LUNG_FIELD}.raw"), raw));
+            outputs.extend(super::volume_outputs(LUNG_FIELD, &volume));
         }
         Ok(outputs)
     }

@@ -6,6 +6,7 @@
 //! alpha mask, metadata), `train_log.csv` (iteration, loss, photo, L1, TV, PSNR per view, lr,
 //! seconds) and `loss.svg`.
 
+use crate::artifacts::{drr_image, CAMERAS, CT_UNIT, LOSS_PLOT, MODEL, TRAIN_LOG};
 use crate::engine::{Context, Output, Stage};
 use crate::formats::model::{self, ModelMeta};
 use crate::formats::{exr_image, svg};
@@ -60,8 +61,8 @@ impl Stage for Train {
     fn reads(&self, stage: &str, output: &str) -> bool {
         match stage {
             // Only the ceiling reads the CT, so the fits' keys do not depend on it.
-            "hu" => self.params.model == FieldModel::Truth && output.starts_with("ct_unit."),
-            _ => output == "cameras.json" || output.ends_with(".exr"),
+            "hu" => self.params.model == FieldModel::Truth && CT_UNIT.holds(output),
+            _ => output == CAMERAS.file || output.ends_with(".exr"),
         }
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
@@ -74,10 +75,10 @@ impl Stage for Train {
             }
             _ => None,
         };
-        let set: CameraSet = serde_json::from_slice(&ctx.read("drr", "cameras.json")?)?;
+        let set: CameraSet = super::read_json(ctx, CAMERAS)?;
         let mut images = Vec::new();
         for cam in &set.cameras {
-            let image = exr_image::decode(&ctx.read("drr", &format!("drr_{}.exr", cam.view.name()))?)?;
+            let image = exr_image::decode(&ctx.read(CAMERAS.stage, &drr_image(cam.view.name()))?)?;
             if (image.width, image.height) != (cam.width, cam.height) {
                 bail!(
                     "drr_{}.exr is {}×{}, its camera {}×{}",
@@ -108,9 +109,9 @@ impl Stage for Train {
         };
         let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();
         Ok(vec![
-            Output::new("model.safetensors", model_bytes),
-            Output::new("train_log.csv", log_csv(&log, &views_named)),
-            Output::new("loss.svg", loss_svg(&log)),
+            Output::new(MODEL.file, model_bytes),
+            Output::new(TRAIN_LOG.file, log_csv(&log, &views_named)),
+            Output::new(LOSS_PLOT.file, loss_svg(&log)),
         ])
     }
 }
@@ -177,7 +178,7 @@ impl Train {
     /// against the views as a fit's log row is. The model file is a dense one.
     fn truth(&self, ctx: &Context, set: &CameraSet, views: &Views) -> anyhow::Result<(Vec<u8>, Vec<LogRow>)> {
         let params = &self.params;
-        let ct_unit: Volume<f32> = super::read_volume(ctx, "hu", "ct_unit")?;
+        let ct_unit: Volume<f32> = super::read_volume(ctx, CT_UNIT)?;
         let renderer = renderer(params, views.aabb);
         let ct = VolumeField::new(&ct_unit, &set.frame);
         let ct_voxel =

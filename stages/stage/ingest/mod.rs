@@ -10,8 +10,9 @@
 pub mod site;
 pub mod truth;
 
+use crate::artifacts::{CT_HU, CT_SERIES, GROUND_TRUTH, GT_MASK, TARGET_SITE};
 use crate::engine::{Context, Output, Stage};
-use crate::formats::{dicom, mhd};
+use crate::formats::dicom;
 use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
@@ -104,18 +105,14 @@ impl Stage for Ingest {
         let annotations = truth::find_annotations(&files)?;
         let (ground_truth, gt_mask) = truth::ground_truth(ctx.patient(), &series, annotations, self.params.clevel)?;
         let site = site::target_site(&series.hu, gt_mask.as_ref())?;
-        let (header, raw) = mhd::encode(&series.hu, "ct_hu.raw");
-        let mut outputs = vec![
-            Output::new("ct_hu.mhd", header),
-            Output::new("ct_hu.raw", raw),
-            Output::new("ct_series.json", serde_json::to_vec_pretty(&info)?),
-            Output::new("ground_truth.json", serde_json::to_vec_pretty(&ground_truth)?),
-            Output::new("target_site.json", serde_json::to_vec_pretty(&site)?),
-        ];
+        let mut outputs = Vec::from(super::volume_outputs(CT_HU, &series.hu));
+        outputs.extend([
+            Output::new(CT_SERIES.file, serde_json::to_vec_pretty(&info)?),
+            Output::new(GROUND_TRUTH.file, serde_json::to_vec_pretty(&ground_truth)?),
+            Output::new(TARGET_SITE.file, serde_json::to_vec_pretty(&site)?),
+        ]);
         if let Some(mask) = gt_mask {
-            let (header, raw) = mhd::encode(&mask, "gt_mask.raw");
-            outputs.push(Output::new("gt_mask.mhd", header));
-            outputs.push(Output::new("gt_mask.raw", raw));
+            outputs.extend(super::volume_outputs(GT_MASK, &mask));
         }
         Ok(outputs)
     }

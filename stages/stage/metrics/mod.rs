@@ -9,6 +9,10 @@
 //! (see [`summary`]), and `report.html` with `scatter.svg` and `bland_altman.svg` (see
 //! [`report`]).
 
+use crate::artifacts::{
+    Artifact, BLAND_ALTMAN_PLOT, DRR_CORONAL_PREVIEW, GROUND_TRUTH, MODEL, NODULE_PREVIEW, REPORT, RESULT, RESULTS_CSV,
+    SCATTER_PLOT, SUMMARY, TARGET_SITE, TRAIN_LOG,
+};
 use crate::engine::{Context, Output, Stage};
 use crate::formats::model;
 use crate::stage::ingest::site::TargetSite;
@@ -45,6 +49,9 @@ pub struct Metrics {
     pub params: Params,
 }
 
+/// What the cohort reads of each patient.
+const READ: [Artifact; 7] = [GROUND_TRUTH, TARGET_SITE, RESULT, NODULE_PREVIEW, TRAIN_LOG, MODEL, DRR_CORONAL_PREVIEW];
+
 impl Stage for Metrics {
     fn name(&self) -> &'static str {
         "metrics"
@@ -62,13 +69,7 @@ impl Stage for Metrics {
         super::params_json(&self.params)
     }
     fn reads(&self, stage: &str, output: &str) -> bool {
-        matches!(
-            (stage, output),
-            ("ingest", "ground_truth.json" | "target_site.json")
-                | ("select", "result.json" | "nodule.png")
-                | ("train", "train_log.csv" | "model.safetensors")
-                | ("drr", "drr_coronal.png")
-        )
+        READ.iter().any(|a| (a.stage, a.file) == (stage, output))
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
         let mut rows = Vec::new();
@@ -76,24 +77,23 @@ impl Stage for Metrics {
         let mut unscored = Vec::new();
         let mut info = report::RunInfo { lines: Vec::new() };
         for patient in ctx.cohort_patients() {
-            let result: SelectResult = serde_json::from_slice(&ctx.read_patient(patient, "select", "result.json")?)
-                .with_context(|| format!("{patient}: select/result.json"))?;
-            let truth: GroundTruth =
-                serde_json::from_slice(&ctx.read_patient(patient, "ingest", "ground_truth.json")?)
-                    .with_context(|| format!("{patient}: ingest/ground_truth.json"))?;
+            let read = |a: Artifact| ctx.read_patient(patient, a.stage, a.file);
+            let json = |a: Artifact| -> anyhow::Result<serde_json::Value> {
+                serde_json::from_slice(&read(a)?).with_context(|| format!("{patient}: {}/{}", a.stage, a.file))
+            };
+            let result: SelectResult = serde_json::from_value(json(RESULT)?)?;
+            let truth: GroundTruth = serde_json::from_value(json(GROUND_TRUTH)?)?;
             let texture_mean = truth.target.and_then(|t| truth.nodules.get(t)).map(|n| n.texture_mean);
-            let site: TargetSite = serde_json::from_slice(&ctx.read_patient(patient, "ingest", "target_site.json")?)
-                .with_context(|| format!("{patient}: ingest/target_site.json"))?;
+            let site: TargetSite = serde_json::from_value(json(TARGET_SITE)?)?;
             // A tiled patient trained one field per box: its time is theirs together.
             let mut seconds = 0.0;
             for r in 0..ctx.patient_replica_count(patient) {
-                let log = String::from_utf8(ctx.read_patient_replica(patient, r, "train", "train_log.csv")?)?;
+                let log = String::from_utf8(ctx.read_patient_replica(patient, r, TRAIN_LOG.stage, TRAIN_LOG.file)?)?;
                 seconds += rows::train_seconds(&log)
-                    .with_context(|| format!("{patient}: train_log.csv of box {r} has no time"))?;
+                    .with_context(|| format!("{patient}: {} of box {r} has no time", TRAIN_LOG.file))?;
             }
             if info.lines.is_empty() {
-                let (_, _, meta) =
-                    model::decode(&ctx.read_patient_replica(patient, 0, "train", "model.safetensors")?)?;
+                let (_, _, meta) = model::decode(&ctx.read_patient_replica(patient, 0, MODEL.stage, MODEL.file)?)?;
                 info.lines = vec![
                     (
                         "field".into(),
@@ -125,9 +125,14 @@ impl Stage for Metrics {
                     rows.push(row);
                     thumbs.push(report::Thumbnails {
                         drr_coronal: ctx
-                            .read_patient_replica(patient, shown_box(&result), "drr", "drr_coronal.png")
+                            .read_patient_replica(
+                                patient,
+                                shown_box(&result),
+                                DRR_CORONAL_PREVIEW.stage,
+                                DRR_CORONAL_PREVIEW.file,
+                            )
                             .ok(),
-                        nodule: ctx.read_patient(patient, "select", "nodule.png").ok(),
+                        nodule: read(NODULE_PREVIEW).ok(),
                     });
                 }
                 None => unscored.push(patient.to_string()),
@@ -138,11 +143,11 @@ impl Stage for Metrics {
         let bland_altman = report::bland_altman_svg(&rows, &summary.groups["all"].ours.all);
         let html = report::html(&summary, &rows, &thumbs, &scatter, &bland_altman, &info);
         Ok(vec![
-            Output::new("results.csv", rows::results_csv(&rows)),
-            Output::new("summary.json", serde_json::to_vec_pretty(&summary)?),
-            Output::new("scatter.svg", scatter),
-            Output::new("bland_altman.svg", bland_altman),
-            Output::new("report.html", html),
+            Output::new(RESULTS_CSV.file, rows::results_csv(&rows)),
+            Output::new(SUMMARY.file, serde_json::to_vec_pretty(&summary)?),
+            Output::new(SCATTER_PLOT.file, scatter),
+            Output::new(BLAND_ALTMAN_PLOT.file, bland_altman),
+            Output::new(REPORT.file, html),
         ])
     }
 }

@@ -22,6 +22,10 @@
 //! the selection, the nodule and an ambiguous search's rival, each outlined); with `sizing = "shadows"`
 //! also `shadows.png` (the primary selection's fitted ellipsoid over its three shadows).
 
+use crate::artifacts::{
+    drr_image, CAMERAS, DENSITY, GROUND_TRUTH, GT_MASK, LUNG_FIELD, NODULE_MASK, NODULE_MESH, NODULE_PREVIEW, RESULT,
+    SHADOWS_PREVIEW, SWEEP,
+};
 use crate::engine::{Context, Output, Stage};
 use crate::formats::obj;
 use crate::kernels::localization::{ground_truth_on_grid, GroundTruthOnGrid, Localization};
@@ -29,7 +33,7 @@ use crate::kernels::marching_cubes::mesh_mask;
 use crate::kernels::mesh::{enclosed_volume_mm3, vertex_normals};
 use crate::stage::drr::CameraSet;
 use crate::stage::ingest::truth::GroundTruth;
-use crate::stage::sweep::{levels_of, scored, Candidate, Region, SweepFile, LUNG_FIELD};
+use crate::stage::sweep::{levels_of, scored, Candidate, Region, SweepFile};
 use crate::volume::Volume;
 use anyhow::{bail, Context as _};
 use half_max::Cut;
@@ -403,11 +407,11 @@ impl Stage for Select {
     }
     fn reads(&self, stage: &str, output: &str) -> bool {
         match stage {
-            "ingest" => output == "ground_truth.json" || output.starts_with("gt_mask."),
-            "grid" => output == "density.mhd" || output == "density.raw",
-            "sweep" => output == "sweep.json" || output.starts_with(&format!("{LUNG_FIELD}.")),
+            "ingest" => output == GROUND_TRUTH.file || GT_MASK.holds(output),
+            "grid" => DENSITY.holds(output),
+            "sweep" => output == SWEEP.file || LUNG_FIELD.holds(output),
             "drr" => {
-                output == "cameras.json"
+                output == CAMERAS.file
                     || (self.params.sizing == Sizing::Shadows && output.starts_with("drr_") && output.ends_with(".exr"))
             }
             _ => false,
@@ -454,20 +458,19 @@ struct Chosen {
 impl Select {
     /// Every rule's selection in one box (the inputs `ctx` reads).
     fn choose(&self, ctx: &Context) -> anyhow::Result<Chosen> {
-        let density: Volume<f32> = super::read_volume(ctx, "grid", "density")?;
-        let cameras: CameraSet = serde_json::from_slice(&ctx.read("drr", "cameras.json")?)?;
-        let sweep: SweepFile = serde_json::from_slice(&ctx.read("sweep", "sweep.json")?)?;
-        let truth: GroundTruth =
-            serde_json::from_slice(&ctx.read("ingest", "ground_truth.json")?).context("ingest/ground_truth.json")?;
+        let density: Volume<f32> = super::read_volume(ctx, DENSITY)?;
+        let cameras: CameraSet = super::read_json(ctx, CAMERAS)?;
+        let sweep: SweepFile = super::read_json(ctx, SWEEP)?;
+        let truth: GroundTruth = super::read_json(ctx, GROUND_TRUTH)?;
         let target = truth.target.map(|t| &truth.nodules[t]);
         let gt = match target {
-            Some(_) => Some(ground_truth_on_grid(&super::read_volume(ctx, "ingest", "gt_mask")?, &density.geometry)?),
+            Some(_) => Some(ground_truth_on_grid(&super::read_volume(ctx, GT_MASK)?, &density.geometry)?),
             None => None,
         };
         // The sweep's lung field, when it swept one: the same σ gives the same field.
         let lungs = match sweep.params.region {
             Region::LungField => {
-                let field: Volume<u8> = super::read_volume(ctx, "sweep", LUNG_FIELD)?;
+                let field: Volume<u8> = super::read_volume(ctx, LUNG_FIELD)?;
                 Some(field.data.iter().map(|&v| v != 0).collect::<Vec<bool>>())
             }
             Region::Box => None,
@@ -612,7 +615,7 @@ impl Select {
                 .map(|&b| u8::from(b))
                 .collect(),
         };
-        let (header, raw) = crate::formats::mhd::encode(&mask_volume, "nodule_mask.raw");
+
         let mesh = mesh.unwrap_or_default();
         let comments = [
             format!("aret-pipe nodule surface of {patient} ({:?} selection)", self.params.primary),
@@ -641,14 +644,13 @@ impl Select {
             preview::Outlines { selected: &selected, truth: truth_cells.as_deref(), rival: rival_ball.as_deref() };
         let preview = preview::nodule_png(&density, &outlines, &centers);
         let mut outputs = vec![
-            Output::new("result.json", serde_json::to_vec_pretty(&result)?),
-            Output::new("nodule.png", preview),
-            Output::new("nodule_mask.mhd", header),
-            Output::new("nodule_mask.raw", raw),
-            Output::new("nodule.obj", obj_text),
+            Output::new(RESULT.file, serde_json::to_vec_pretty(&result)?),
+            Output::new(NODULE_PREVIEW.file, preview),
+            Output::new(NODULE_MESH.file, obj_text),
         ];
+        outputs.extend(super::volume_outputs(NODULE_MASK, &mask_volume));
         if let (Some(views), Some(fit)) = (&views, primary_sel.as_ref().and_then(|s| s.shadows)) {
-            outputs.push(Output::new("shadows.png", shadows::shadows_png(views, &fit)));
+            outputs.push(Output::new(SHADOWS_PREVIEW.file, shadows::shadows_png(views, &fit)));
         }
         Ok(outputs)
     }
@@ -660,8 +662,8 @@ fn read_views(ctx: &Context, cameras: &CameraSet) -> anyhow::Result<shadows::Vie
         .cameras
         .iter()
         .map(|camera| {
-            let name = format!("drr_{}.exr", camera.view.name());
-            crate::formats::exr_image::decode(&ctx.read("drr", &name)?).with_context(|| format!("drr/{name}"))
+            let name = drr_image(camera.view.name());
+            crate::formats::exr_image::decode(&ctx.read(CAMERAS.stage, &name)?).with_context(|| format!("drr/{name}"))
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
     shadows::Views::new(&cameras.cameras, &images, cameras.frame, cameras.aabb)
