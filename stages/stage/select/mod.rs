@@ -4,16 +4,21 @@
 //! regenerate their masks), `ingest/ground_truth.json` (the annotated diameter the guided rule
 //! uses), `ingest/gt_mask` (localization only: never used to choose) and `drr/cameras.json`
 //! (the scene origin, for `localize = "origin"`); with `sizing = "shadows"` also the three
-//! `drr/drr_<view>.exr` ([`shadows`]).
+//! `drr/drr_<view>.exr` ([`size::shadows`]).
 //!
-//! With `localize` ([`localize`]), each rule first finds the nodule's centre and then chooses
-//! only among the candidates holding it.
+//! The rooms: [`find`] finds each rule's centre (`localize`: the blob search, its ranking and the
+//! guided rule's fallback); [`size`] sizes the nodule there (`sizing`); [`params`] holds
+//! `[select]` and its variants' tables; [`result`] is `result.json`'s schema; [`verdict`] says
+//! whether the primary selection can be trusted; [`preview`] draws it; [`tiles`] compares boxes.
+//! A new rule is a search in `find` or a sizing in `size`, and one variant of [`Localize`] or
+//! [`Sizing`].
 //!
 //! Three selections, all reported:
 //! - `guided` (the paper's, semi-assisted): the candidate whose equivalent diameter is closest
 //!   to the annotated diameter;
 //! - `blind_largest` (the paper's blind rule): the largest candidate over all thresholds;
-//! - `blind_persistent` (ours, no annotation): see [`persistent`].
+//! - `blind_persistent` (ours, no annotation): the candidate that persists over the most
+//!   thresholds ([`Analysis`]).
 //!
 //! Every selection carries Dice, centroid distance and hit against the consensus mask
 //! resampled to the grid; the oracle says whether any candidate was a hit. Outputs:
@@ -28,7 +33,7 @@ use crate::artifacts::{
 };
 use crate::engine::{Context, Output, Stage};
 use crate::formats::obj;
-use crate::kernels::localization::{ground_truth_on_grid, GroundTruthOnGrid, Localization};
+use crate::kernels::localization::{ground_truth_on_grid, GroundTruthOnGrid};
 use crate::kernels::marching_cubes::mesh_mask;
 use crate::kernels::mesh::{enclosed_volume_mm3, vertex_normals};
 use crate::stage::drr::CameraSet;
@@ -36,20 +41,22 @@ use crate::stage::ingest::truth::GroundTruth;
 use crate::stage::sweep::{levels_of, scored, Candidate, Region, SweepFile};
 use crate::volume::Volume;
 use anyhow::{bail, Context as _};
-use half_max::Cut;
-use serde::{Deserialize, Serialize};
+use size::half_max::{self, Cut};
+use size::shadows;
 
-mod half_max;
-mod localize;
+mod find;
+mod params;
 mod preview;
-mod rules;
-mod shadows;
+mod result;
+mod size;
 mod tiles;
+mod verdict;
 
-pub use localize::{blob_score, centres, Centre, Centres, Localize, RegionShape, RunnerUp, Search, TieBreak, Weighed};
-pub use rules::Analysis;
-pub use shadows::ShadowFit;
-pub use tiles::TileScore;
+pub use find::{blob_score, centres, Centre, Centres, RegionShape, RunnerUp, Search, Weighed};
+pub use params::{BlobParams, HalfMaxParams, Localize, Params, Rule, Sizing, TieBreak};
+pub use result::{Oracle, SelectResult, Selection, ShadowFit, TileScore};
+pub use size::candidates::Analysis;
+pub use verdict::verdict;
 
 pub const VERSION: u32 = 18;
 
@@ -69,322 +76,6 @@ fn blob_check(search: Search, cut: &HalfMaxParams, annotated_mm: Option<f64>) ->
             annotated_mm.map(|d| cut.guided_diameter_ratio.map(|r| r * d)),
         ),
         Search::Blind => (Cut::at(BLOB_WIDTH_FRACTION), None),
-    }
-}
-
-/// `[select]`: which rule is the result, how each finds the nodule's centre (`localize`, with
-/// `[select.blob]`) and how it sizes it there (`sizing`, with `[select.half_max]`). The defaults
-/// are the shipped method.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct Params {
-    /// The selection written as `nodule_mask` and `nodule.obj`, and reported as "ours".
-    pub primary: Rule,
-    /// The blind rule reported beside the guided one in the cohort table.
-    pub blind: Rule,
-    /// How the nodule is found before it is sized.
-    pub localize: Localize,
-    /// How a rule sizes the nodule at its centre.
-    pub sizing: Sizing,
-    /// `localize = "blob"`: the blob search.
-    pub blob: BlobParams,
-    /// `sizing = "half_max"` or `"shadows"`: the half-maximum region.
-    pub half_max: HalfMaxParams,
-}
-
-/// `[select.blob]`: the search for the strongest bright blob of σ inside the lung field.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct BlobParams {
-    /// Scales (mm) of the blind search.
-    pub scales_mm: Vec<f64>,
-    /// A blob centre lies more than this (mm) inside the lung field.
-    pub inside_mm: f64,
-    /// A centre whose runner-up (the strongest other blob the search would have accepted)
-    /// answers at this fraction of its response or more is ambiguous (above 1: never).
-    pub rival_ratio: f64,
-    /// Among blobs answering alike (at `rival_ratio` of the strongest or more), which the
-    /// guided search takes ([`TieBreak`]).
-    pub tie_break: TieBreak,
-    /// The blind search's own tie-break.
-    pub blind_tie_break: TieBreak,
-    /// `tie_break = "score"`: the weight of roundness beside ln(response / peak score).
-    pub score_roundness: f64,
-    /// `tie_break = "score"`: how many of the strongest accepted blobs it ranks.
-    pub score_top: usize,
-    /// With an annotated diameter: where the guided search finds no blob it can size, the
-    /// guided rule takes the blind centre if it passes the guided size check
-    /// ([`Centres::fall_back_to_blind`]).
-    pub guided_fallback: bool,
-    /// `guided_fallback`: the guided rule also takes the blind centre where its own centre's
-    /// region peaks below this fraction of the blind centre's local contrast (0: never).
-    pub guided_faint_ratio: f64,
-}
-
-/// `[select.half_max]`: the region around a centre where the sweep's score is at least a
-/// fraction of its peak.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct HalfMaxParams {
-    /// The fraction of the peak the region is cut at.
-    pub fraction: f64,
-    /// With `localize = "blob"`: the guided search passes over a blob whose region at half its
-    /// peak has an equivalent diameter outside [lo, hi] × the annotated diameter.
-    pub guided_diameter_ratio: [f64; 2],
-    /// The guided rule's region holds no node farther from its peak than this many annotated
-    /// diameters (what lies farther is attached to the nodule, not of it).
-    pub guided_reach_diameters: f64,
-}
-
-/// How a rule sizes the nodule once it has chosen where it is.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Sizing {
-    /// The paper: every rule picks a candidate of the sweep (holding its centre, if any).
-    Candidates,
-    /// The connected region of the sweep's score at `[select.half_max] fraction` of its peak at
-    /// the rule's centre ([`half_max`]): both blind rules then size the blind centre alike.
-    HalfMax,
-    /// The half-maximum region finds the nodule; the ellipsoid fitted to its shadows in the
-    /// three DRRs sizes it ([`shadows`]).
-    #[default]
-    Shadows,
-}
-
-impl Sizing {
-    /// Whether the rules cut a half-maximum region around their centres (to keep it, or to
-    /// size it by its shadows).
-    fn cuts_half_max(self) -> bool {
-        matches!(self, Sizing::HalfMax | Sizing::Shadows)
-    }
-
-    /// The name in `[select] sizing`.
-    fn name(self) -> &'static str {
-        match self {
-            Sizing::Candidates => "candidates",
-            Sizing::HalfMax => "half_max",
-            Sizing::Shadows => "shadows",
-        }
-    }
-}
-
-impl Default for Params {
-    fn default() -> Self {
-        Params {
-            primary: Rule::Guided,
-            blind: Rule::BlindPersistent,
-            localize: Localize::Blob,
-            sizing: Sizing::default(),
-            blob: BlobParams::default(),
-            half_max: HalfMaxParams::default(),
-        }
-    }
-}
-
-impl Default for BlobParams {
-    fn default() -> Self {
-        BlobParams {
-            scales_mm: vec![6.0, 9.0, 13.0],
-            inside_mm: 8.0,
-            rival_ratio: 0.7,
-            tie_break: TieBreak::Roundness,
-            blind_tie_break: TieBreak::Score,
-            score_roundness: 3.0,
-            score_top: 5,
-            guided_fallback: true,
-            guided_faint_ratio: 0.2,
-        }
-    }
-}
-
-impl Default for HalfMaxParams {
-    fn default() -> Self {
-        HalfMaxParams { fraction: 0.5, guided_diameter_ratio: [0.5, 2.0], guided_reach_diameters: 1.0 }
-    }
-}
-
-impl BlobParams {
-    /// How `search` judges between blobs that answer alike.
-    pub fn tie_break_of(&self, search: Search) -> TieBreak {
-        match search {
-            Search::Guided => self.tie_break,
-            Search::Blind => self.blind_tie_break,
-        }
-    }
-
-    fn check(&self, sizing: Sizing) -> anyhow::Result<()> {
-        if self.scales_mm.is_empty() || self.scales_mm.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
-            bail!("[select.blob] scales_mm must be a non-empty list of positive numbers");
-        }
-        if !(self.inside_mm.is_finite() && self.inside_mm >= 0.0) {
-            bail!("[select.blob] inside_mm must be a number ≥ 0 (got {})", self.inside_mm);
-        }
-        if !(self.rival_ratio.is_finite() && self.rival_ratio > 0.0) {
-            bail!("[select.blob] rival_ratio must be a number > 0 (got {})", self.rival_ratio);
-        }
-        for (key, tie_break) in [("tie_break", self.tie_break), ("blind_tie_break", self.blind_tie_break)] {
-            let name = match tie_break {
-                TieBreak::Roundness => "roundness",
-                TieBreak::Score => "score",
-                TieBreak::Response => continue,
-            };
-            if !sizing.cuts_half_max() {
-                bail!(
-                    "[select.blob] {key} = \"{name}\" judges the blobs' half-maximum regions, and [select] sizing = \
-                     \"{}\" cuts none: set sizing to \"half_max\" or \"shadows\", or {key} to \"response\"",
-                    sizing.name()
-                );
-            }
-        }
-        if !(self.guided_faint_ratio.is_finite() && (0.0..=1.0).contains(&self.guided_faint_ratio)) {
-            bail!("[select.blob] guided_faint_ratio must be a number from 0 to 1 (got {})", self.guided_faint_ratio);
-        }
-        if !(self.score_roundness.is_finite() && self.score_roundness >= 0.0) {
-            bail!("[select.blob] score_roundness must be a number ≥ 0 (got {})", self.score_roundness);
-        }
-        if self.score_top == 0 {
-            bail!("[select.blob] score_top must be at least 1");
-        }
-        Ok(())
-    }
-}
-
-impl HalfMaxParams {
-    /// How far from its peak the guided region reaches, mm: `guided_reach_diameters` × the
-    /// annotated diameter (none without an annotation).
-    fn guided_reach_mm(&self, annotated_mm: Option<f64>) -> Option<f64> {
-        annotated_mm.map(|d| self.guided_reach_diameters * d)
-    }
-
-    fn check(&self) -> anyhow::Result<()> {
-        if !(self.fraction > 0.0 && self.fraction < 1.0) {
-            bail!("[select.half_max] fraction must lie strictly between 0 and 1 (got {})", self.fraction);
-        }
-        let [lo, hi] = self.guided_diameter_ratio;
-        if !(lo.is_finite() && hi.is_finite() && 0.0 <= lo && lo < hi) {
-            bail!("[select.half_max] guided_diameter_ratio must be [lo, hi] with 0 ≤ lo < hi (got [{lo}, {hi}])");
-        }
-        if !(self.guided_reach_diameters.is_finite() && self.guided_reach_diameters > 0.0) {
-            bail!(
-                "[select.half_max] guided_reach_diameters must be a number > 0 (got {})",
-                self.guided_reach_diameters
-            );
-        }
-        Ok(())
-    }
-}
-
-impl Params {
-    pub fn check(&self) -> anyhow::Result<()> {
-        if self.sizing.cuts_half_max() && self.localize == Localize::None {
-            bail!(
-                "[select] sizing = \"{}\" sizes around a centre, and localize = \"none\" finds none: \
-                 set localize to \"blob\" or \"origin\"",
-                self.sizing.name()
-            );
-        }
-        if self.localize == Localize::Blob {
-            self.blob.check(self.sizing)?;
-        }
-        if self.sizing.cuts_half_max() {
-            self.half_max.check()?;
-        }
-        Ok(())
-    }
-
-    /// The canonical form of what the variants in use read: the stage's cache key.
-    pub fn key(&self) -> serde_json::Value {
-        let mut key = serde_json::json!({
-            "primary": self.primary, "blind": self.blind, "localize": self.localize, "sizing": self.sizing,
-        });
-        let table = key.as_object_mut().expect("a table");
-        if self.localize == Localize::Blob {
-            table.insert("blob".into(), serde_json::to_value(&self.blob).expect("parameters serialise"));
-        }
-        if self.sizing.cuts_half_max() {
-            table.insert("half_max".into(), serde_json::to_value(&self.half_max).expect("parameters serialise"));
-        }
-        key
-    }
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Rule {
-    Guided,
-    BlindLargest,
-    BlindPersistent,
-}
-
-/// One rule's choice.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Selection {
-    pub rule: Rule,
-    pub candidate: Candidate,
-    /// The volumes of the candidates overlapping it most at the neighbouring thresholds, with
-    /// its own: `[min, max]` mm³.
-    pub volume_interval_mm3: [f64; 2],
-    /// Against the ground truth, when there is one.
-    pub localization: Option<Localization>,
-    /// With `sizing = "shadows"`: the ellipsoid fitted to the nodule's shadows.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub shadows: Option<ShadowFit>,
-    /// With `roi_center = "tiles"`: the box it was found in.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub tile: Option<String>,
-}
-
-/// The oracle diagnostic: could any candidate at any threshold have been right?
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Oracle {
-    pub any_hit: bool,
-    pub best_dice: f64,
-    pub best: Option<Candidate>,
-}
-
-/// `result.json`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct SelectResult {
-    pub patient: String,
-    /// "hit", or "MISS: …" when the primary selection does not touch the nodule — its volume
-    /// then measures something else, whatever its error says.
-    pub verdict: String,
-    pub primary: Rule,
-    pub blind_rule: Rule,
-    pub gt_volume_mm3: Option<f64>,
-    pub annotated_diameter_mm: Option<f64>,
-    /// Each reader's own volume of the target (the consensus is their vote): how far the
-    /// radiologists themselves lie from the ground truth. Empty without a target.
-    #[serde(default)]
-    pub reader_volumes_mm3: Vec<f64>,
-    pub guided: Option<Selection>,
-    pub blind_largest: Option<Selection>,
-    pub blind_persistent: Option<Selection>,
-    pub oracle: Option<Oracle>,
-    /// The primary selection's voxel volume and its mesh's enclosed volume (mm³).
-    pub voxel_volume_mm3: Option<f64>,
-    pub mesh_volume_mm3: Option<f64>,
-    pub mesh_triangles: usize,
-    pub candidates: usize,
-    /// The centres the rules sized from (`localize`).
-    pub localize: Localize,
-    /// How the rules sized the nodule.
-    #[serde(default)]
-    pub sizing: Sizing,
-    pub centres: Centres,
-    /// With `roi_center = "tiles"`: every box's centres and scores, in box order ([`tiles`]).
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub tiles: Vec<TileScore>,
-}
-
-impl SelectResult {
-    /// The report of `rule`'s choice, if it chose.
-    pub fn selection(&self, rule: Rule) -> Option<&Selection> {
-        match rule {
-            Rule::Guided => self.guided.as_ref(),
-            Rule::BlindLargest => self.blind_largest.as_ref(),
-            Rule::BlindPersistent => self.blind_persistent.as_ref(),
-        }
     }
 }
 
@@ -500,7 +191,7 @@ impl Select {
                 }
             }
         };
-        let mut centres = localize::centres(
+        let mut centres = find::centres(
             p,
             &density,
             scored.region.as_deref(),
@@ -585,27 +276,13 @@ impl Select {
         Ok(Chosen { result, primary_mask, density, gt, views, box_name: cameras.roi_center_mode })
     }
 
-    /// The verdict on `result`'s primary selection, with notes on its centre.
-    fn verdict_of(&self, result: &SelectResult, has_truth: bool) -> String {
-        let rule = self.params.primary;
-        let primary = result.selection(rule);
-        let line = verdict(rule, primary, has_truth, result.annotated_diameter_mm.is_some(), &self.params);
-        let centre = result.centres.of(rule);
-        let tiled = (!result.tiles.is_empty()).then(|| tiles::margin_note(&result.tiles, rule)).flatten();
-        let notes = [centre.and_then(rival_note), centre.and_then(fallback_note), tiled];
-        match primary {
-            Some(_) => std::iter::once(line).chain(notes.into_iter().flatten()).collect::<Vec<_>>().join("; "),
-            None => line,
-        }
-    }
-
     /// `result.json`, the primary selection's mask, mesh and previews.
     fn write(&self, patient: &str, chosen: Chosen) -> anyhow::Result<Vec<Output>> {
         let Chosen { mut result, primary_mask, density, gt, views, .. } = chosen;
         let mesh = primary_mask.as_ref().map(|m| mesh_mask(m, &density.geometry));
         result.mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
         result.mesh_triangles = mesh.as_ref().map_or(0, |m| m.triangles.len());
-        result.verdict = self.verdict_of(&result, gt.is_some());
+        result.verdict = verdict::verdict_of(&self.params, &result, gt.is_some());
         let primary_sel = result.selection(self.params.primary).cloned();
         let mask_volume = Volume {
             geometry: density.geometry.clone(),
@@ -667,62 +344,6 @@ fn read_views(ctx: &Context, cameras: &CameraSet) -> anyhow::Result<shadows::Vie
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
     shadows::Views::new(&cameras.cameras, &images, cameras.frame, cameras.aabb)
-}
-
-/// What the verdict adds when `centre` is ambiguous: where its rival lies and how strongly it
-/// answers.
-fn rival_note(centre: &Centre) -> Option<String> {
-    let rival = centre.runner_up.as_ref().filter(|_| centre.ambiguous)?;
-    Some(format!(
-        "ambiguous: another blob {:.0} mm away answers at {:.2} of this one's response ([select.blob] rival_ratio)",
-        rival.distance_mm, rival.ratio
-    ))
-}
-
-fn fallback_note(centre: &Centre) -> Option<String> {
-    let why = match (centre.from_blind, centre.replaced_guided_peak) {
-        (false, _) => return None,
-        (true, None) => "the guided search found no blob of the annotated size".to_string(),
-        (true, Some(peak)) => format!(
-            "the guided search's blob barely stands out (peak contrast {peak:.3}, under [select.blob] \
-             guided_faint_ratio of this one's)"
-        ),
-    };
-    Some(format!("{why}: this is the blind search's centre ([select.blob] guided_fallback)"))
-}
-
-/// One line saying whether `primary` can be trusted: "hit", or why not ("MISS: …").
-pub fn verdict(
-    rule: Rule,
-    primary: Option<&Selection>,
-    has_truth: bool,
-    has_diameter: bool,
-    params: &Params,
-) -> String {
-    match (primary, has_truth) {
-        (None, _) if rule == Rule::Guided && !has_diameter => {
-            "unverified: no annotated diameter, so the guided rule cannot choose (set [select] primary to a blind rule)"
-                .into()
-        }
-        (None, _) if params.sizing.cuts_half_max() => "MISS: no nodule centre was found whose half-maximum \
-             region is of a nodule's size ([sweep] diameter_mm; for the guided rule also \
-             [select.half_max] guided_diameter_ratio × the annotated diameter)"
-            .into(),
-        (None, _) if params.localize != Localize::None => {
-            "MISS: no nodule centre was found, or no candidate of the sweep holds it".into()
-        }
-        (None, _) => "MISS: no candidate survived the sweep".into(),
-        (Some(_), false) => "unverified: no ground truth to localise against".into(),
-        (Some(s), true) => match s.localization {
-            Some(l) if l.hit => "hit".into(),
-            Some(l) => format!(
-                "MISS: the selected component does not touch the nodule (Dice {:.2}, centroid {:.1} mm away); \
-                 its volume measures something else",
-                l.dice, l.centroid_distance_mm
-            ),
-            None => "unverified".into(),
-        },
-    }
 }
 
 #[cfg(test)]

@@ -7,20 +7,10 @@
 //! deeper (29–43 mm). The rule was fixed on two pilot patients and then tested on seven held
 //! out (lab/log.md, "Tiling the lungs with the paper's box").
 
-use super::{Centre, Chosen, Oracle, Rule, Selection};
-use serde::{Deserialize, Serialize};
-
-/// One box of a tiling, as `result.json` lists it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TileScore {
-    pub tile: String,
-    /// The guided centre's response × depth (none: no guided centre in this box).
-    pub guided_score: Option<f64>,
-    /// The blind centre's response × depth (none: no blind centre in this box).
-    pub blind_score: Option<f64>,
-    /// Whether the blind centre lies on the nodule (diagnostic only: never used to choose).
-    pub blind_on_nodule: Option<bool>,
-}
+use super::find::Centre;
+use super::params::Rule;
+use super::result::{Oracle, Selection, TileScore};
+use super::Chosen;
 
 /// A centre's score across boxes: its blob response × its depth inside the lung field.
 pub fn score(centre: Option<&Centre>) -> Option<f64> {

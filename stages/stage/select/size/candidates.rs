@@ -1,9 +1,10 @@
 //! The selection rules over a sweep's levels ([`Analysis`]): guided, the paper's blind rule
 //! and our persistence rule, each choice's report, and the oracle.
 
-use super::{Oracle, Rule, Selection};
 use crate::kernels::components::Components;
 use crate::kernels::localization::{GroundTruthOnGrid, Localization};
+use crate::stage::select::params::Rule;
+use crate::stage::select::result::{Oracle, Selection};
 use crate::stage::sweep::{Candidate, Level};
 use crate::volume::Geometry;
 use std::collections::BTreeMap;

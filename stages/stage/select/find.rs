@@ -24,20 +24,13 @@
 //! between two objects: at `rival_ratio` of the taken blob's response or more, the centre is
 //! `ambiguous`, and the verdict says so.
 
-use super::{BlobParams, Params, Rule};
+use super::params::{BlobParams, Params};
+pub use super::params::{Localize, Rule, TieBreak};
 use crate::kernels::filters::distance_inside_mm;
 use crate::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobPeak};
 use crate::volume::Volume;
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Localize {
-    None,
-    Origin,
-    Blob,
-}
 
 /// How many of the strongest blobs a search weighs before it gives up: a bound on the work,
 /// far beyond the ranks at which a nodule still stands out.
@@ -109,7 +102,7 @@ pub struct Centre {
 /// weigh besides the blob response. Recorded in `result.json` for every blob a search accepted.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RegionShape {
-    /// [`super::half_max::roundness`]: 1 for a ball, towards 0 for a rod or a plate.
+    /// [`super::size::half_max::roundness`]: 1 for a ball, towards 0 for a rod or a plate.
     pub roundness: f64,
     /// The region's equivalent diameter.
     pub diameter_mm: f64,
@@ -137,21 +130,14 @@ impl From<bool> for Weighed {
     }
 }
 
-/// Among blobs that answer alike, which a search takes.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum TieBreak {
-    /// The strongest response, however close the next comes.
-    #[default]
-    Response,
-    /// Among the strongest accepted blob and every other object answering at `rival_ratio` of
-    /// it or more, the one whose region is roundest: a nodule is compact, the blobs that rival it
-    /// (vessel junctions, the hilum) are drawn out. Needs a sizing that cuts regions.
-    Roundness,
-    /// Among the `score_top` strongest accepted blobs, the one with the highest
-    /// ln(response / peak score) + `score_roundness` × roundness ([`blob_score`]). Needs a
-    /// sizing that cuts regions.
-    Score,
+impl BlobParams {
+    /// How `search` judges between blobs that answer alike.
+    pub fn tie_break_of(&self, search: Search) -> TieBreak {
+        match search {
+            Search::Guided => self.tie_break,
+            Search::Blind => self.blind_tie_break,
+        }
+    }
 }
 
 /// What `tie_break = "score"` ranks a blob by: ln(response / peak score) + `roundness_weight` ×

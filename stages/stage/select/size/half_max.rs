@@ -13,12 +13,12 @@
 //! A blob search passes over the blobs whose region cannot be the nodule ([`plausible`]): its
 //! size is not a nodule's, or (guided) not that of the annotated diameter.
 
-use super::localize::{Centre, RegionShape};
-use super::Rule;
-use super::Selection;
 use crate::kernels::components::{component_within, label, Components};
 use crate::kernels::eigen3::eigenvalues;
 use crate::kernels::localization::GroundTruthOnGrid;
+use crate::stage::select::find::{Centre, RegionShape};
+use crate::stage::select::params::Rule;
+use crate::stage::select::result::Selection;
 use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params as SweepParams, Scored};
 use crate::volume::Geometry;
 

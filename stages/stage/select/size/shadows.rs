@@ -21,8 +21,6 @@
 //! interval holds the volumes fitted in windows of 1.5 and 2.5 radii, how much the answer
 //! hangs on where the background is read.
 
-use super::preview::{on_edge, tile, Panel};
-use super::Selection;
 use crate::formats::exr_image::DrrImage;
 use crate::geometry::{Aabb, Camera, SceneFrame};
 use crate::kernels::filters::distance_inside_mm;
@@ -30,6 +28,8 @@ use crate::kernels::localization::GroundTruthOnGrid;
 use crate::kernels::raymarch::{march_ray, VolumeField};
 use crate::kernels::robust_fit::{fit_soft_l1, Problem};
 use crate::kernels::stats::{median, percentile};
+use crate::stage::select::preview::{on_edge, tile, Panel};
+use crate::stage::select::result::{Selection, ShadowFit};
 use crate::stage::sweep::equivalent_diameter_mm;
 use crate::volume::Volume;
 use glam::DVec3;
@@ -114,16 +114,6 @@ impl Ellipsoid {
     pub fn volume(&self) -> f64 {
         4.0 / 3.0 * PI * self.semi_axes.x * self.semi_axes.y * self.semi_axes.z
     }
-}
-
-/// What `result.json` records of a shadow fit (patient mm).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct ShadowFit {
-    pub centre_mm: [f64; 3],
-    /// Along the patient x, y and z axes.
-    pub semi_axes_mm: [f64; 3],
-    /// The nodule's attenuation over its background, in the density's units.
-    pub contrast: f64,
 }
 
 /// One window pixel: its ray (clipped to the box), optical depth less the field's background,
@@ -251,7 +241,7 @@ pub fn shadow_selection(
         }
     }
     let (mask, centroid_mm) = region_of_volume(volume)?;
-    let candidate = super::Candidate {
+    let candidate = crate::stage::sweep::Candidate {
         voxels: mask.iter().filter(|&&m| m).count(),
         volume_mm3: volume,
         diameter_mm: equivalent_diameter_mm(volume),
