@@ -6,37 +6,11 @@
 //! surface (where occupancy ramps and thin shells are evaluated), rougher far from it.
 
 use super::Tissue;
+use glam::Vec3;
 
+/// A point or direction in patient mm, as the anatomy's tables write it; arithmetic goes
+/// through glam's `Vec3`.
 pub(crate) type V3 = [f32; 3];
-
-pub(crate) fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub(crate) fn add(a: V3, b: V3) -> V3 {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-
-pub(crate) fn scale(a: V3, s: f32) -> V3 {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-
-pub(crate) fn dot(a: V3, b: V3) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-pub(crate) fn norm(a: V3) -> f32 {
-    dot(a, a).sqrt()
-}
-
-pub(crate) fn normalize(a: V3) -> V3 {
-    let n = norm(a);
-    if n > 0.0 {
-        scale(a, 1.0 / n)
-    } else {
-        [0.0, 0.0, 1.0]
-    }
-}
 
 /// Fraction of a voxel inside a surface at signed distance `sd_mm` from the voxel centre:
 /// a linear ramp one `edge_mm` wide, centred on the surface (partial volume).
@@ -66,22 +40,24 @@ pub(crate) fn oval_sd(dx: f32, dy: f32, a: f32, b: f32, squareness: f32) -> f32 
 
 /// Signed distance to an axis-aligned ellipsoid with half-axes `semi` around the origin.
 pub(crate) fn ellipsoid_sd(d: V3, semi: V3) -> f32 {
-    let q = [d[0] / semi[0], d[1] / semi[1], d[2] / semi[2]];
-    let r = norm(q);
+    let (d, semi) = (Vec3::from(d), Vec3::from(semi));
+    let q = d / semi;
+    let r = q.length();
     if r < 1e-6 {
-        return -semi[0].min(semi[1]).min(semi[2]);
+        return -semi.min_element();
     }
-    let g = [q[0] / (semi[0] * r), q[1] / (semi[1] * r), q[2] / (semi[2] * r)];
-    (r - 1.0) / norm(g).max(1e-6)
+    let g = q / (semi * r);
+    (r - 1.0) / g.length().max(1e-6)
 }
 
 /// Signed distance to a capsule from `a` (radius `ra`) to `b` (radius `rb`), radius linear
 /// along the axis: one segment of a tapering tube.
 pub(crate) fn capsule_sd(p: V3, a: V3, b: V3, ra: f32, rb: f32) -> f32 {
-    let ab = sub(b, a);
-    let len2 = dot(ab, ab);
-    let t = if len2 > 0.0 { (dot(sub(p, a), ab) / len2).clamp(0.0, 1.0) } else { 0.0 };
-    norm(sub(p, add(a, scale(ab, t)))) - (ra + t * (rb - ra))
+    let (p, a, b) = (Vec3::from(p), Vec3::from(a), Vec3::from(b));
+    let ab = b - a;
+    let len2 = ab.dot(ab);
+    let t = if len2 > 0.0 { ((p - a).dot(ab) / len2).clamp(0.0, 1.0) } else { 0.0 };
+    (p - (a + ab * t)).length() - (ra + t * (rb - ra))
 }
 
 /// Signed distance to the slab `lo ≤ x ≤ hi`.

@@ -17,11 +17,12 @@
 use super::canvas::SliceCanvas;
 use super::frame::{Aabb, BodyFrame, IndexMap};
 use super::noise;
-use super::shapes::{capsule_sd, ellipsoid_sd, interval_sd, occupancy, oval_sd, sub, Mix, Profile, Sample, V3};
+use super::shapes::{capsule_sd, ellipsoid_sd, interval_sd, occupancy, oval_sd, Mix, Profile, Sample, V3};
 use super::tubes::{capsules_from_polylines, Capsule, Polyline, TubeSet};
 use super::vessels::{grow_tree, TreeSpec};
 use super::{PhantomParams, Tissue};
 use crate::volume::{Geometry, Volume};
+use glam::Vec3;
 use rayon::prelude::*;
 use std::f32::consts::PI;
 
@@ -628,7 +629,7 @@ fn layer_bounds(layer: Layer) -> Aabb {
 
 impl Anatomy {
     fn heart_sd(&self, r: V3) -> f32 {
-        let d = sub(r, HEART_CENTRE);
+        let d = (Vec3::from(r) - Vec3::from(HEART_CENTRE)).to_array();
         let (s, c) = HEART_AXIS_ANGLE.sin_cos();
         let along = d[0] * c - d[1] * s;
         let across = d[0] * s + d[1] * c;
@@ -786,13 +787,13 @@ impl Anatomy {
         let yl = y + 30.0;
         let liver = (x + 0.45 * yl - 0.004 * yl * yl - 18.0) / 1.1;
         m.paint(o * self.occ(liver), hu::LIVER, Tissue::Liver);
-        let stomach = ellipsoid_sd(sub(r, STOMACH_CENTRE), STOMACH_SEMI_AXES);
+        let stomach = ellipsoid_sd((Vec3::from(r) - Vec3::from(STOMACH_CENTRE)).to_array(), STOMACH_SEMI_AXES);
         m.paint(o * self.occ(stomach), hu::MUSCLE, Tissue::Stomach);
         let contents = o * self.occ(stomach + 3.0);
         m.paint(contents, hu::STOMACH_FLUID, Tissue::Stomach);
         let gas = self.occ(y - STOMACH_GAS_LEVEL_Y);
         m.paint(contents * gas, hu::AIR, Tissue::Stomach);
-        let spleen = ellipsoid_sd(sub(r, SPLEEN_CENTRE), SPLEEN_SEMI_AXES);
+        let spleen = ellipsoid_sd((Vec3::from(r) - Vec3::from(SPLEEN_CENTRE)).to_array(), SPLEEN_SEMI_AXES);
         m.paint(o * self.occ(spleen), hu::SPLEEN, Tissue::Spleen);
         m.paint(o * self.occ(dome - DIAPHRAGM_MM - z), hu::MUSCLE, Tissue::Diaphragm);
         m.sample()

@@ -8,8 +8,9 @@
 //! Growth is sequential in one seeded stream: the same seed gives the same tree.
 
 use super::frame::Aabb;
-use super::shapes::{add, norm, normalize, scale, sub, V3};
+use super::shapes::V3;
 use super::tubes::Capsule;
+use glam::Vec3;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -58,8 +59,8 @@ pub(crate) fn grow_tree(spec: &TreeSpec, lung_sd: &dyn Fn(V3) -> f32, rng: &mut 
             let Some(sum) = pull else { continue };
             // A tiny random tilt breaks the tie of points pulling in opposite directions.
             let jitter: V3 = std::array::from_fn(|_| rng.gen_range(-0.05..0.05));
-            let dir = normalize(add(normalize(sum), jitter));
-            let pos = add(nodes[n].pos, scale(dir, STEP_MM));
+            let dir = (Vec3::from(sum).normalize_or(Vec3::Z) + Vec3::from(jitter)).normalize_or(Vec3::Z);
+            let pos = (Vec3::from(nodes[n].pos) + dir * STEP_MM).to_array();
             if lung_sd(pos) < -0.5 {
                 nodes.push(Node { pos, parent: Some(n) });
             }
@@ -98,13 +99,13 @@ fn attraction_points(spec: &TreeSpec, lung_sd: &dyn Fn(V3) -> f32, rng: &mut Cha
 
 /// Where the trunk, run from the hilum along its direction, is first well inside the lung.
 fn trunk_end(spec: &TreeSpec, lung_sd: &dyn Fn(V3) -> f32) -> V3 {
-    let dir = normalize(spec.trunk_dir);
+    let dir = Vec3::from(spec.trunk_dir).normalize_or(Vec3::Z);
     let mut p = spec.hilum;
     for _ in 0..120 {
         if lung_sd(p) < -4.0 {
             break;
         }
-        p = add(p, dir);
+        p = (Vec3::from(p) + dir).to_array();
     }
     p
 }
@@ -160,7 +161,7 @@ impl Colony {
             if self.dead[q] {
                 continue;
             }
-            let d = norm(sub(self.points[q], pos));
+            let d = (Vec3::from(self.points[q]) - Vec3::from(pos)).length();
             if d < KILL_MM {
                 self.dead[q] = true;
                 self.alive -= 1;
@@ -178,9 +179,9 @@ impl Colony {
                 continue;
             }
             if let Some((n, _)) = self.nearest[q] {
-                let unit = normalize(sub(*p, nodes[n].pos));
+                let unit = (Vec3::from(*p) - Vec3::from(nodes[n].pos)).normalize_or(Vec3::Z);
                 let sum = pulls[n].get_or_insert([0.0; 3]);
-                *sum = add(*sum, unit);
+                *sum = (Vec3::from(*sum) + unit).to_array();
             }
         }
         pulls
@@ -252,7 +253,7 @@ mod tests {
     #[test]
     fn tree_fills_its_lung_and_tapers_by_murray() {
         // A 120-mm ball as the lung, the hilum outside it.
-        let lung = |p: V3| norm(p) - 60.0;
+        let lung = |p: V3| Vec3::from(p).length() - 60.0;
         let spec = ball_spec();
         let tree = grow_tree(&spec, &lung, &mut ChaCha8Rng::seed_from_u64(3));
         assert!(tree.len() > 500, "{} segments", tree.len());
