@@ -29,7 +29,7 @@ fn is_log(comment: &str) -> bool {
     let has_issue = ["issue ", "stop "]
         .iter()
         .any(|w| lower.match_indices(w).any(|(i, m)| lower[i + m.len()..].starts_with(|c: char| c.is_ascii_digit())));
-    (has_percent && !comment.contains("50 %")) || has_date || has_issue
+    has_percent || has_date || has_issue
 }
 
 #[test]
