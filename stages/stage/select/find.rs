@@ -110,6 +110,26 @@ pub struct RegionShape {
     pub peak_score: f32,
 }
 
+impl Centre {
+    /// A centre at `voxel` (`position_mm` in patient mm) and nothing more known of it: no blob,
+    /// the strongest, not compared with the nodule, no rival, no region.
+    pub fn at(voxel: [usize; 3], position_mm: [f64; 3]) -> Centre {
+        Centre {
+            voxel,
+            position_mm,
+            blob: None,
+            rank: 0,
+            on_nodule: None,
+            runner_up: None,
+            ambiguous: false,
+            region: None,
+            depth_mm: None,
+            from_blind: false,
+            replaced_guided_peak: None,
+        }
+    }
+}
+
 /// What a search's caller says of one blob.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Weighed {
@@ -301,17 +321,10 @@ pub fn centres(
     let geometry = &density.geometry;
     let (dims, spacing) = (geometry.dims, geometry.spacing_mm);
     let centre = |voxel: [usize; 3], blob: Option<BlobPeak>, rank: usize| Centre {
-        voxel,
-        position_mm: geometry.voxel_to_patient_mm(voxel.map(|v| v as f64)),
         blob,
         rank,
         on_nodule: coverage.map(|c| c[voxel[0] + dims[0] * (voxel[1] + dims[1] * voxel[2])] > 0.0),
-        runner_up: None,
-        ambiguous: false,
-        region: None,
-        depth_mm: None,
-        from_blind: false,
-        replaced_guided_peak: None,
+        ..Centre::at(voxel, geometry.voxel_to_patient_mm(voxel.map(|v| v as f64)))
     };
     match localize {
         Localize::None => Centres::default(),

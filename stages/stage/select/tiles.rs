@@ -115,19 +115,8 @@ mod tests {
     use crate::kernels::lung_mask::BlobPeak;
 
     fn centre(response: f32, depth_mm: Option<f64>) -> Centre {
-        Centre {
-            voxel: [0; 3],
-            position_mm: [0.0; 3],
-            blob: Some(BlobPeak { voxel: [0; 3], response, scale_mm: 6.0 }),
-            rank: 0,
-            on_nodule: None,
-            runner_up: None,
-            ambiguous: false,
-            region: None,
-            depth_mm,
-            from_blind: false,
-            replaced_guided_peak: None,
-        }
+        let blob = Some(BlobPeak { voxel: [0; 3], response, scale_mm: 6.0 });
+        Centre { blob, depth_mm, ..Centre::at([0; 3], [0.0; 3]) }
     }
 
     #[test]

@@ -294,19 +294,7 @@ mod tests {
     }
 
     fn centre(voxel: [usize; 3]) -> Centre {
-        Centre {
-            voxel,
-            position_mm: voxel.map(|v| v as f64),
-            blob: None,
-            rank: 0,
-            on_nodule: None,
-            runner_up: None,
-            ambiguous: false,
-            region: None,
-            depth_mm: None,
-            from_blind: false,
-            replaced_guided_peak: None,
-        }
+        Centre::at(voxel, voxel.map(|v| v as f64))
     }
 
     #[test]
