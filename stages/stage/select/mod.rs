@@ -41,7 +41,6 @@ use crate::stage::ingest::truth::GroundTruth;
 use crate::stage::sweep::{levels_of, scored, Candidate, Region, SweepFile};
 use crate::volume::Volume;
 use anyhow::{bail, Context as _};
-use size::half_max::{self, Cut};
 use size::shadows;
 
 mod find;
@@ -59,25 +58,6 @@ pub use size::candidates::Analysis;
 pub use verdict::verdict;
 
 pub const VERSION: u32 = 18;
-
-/// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
-/// full width at half maximum. `[select.half_max] fraction` then only sets where the nodule is
-/// cut (its volume), not which blob is the nodule: a lower fraction grows every region, and
-/// judged at that fraction a search passes over nodules.
-const BLOB_WIDTH_FRACTION: f64 = 0.5;
-
-/// How a search with half-maximum sizing judges a blob: the cut of its region (at
-/// [`BLOB_WIDTH_FRACTION`]; the guided region within its reach of the peak) and, for the guided
-/// search, the range its equivalent diameter must lie in (mm).
-fn blob_check(search: Search, cut: &HalfMaxParams, annotated_mm: Option<f64>) -> (Cut, Option<[f64; 2]>) {
-    match search {
-        Search::Guided => (
-            Cut { fraction: BLOB_WIDTH_FRACTION, reach_mm: cut.guided_reach_mm(annotated_mm) },
-            annotated_mm.map(|d| cut.guided_diameter_ratio.map(|r| r * d)),
-        ),
-        Search::Blind => (Cut::at(BLOB_WIDTH_FRACTION), None),
-    }
-}
 
 pub struct Select {
     pub params: Params,
@@ -103,7 +83,7 @@ impl Stage for Select {
             "sweep" => output == SWEEP.file || LUNG_FIELD.holds(output),
             "drr" => {
                 output == CAMERAS.file
-                    || (self.params.sizing == Sizing::Shadows && output.starts_with("drr_") && output.ends_with(".exr"))
+                    || (size::reads_views(self.params.sizing) && output.starts_with("drr_") && output.ends_with(".exr"))
             }
             _ => false,
         }
@@ -176,21 +156,23 @@ impl Select {
         let analysis = Analysis::new(&levels, gt.as_ref(), &density.geometry);
         let annotated = target.map(|t| t.annotated_diameter_mm);
         let p = &self.params;
-        // With half-maximum sizing a search passes over blobs whose region cannot be the nodule,
-        // judged at the blob's full width at half maximum whatever fraction the nodule is then
-        // cut at. The guided rule's region reaches no farther than the annotated diameter allows.
-        let guided_cut = Cut { fraction: p.half_max.fraction, reach_mm: p.half_max.guided_reach_mm(annotated) };
-        let blind_cut = Cut::at(p.half_max.fraction);
-        let accept = |search: Search, centre: &Centre| match p.sizing {
-            Sizing::Candidates => Weighed::Accepted { region: None },
-            Sizing::HalfMax | Sizing::Shadows => {
-                let (cut, range) = blob_check(search, &p.half_max, annotated);
-                match half_max::plausible(&scored, &sweep.params, centre, cut, range) {
-                    Some(region) => Weighed::Accepted { region: Some(region) },
-                    None => Weighed::PassedOver,
-                }
-            }
+        let views = match size::reads_views(p.sizing) {
+            true => Some(read_views(ctx, &cameras)?),
+            false => None,
         };
+        let inputs = size::Inputs {
+            params: p,
+            density: &density,
+            scored: &scored,
+            sweep: &sweep.params,
+            levels: &levels,
+            analysis: &analysis,
+            gt: gt.as_ref(),
+            views: views.as_ref(),
+            annotated_mm: annotated,
+        };
+        // A search passes over blobs the sizing cannot size (size::weigh).
+        let accept = |search: Search, centre: &Centre| size::weigh(&inputs, search, centre);
         let mut centres = find::centres(
             p,
             &density,
@@ -203,47 +185,8 @@ impl Select {
         if p.blob.guided_fallback && p.localize == Localize::Blob && annotated.is_some() {
             centres.fall_back_to_blind(p.blob.guided_faint_ratio, |blind| accept(Search::Guided, blind));
         }
-        let dims = density.geometry.dims;
-        // Some(None): any candidate; Some(Some(cell)): those holding the centre; None: the
-        // rule's centre was not found, so it cannot choose.
-        let through = |rule: Rule| match p.localize {
-            Localize::None => Some(None),
-            _ => centres.of(rule).map(|c| Some(c.linear(dims))),
-        };
-        let views = match p.sizing {
-            Sizing::Shadows => Some(read_views(ctx, &cameras)?),
-            _ => None,
-        };
         // Each rule's selection and its mask, in `Rule` order: guided, blind_largest, blind_persistent.
-        let mut chosen = match p.sizing {
-            Sizing::Candidates => [Rule::Guided, Rule::BlindLargest, Rule::BlindPersistent].map(|rule| {
-                through(rule)
-                    .and_then(|cell| analysis.choose(rule, annotated, cell))
-                    .map(|at| (analysis.describe(rule, at), levels[at.0].components.mask_of(at.1)))
-            }),
-            Sizing::HalfMax | Sizing::Shadows => {
-                let at = |rule, centre: &Option<Centre>, cut: Cut| {
-                    let centre = centre.as_ref()?;
-                    let region = half_max::half_max_selection(&scored, &sweep.params, centre, cut, gt.as_ref(), rule)?;
-                    match &views {
-                        // The shadows say how much; σ's own shape at that volume says where.
-                        Some(views) => shadows::shadow_selection(
-                            views,
-                            (&region.0, &region.1),
-                            &density,
-                            scored.region.as_deref(),
-                            gt.as_ref(),
-                            |v| half_max::region_of_volume(&scored, &sweep.params, centre, cut.reach_mm, v),
-                        ),
-                        None => Some(region),
-                    }
-                };
-                // Both blind rules size the blind centre: one region, reported under each name.
-                let blind = at(Rule::BlindLargest, &centres.blind, blind_cut);
-                let persistent = blind.clone().map(|(s, m)| (Selection { rule: Rule::BlindPersistent, ..s }, m));
-                [at(Rule::Guided, &centres.guided, guided_cut), blind, persistent]
-            }
-        };
+        let mut chosen = size::size(&inputs, &centres);
         let primary_index = match self.params.primary {
             Rule::Guided => 0,
             Rule::BlindLargest => 1,
@@ -349,19 +292,6 @@ fn read_views(ctx: &Context, cameras: &CameraSet) -> anyhow::Result<shadows::Vie
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn a_blob_is_judged_at_half_its_peak_whatever_fraction_sizes_the_nodule() {
-        for fraction in [0.3, 0.5, 0.7] {
-            let cut = HalfMaxParams { fraction, ..HalfMaxParams::default() };
-            let (guided, range) = blob_check(Search::Guided, &cut, Some(20.0));
-            assert_eq!(guided.fraction, 0.5);
-            assert_eq!(guided.reach_mm, Some(20.0));
-            assert_eq!(range, Some([10.0, 40.0]));
-            let (blind, range) = blob_check(Search::Blind, &cut, Some(20.0));
-            assert_eq!((blind.fraction, blind.reach_mm, range), (0.5, None, None));
-        }
-    }
 
     #[test]
     fn region_tie_breaks_need_regions_and_the_rival_ratio_a_positive_number() {

@@ -1,13 +1,32 @@
 //! The selection rules over a sweep's levels ([`Analysis`]): guided, the paper's blind rule
 //! and our persistence rule, each choice's report, and the oracle.
 
+use super::{Inputs, Sized};
 use crate::kernels::components::Components;
 use crate::kernels::localization::{GroundTruthOnGrid, Localization};
-use crate::stage::select::params::Rule;
+use crate::stage::select::find::Centres;
+use crate::stage::select::params::{Localize, Rule};
 use crate::stage::select::result::{Oracle, Selection};
 use crate::stage::sweep::{Candidate, Level};
 use crate::volume::Geometry;
 use std::collections::BTreeMap;
+
+/// Each rule's candidate of the sweep: among all (`localize = "none"`) or among those holding
+/// its centre (none when it found no centre).
+pub fn size(inputs: &Inputs, centres: &Centres) -> [Sized; 3] {
+    let dims = inputs.density.geometry.dims;
+    // Some(None): any candidate; Some(Some(cell)): those holding the centre; None: the rule's
+    // centre was not found, so it cannot choose.
+    let through = |rule: Rule| match inputs.params.localize {
+        Localize::None => Some(None),
+        _ => centres.of(rule).map(|c| Some(c.linear(dims))),
+    };
+    [Rule::Guided, Rule::BlindLargest, Rule::BlindPersistent].map(|rule| {
+        through(rule)
+            .and_then(|cell| inputs.analysis.choose(rule, inputs.annotated_mm, cell))
+            .map(|at| (inputs.analysis.describe(rule, at), inputs.levels[at.0].components.mask_of(at.1)))
+    })
+}
 
 /// Facts about every level that the rules and the report use, each found in one pass.
 pub struct Analysis<'a> {

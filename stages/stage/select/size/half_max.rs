@@ -13,11 +13,12 @@
 //! A blob search passes over the blobs whose region cannot be the nodule ([`plausible`]): its
 //! size is not a nodule's, or (guided) not that of the annotated diameter.
 
+use super::{Inputs, Sized};
 use crate::kernels::components::{component_within, label, Components};
 use crate::kernels::eigen3::eigenvalues;
 use crate::kernels::localization::GroundTruthOnGrid;
-use crate::stage::select::find::{Centre, RegionShape};
-use crate::stage::select::params::Rule;
+use crate::stage::select::find::{Centre, Centres, RegionShape, Search, Weighed};
+use crate::stage::select::params::{HalfMaxParams, Rule};
 use crate::stage::select::result::Selection;
 use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params as SweepParams, Scored};
 use crate::volume::Geometry;
@@ -39,6 +40,59 @@ impl Cut {
     pub fn at(fraction: f64) -> Cut {
         Cut { fraction, reach_mm: None }
     }
+}
+
+/// The fraction of its peak at which a search judges whether a blob is of a nodule's size: its
+/// full width at half maximum. `[select.half_max] fraction` then only sets where the nodule is
+/// cut (its volume), not which blob is the nodule: a lower fraction grows every region, and
+/// judged at that fraction a search passes over nodules.
+const BLOB_WIDTH_FRACTION: f64 = 0.5;
+
+/// How a search with half-maximum sizing judges a blob: the cut of its region (at
+/// [`BLOB_WIDTH_FRACTION`]; the guided region within its reach of the peak) and, for the guided
+/// search, the range its equivalent diameter must lie in (mm).
+fn blob_check(search: Search, cut: &HalfMaxParams, annotated_mm: Option<f64>) -> (Cut, Option<[f64; 2]>) {
+    match search {
+        Search::Guided => (
+            Cut { fraction: BLOB_WIDTH_FRACTION, reach_mm: cut.guided_reach_mm(annotated_mm) },
+            annotated_mm.map(|d| cut.guided_diameter_ratio.map(|r| r * d)),
+        ),
+        Search::Blind => (Cut::at(BLOB_WIDTH_FRACTION), None),
+    }
+}
+
+/// Whether `search` accepts the blob at `centre`: its region, judged at its full width at half
+/// maximum ([`plausible`]), is of a nodule's size.
+pub fn weigh(inputs: &Inputs, search: Search, centre: &Centre) -> Weighed {
+    let (cut, range) = blob_check(search, &inputs.params.half_max, inputs.annotated_mm);
+    match plausible(inputs.scored, inputs.sweep, centre, cut, range) {
+        Some(region) => Weighed::Accepted { region: Some(region) },
+        None => Weighed::PassedOver,
+    }
+}
+
+/// Each rule's half-maximum region at its centre: the guided rule's within its reach of the
+/// peak, both blind rules' at the blind centre (one region, reported under each name).
+pub fn size(inputs: &Inputs, centres: &Centres) -> [Sized; 3] {
+    size_then(inputs, centres, |_, _, region| Some(region))
+}
+
+/// [`size`], each region then handed to `then` with its centre and cut.
+pub fn size_then(
+    inputs: &Inputs,
+    centres: &Centres,
+    then: impl Fn(&Centre, Cut, (Selection, Vec<bool>)) -> Sized,
+) -> [Sized; 3] {
+    let half_max = &inputs.params.half_max;
+    let guided_cut = Cut { fraction: half_max.fraction, reach_mm: half_max.guided_reach_mm(inputs.annotated_mm) };
+    let at = |rule, centre: &Option<Centre>, cut: Cut| {
+        let centre = centre.as_ref()?;
+        let region = half_max_selection(inputs.scored, inputs.sweep, centre, cut, inputs.gt, rule)?;
+        then(centre, cut, region)
+    };
+    let blind = at(Rule::BlindLargest, &centres.blind, Cut::at(half_max.fraction));
+    let persistent = blind.clone().map(|(s, m)| (Selection { rule: Rule::BlindPersistent, ..s }, m));
+    [at(Rule::Guided, &centres.guided, guided_cut), blind, persistent]
 }
 
 /// Whether the half-maximum region at `centre` can be the nodule: the score has a positive
@@ -412,5 +466,18 @@ mod tests {
         let rod: Vec<usize> = (10..40).map(|x| x + 64 * (32 + 64 * 32)).collect();
         assert!(roundness(&rod, &g) < 1e-6);
         assert_eq!(roundness(&[5], &g), 1.0);
+    }
+
+    #[test]
+    fn a_blob_is_judged_at_half_its_peak_whatever_fraction_sizes_the_nodule() {
+        for fraction in [0.3, 0.5, 0.7] {
+            let cut = HalfMaxParams { fraction, ..HalfMaxParams::default() };
+            let (guided, range) = blob_check(Search::Guided, &cut, Some(20.0));
+            assert_eq!(guided.fraction, 0.5);
+            assert_eq!(guided.reach_mm, Some(20.0));
+            assert_eq!(range, Some([10.0, 40.0]));
+            let (blind, range) = blob_check(Search::Blind, &cut, Some(20.0));
+            assert_eq!((blind.fraction, blind.reach_mm, range), (0.5, None, None));
+        }
     }
 }

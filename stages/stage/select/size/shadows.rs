@@ -21,6 +21,7 @@
 //! interval holds the volumes fitted in windows of 1.5 and 2.5 radii, how much the answer
 //! hangs on where the background is read.
 
+use super::{half_max, Inputs, Sized};
 use crate::formats::exr_image::DrrImage;
 use crate::geometry::{Aabb, Camera, SceneFrame};
 use crate::kernels::filters::distance_inside_mm;
@@ -28,6 +29,7 @@ use crate::kernels::localization::GroundTruthOnGrid;
 use crate::kernels::raymarch::{march_ray, VolumeField};
 use crate::kernels::robust_fit::{fit_soft_l1, Problem};
 use crate::kernels::stats::{median, percentile};
+use crate::stage::select::find::Centres;
 use crate::stage::select::preview::{on_edge, tile, Panel};
 use crate::stage::select::result::{Selection, ShadowFit};
 use crate::stage::sweep::equivalent_diameter_mm;
@@ -55,6 +57,22 @@ const SHELL_MM: f64 = 4.0;
 const BACKGROUND_TERMS: usize = 6;
 /// Centre (3), log semi-axes (3), contrast (1).
 const SHAPE_PARAMS: usize = 7;
+
+/// Each rule's half-maximum region, sized by the ellipsoid that best explains its shadows: the
+/// shadows say how much, σ's own shape at that volume says where.
+pub fn size(inputs: &Inputs, centres: &Centres) -> [Sized; 3] {
+    let views = inputs.views.expect("sizing by shadows reads the views");
+    half_max::size_then(inputs, centres, |centre, cut, region| {
+        shadow_selection(
+            views,
+            (&region.0, &region.1),
+            inputs.density,
+            inputs.scored.region.as_deref(),
+            inputs.gt,
+            |v| half_max::region_of_volume(inputs.scored, inputs.sweep, centre, cut.reach_mm, v),
+        )
+    })
+}
 
 /// The three views as the fit reads them: nominal cameras (the ones training used) and optical
 /// depths.
