@@ -6,10 +6,11 @@
 //! (the scene origin, for `localize = "origin"`); with `sizing = "shadows"` also the three
 //! `drr/drr_<view>.exr` ([`size::shadows`]).
 //!
-//! The rooms: [`find`] finds each rule's centre (`localize`: the blob search, its ranking and the
-//! guided rule's fallback); [`size`] sizes the nodule there (`sizing`); [`params`] holds
-//! `[select]` and its variants' tables; [`result`] is `result.json`'s schema; [`verdict`] says
-//! whether the primary selection can be trusted; [`preview`] draws it; [`tiles`] compares boxes.
+//! The rooms: [`find`] finds each rule's centre (`localize`: the blob search, its ranking and
+//! the guided rule's fallback, a file each); [`size`] sizes the nodule there (`sizing`);
+//! [`params`] holds `[select]` and its variants' tables; [`result`] is `result.json`'s schema;
+//! [`verdict`] says whether the primary selection can be trusted; [`preview`] draws it;
+//! [`tiles`] compares boxes.
 //! A new rule is a search in `find` or a sizing in `size`, and one variant of [`Localize`] or
 //! [`Sizing`].
 //!

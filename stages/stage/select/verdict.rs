@@ -1,7 +1,8 @@
 //! The verdict on a primary selection: "hit", or why it cannot be trusted ("MISS: …",
 //! "unverified: …"), with notes on an ambiguous or borrowed centre.
 
-use super::find::{Centre, Localize};
+use super::find::Centre;
+use super::params::Localize;
 use super::params::Params;
 use super::params::Rule;
 use super::result::{SelectResult, Selection};
