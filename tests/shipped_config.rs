@@ -158,6 +158,9 @@ fn a_key_of_a_variant_not_picked_is_an_error_naming_it_and_its_variant() {
     let tiles = write("tiles.toml", &format!("{base}[drr.tiles]\ncounts = [1, 1, 1]\n"));
     let e = format!("{:#}", Config::load(&tiles).unwrap_err());
     assert!(e.contains("[drr.tiles]") && e.contains("roi_center = \"tiles\""), "{e}");
+    let at = write("at.toml", &format!("{base}[drr]\nroi_center = [1.0, 2.0, 3.0]\n[drr.tiles]\ncounts = [1, 1, 1]\n"));
+    let e = format!("{:#}", Config::load(&at).unwrap_err());
+    assert!(e.contains("[drr.tiles]") && e.contains("a position in mm"), "{e}");
     // A configuration that extends another and picks another variant drops what only the old
     // one read: the shipped [train.dense_tv] does not trouble a VM preset.
     let tensorf = Config::load(&root().join("presets/tensorf.toml")).unwrap();

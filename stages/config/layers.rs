@@ -23,6 +23,9 @@ const PATH_KEYS: [(&str, &str); 4] =
 struct Variants {
     table: &'static str,
     selector: &'static str,
+    /// What a list in place of a word picks (`roi_center = [x, y, z]`: a position in mm), if
+    /// the selector takes one; it must be one of `reads`' names.
+    list: Option<&'static str>,
     reads: &'static [(&'static str, &'static [&'static str])],
 }
 
@@ -30,19 +33,31 @@ const VARIANTS: &[Variants] = &[
     Variants {
         table: "train",
         selector: "model",
+        list: None,
         reads: &[("dense_tv", &["dense_tv"]), ("vm", &["vm"]), ("truth", &[])],
     },
-    Variants { table: "select", selector: "localize", reads: &[("none", &[]), ("origin", &[]), ("blob", &["blob"])] },
+    Variants {
+        table: "select",
+        selector: "localize",
+        list: None,
+        reads: &[("none", &[]), ("origin", &[]), ("blob", &["blob"])],
+    },
     Variants {
         table: "select",
         selector: "sizing",
+        list: None,
         reads: &[("candidates", &[]), ("half_max", &["half_max"]), ("shadows", &["half_max"])],
     },
-    // roi_center is a word or a position in mm (a list): a position reads nothing either.
-    Variants { table: "drr", selector: "roi_center", reads: &[("nodule", &[]), ("lungs", &[]), ("tiles", &["tiles"])] },
+    Variants {
+        table: "drr",
+        selector: "roi_center",
+        list: Some("a position in mm"),
+        reads: &[("nodule", &[]), ("lungs", &[]), ("tiles", &["tiles"]), ("a position in mm", &[])],
+    },
     Variants {
         table: "dataset",
         selector: "kind",
+        list: None,
         reads: &[("phantom", &["phantom", "cohort"]), ("dicom", &["root"]), ("lidc", &["root"])],
     },
 ];
@@ -184,11 +199,11 @@ impl Stack {
             let Some(table) = merged.get(v.table).and_then(Value::as_table) else { continue };
             let picked = match table.get(v.selector) {
                 Some(Value::String(s)) => s.clone(),
-                Some(Value::Array(_)) if v.table == "drr" => "a position".to_string(),
+                Some(Value::Array(_)) if v.list.is_some() => v.list.expect("checked").to_string(),
                 Some(_) => continue, // a wrong type: deserialising names it
                 None => default_of(v.table, v.selector).unwrap_or_default(),
             };
-            if picked != "a position" && !v.reads.iter().any(|(name, _)| *name == picked) {
+            if !v.reads.iter().any(|(name, _)| *name == picked) {
                 continue; // an unknown variant: deserialising names it
             }
             for member in v.members() {
@@ -254,7 +269,7 @@ fn merge(base: &mut Table, top: &Table) {
     for v in VARIANTS {
         let picked = match top.get(v.table).and_then(Value::as_table).and_then(|t| t.get(v.selector)) {
             Some(Value::String(s)) => Some(s.as_str()),
-            Some(Value::Array(_)) if v.table == "drr" => Some("a position"),
+            Some(Value::Array(_)) => v.list,
             _ => None,
         };
         let (Some(picked), Some(Value::Table(below))) = (picked, base.get_mut(v.table)) else { continue };
