@@ -93,27 +93,18 @@ pub struct DatasetSection {
 }
 
 impl DatasetSection {
+    /// Each kind has its folder (a key of another kind is refused as the layers are merged).
     fn check(&self) -> anyhow::Result<()> {
         let kind = serde_json::to_string(&self.kind).expect("kind serialises");
         match self.kind {
-            DatasetKind::Dicom | DatasetKind::Lidc => {
-                if self.root.is_none() {
-                    bail!("[dataset] kind = {kind} needs `root`, the dataset folder");
-                }
-                if self.cohort.is_some() || self.phantom.is_some() {
-                    bail!("[dataset] `cohort` and [dataset.phantom] are for kind = \"phantom\"; kind = {kind} reads `root`");
-                }
+            DatasetKind::Dicom | DatasetKind::Lidc if self.root.is_none() => {
+                bail!("[dataset] kind = {kind} needs `root`, the dataset folder")
             }
-            DatasetKind::Phantom => {
-                if self.cohort.is_none() {
-                    bail!("[dataset] kind = \"phantom\" needs `cohort`, e.g. \"tools/cohorts/paper19\"");
-                }
-                if self.root.is_some() {
-                    bail!("[dataset] `root` is for kinds \"dicom\" and \"lidc\"; kind = \"phantom\" reads `cohort`");
-                }
+            DatasetKind::Phantom if self.cohort.is_none() => {
+                bail!("[dataset] kind = \"phantom\" needs `cohort`, e.g. \"tools/cohorts/paper19\"")
             }
+            _ => Ok(()),
         }
-        Ok(())
     }
 }
 

@@ -1,5 +1,5 @@
 //! The sizing calibration's cohort (`tools/cohorts/spheres16/`, written by
-//! `tools/sphere_cohort.py`): every patient's annotations, read through the real LIDC XML and
+//! `lab/scripts/sphere_cohort.py`): every patient's annotations, read through the real LIDC XML and
 //! consensus path, are the one sphere its scan description says was drawn — four identical
 //! reads, a consensus equal to their union, the stated diameter and centre — so a volume
 //! measured on it is scored against a sphere of known size.

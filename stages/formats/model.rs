@@ -11,7 +11,7 @@
 
 use crate::geometry::Aabb;
 use crate::train::field::VmField;
-use crate::train::fit::FieldModel;
+use crate::train::params::FieldModel;
 use crate::train::render::{Lattice, PhotoLoss, Renderer};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};

@@ -13,7 +13,8 @@ use super::kernel::Bound;
 use super::tv_direction::TvDirection;
 use super::Gpu;
 use crate::train::dense_tv::{self, next_momentum, DenseFitted, DenseProblem, FistaSolver};
-use crate::train::fit::{LogRow, TrainParams, Views};
+use crate::train::fit::{LogRow, Views};
+use crate::train::params::TrainParams;
 use crate::train::render::Renderer;
 use std::sync::Arc;
 

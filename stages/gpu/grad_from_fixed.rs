@@ -71,7 +71,8 @@ impl GradFromFixed {
 mod tests {
     use super::*;
     use crate::geometry::Aabb;
-    use crate::train::fit::{renderer, TrainParams};
+    use crate::train::fit::renderer;
+    use crate::train::params::TrainParams;
     use crate::train::render::Ray;
     use glam::DVec3;
     use rand::{Rng, SeedableRng};

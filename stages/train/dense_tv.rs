@@ -14,7 +14,8 @@
 //! products cross everywhere as streaks; a dense lattice with TV is the classic few-view CT
 //! reconstruction, whose cheapest explanation of a blob seen in three views is one compact blob.
 
-use super::fit::{psnr_db, LogRow, TrainParams, Views};
+use super::fit::{psnr_db, LogRow, Views};
+use super::params::TrainParams;
 use super::render::{trilinear_weights, Ray, Renderer, MIN_INTENSITY};
 use rayon::prelude::*;
 use std::time::Instant;

@@ -3,7 +3,7 @@
 use super::adam::Adam;
 use super::field::VmField;
 use super::huge_pages::HugePageBuffer;
-pub use super::params::{Backend, FieldModel, TrainParams};
+use super::params::{FieldModel, TrainParams};
 use super::regularize::{self, Penalties, TvNorm};
 use super::render::{AlphaMask, BatchResult, Lattice, PhotoLoss, Ray, Renderer};
 use crate::geometry::{Aabb, Camera};

@@ -56,7 +56,7 @@ pub struct Centres {
     pub note: Option<String>,
     /// Every blob the guided search accepted among the [`MAX_WEIGHED`] strongest, strongest
     /// first, the one it took included: the other places a reader may look, and what a rule
-    /// that judges between blobs is measured on (`tools/blob_ranker.py`).
+    /// that judges between blobs is measured on (`lab/scripts/blob_ranker.py`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub guided_accepted: Vec<Centre>,
     /// The same for the blind search.
