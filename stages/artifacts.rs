@@ -59,6 +59,11 @@ pub fn drr_image(view: &str) -> String {
     format!("drr_{view}.exr")
 }
 
+/// Whether `file` is a view's DRR ([`drr_image`]).
+pub fn is_drr_image(file: &str) -> bool {
+    file.starts_with("drr_") && file.ends_with(".exr")
+}
+
 /// Its 8-bit preview.
 pub fn drr_preview(view: &str) -> String {
     format!("drr_{view}.png")
@@ -125,5 +130,6 @@ mod tests {
         assert_eq!((CT_HU.header, CT_HU.raw), ("ct_hu.mhd", "ct_hu.raw"));
         assert!(DENSITY.holds("density.raw") && !DENSITY.holds("density.vdb"));
         assert_eq!(DRR_CORONAL_PREVIEW.file, drr_preview("coronal"));
+        assert!(is_drr_image(&drr_image("axial")) && !is_drr_image(&drr_preview("axial")));
     }
 }

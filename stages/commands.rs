@@ -104,7 +104,8 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     print!("{}", progress::table(&summary, &p.graph.names()));
     write_report(&options.out_dir, &summary)?;
     let metrics_done = summary.records.iter().any(|r| {
-        r.stage == "metrics" && matches!(r.outcome, run::Outcome::Cached { .. } | run::Outcome::Computed { .. })
+        r.stage == crate::artifacts::SUMMARY.stage
+            && matches!(r.outcome, run::Outcome::Cached { .. } | run::Outcome::Computed { .. })
     });
     if metrics_done {
         if let Ok(json) = std::fs::read(options.out_dir.join(crate::artifacts::SUMMARY.file)) {

@@ -225,6 +225,30 @@ pub struct CameraSet {
 }
 
 impl CameraSet {
+    /// Each camera's DRR (`drr_<view>.exr`), in camera order, read by `read` and checked against
+    /// its camera's size.
+    pub fn read_images(&self, mut read: impl FnMut(&str) -> anyhow::Result<Vec<u8>>) -> anyhow::Result<Vec<DrrImage>> {
+        use anyhow::Context as _;
+        self.cameras
+            .iter()
+            .map(|camera| {
+                let name = drr_image(camera.view.name());
+                let image = exr_image::decode(&read(&name)?).with_context(|| format!("decoding {name}"))?;
+                if (image.width, image.height) != (camera.width, camera.height) {
+                    anyhow::bail!(
+                        "{name} is {} × {} pixels, its camera in {} {} × {}: rerun with --force drr",
+                        image.width,
+                        image.height,
+                        CAMERAS.file,
+                        camera.width,
+                        camera.height
+                    );
+                }
+                Ok(image)
+            })
+            .collect()
+    }
+
     /// A published view set: `dir`'s `cameras.json` and its `drr_<view>.exr` pixels in camera
     /// order (how the benchmarks read a patient's folder of `out_dir`).
     pub fn read_published(dir: &std::path::Path) -> anyhow::Result<(CameraSet, Vec<Vec<f32>>)> {
@@ -233,15 +257,7 @@ impl CameraSet {
             |name: &str| std::fs::read(dir.join(name)).with_context(|| format!("reading {}", dir.join(name).display()));
         let set: CameraSet = serde_json::from_slice(&read(CAMERAS.file)?)
             .with_context(|| format!("parsing {}", dir.join(CAMERAS.file).display()))?;
-        let images = set
-            .cameras
-            .iter()
-            .map(|c| {
-                let name = drr_image(c.view.name());
-                let image = exr_image::decode(&read(&name)?).with_context(|| format!("decoding {name}"))?;
-                Ok(image.pixels)
-            })
-            .collect::<anyhow::Result<_>>()?;
+        let images = set.read_images(read)?.into_iter().map(|image| image.pixels).collect();
         Ok((set, images))
     }
 }
@@ -442,4 +458,42 @@ fn preview(image: &DrrImage) -> Vec<u8> {
     let data: Vec<f32> = image.pixels.iter().map(|&i| -(i.max(1e-6)).ln()).collect();
     let img = png::Image { width: image.width, height: image.height, pixel_mm: 1.0, data };
     png::image_png(&img, png::Window::spanning(&img))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Aabb, SceneFrame, View};
+
+    #[test]
+    fn a_drr_of_another_size_than_its_camera_is_an_error_naming_the_file() {
+        let camera = Camera::new(View::Coronal, glam::DMat4::IDENTITY, 10.0, 3, 2);
+        let set = CameraSet {
+            frame: SceneFrame { roi_center_mm: [0.0; 3], mm_per_unit: 40.0 },
+            roi_center_mode: "nodule".into(),
+            aabb: Aabb { min: [-1.0; 3], max: [1.0; 3] },
+            cameras: vec![camera],
+            rendered_with: None,
+            attenuation_scale: 1.0,
+        };
+        let image = |width: usize, height: usize| DrrImage {
+            width,
+            height,
+            pixels: vec![0.5; width * height],
+            camera_to_world: [[0.0; 4]; 4],
+            focal_px: 10.0,
+            units: String::new(),
+            view: "coronal".into(),
+        };
+        let read_as = |w, h| {
+            move |name: &str| {
+                assert_eq!(name, "drr_coronal.exr");
+                Ok(exr_image::encode(&image(w, h))?)
+            }
+        };
+        let images = set.read_images(read_as(3, 2)).unwrap();
+        assert_eq!(images[0].pixels, vec![0.5; 6]);
+        let e = set.read_images(read_as(2, 2)).unwrap_err().to_string();
+        assert!(e.contains("drr_coronal.exr is 2 × 2") && e.contains("--force drr"), "{e}");
+    }
 }

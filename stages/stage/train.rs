@@ -6,10 +6,10 @@
 //! alpha mask, metadata), `train_log.csv` (iteration, loss, photo, L1, TV, PSNR per view, lr,
 //! seconds) and `loss.svg`.
 
-use crate::artifacts::{drr_image, CAMERAS, CT_UNIT, LOSS_PLOT, MODEL, TRAIN_LOG};
+use crate::artifacts::{is_drr_image, CAMERAS, CT_UNIT, LOSS_PLOT, MODEL, TRAIN_LOG};
 use crate::engine::{Context, Output, Stage};
 use crate::formats::model::{self, ModelMeta};
-use crate::formats::{exr_image, svg};
+use crate::formats::svg;
 use crate::gpu;
 use crate::kernels::raymarch::VolumeField;
 use crate::stage::drr::CameraSet;
@@ -19,7 +19,6 @@ use crate::train::params::FieldModel;
 use crate::train::render::Renderer;
 use crate::train::truth;
 use crate::volume::Volume;
-use anyhow::bail;
 use std::fmt::Write as _;
 
 pub const VERSION: u32 = 5;
@@ -63,7 +62,7 @@ impl Stage for Train {
         match stage {
             // Only the ceiling reads the CT, so the fits' keys do not depend on it.
             "hu" => self.params.model == FieldModel::Truth && CT_UNIT.holds(output),
-            _ => output == CAMERAS.file || output.ends_with(".exr"),
+            _ => output == CAMERAS.file || is_drr_image(output),
         }
     }
     fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
@@ -77,21 +76,8 @@ impl Stage for Train {
             _ => None,
         };
         let set: CameraSet = super::read_json(ctx, CAMERAS)?;
-        let mut images = Vec::new();
-        for cam in &set.cameras {
-            let image = exr_image::decode(&ctx.read(CAMERAS.stage, &drr_image(cam.view.name()))?)?;
-            if (image.width, image.height) != (cam.width, cam.height) {
-                bail!(
-                    "drr_{}.exr is {}×{}, its camera {}×{}",
-                    cam.view.name(),
-                    image.width,
-                    image.height,
-                    cam.width,
-                    cam.height
-                );
-            }
-            images.push(image.pixels);
-        }
+        let images: Vec<Vec<f32>> =
+            set.read_images(|name| ctx.read(CAMERAS.stage, name))?.into_iter().map(|image| image.pixels).collect();
         let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
         let (model_bytes, log) = match (self.params.model, device) {
             (FieldModel::Truth, _) => self.truth(ctx, &set, &views)?,

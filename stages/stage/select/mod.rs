@@ -29,8 +29,8 @@
 //! also `shadows.png` (the primary selection's fitted ellipsoid over its three shadows).
 
 use crate::artifacts::{
-    drr_image, CAMERAS, DENSITY, GROUND_TRUTH, GT_MASK, LUNG_FIELD, NODULE_MASK, NODULE_MESH, NODULE_PREVIEW, RESULT,
-    SHADOWS_PREVIEW, SWEEP,
+    is_drr_image, CAMERAS, DENSITY, GROUND_TRUTH, GT_MASK, LUNG_FIELD, NODULE_MASK, NODULE_MESH, NODULE_PREVIEW,
+    RESULT, SHADOWS_PREVIEW, SWEEP,
 };
 use crate::engine::{Context, Output, Stage};
 use crate::formats::obj;
@@ -82,10 +82,7 @@ impl Stage for Select {
             "ingest" => output == GROUND_TRUTH.file || GT_MASK.holds(output),
             "grid" => DENSITY.holds(output),
             "sweep" => output == SWEEP.file || LUNG_FIELD.holds(output),
-            "drr" => {
-                output == CAMERAS.file
-                    || (size::reads_views(self.params.sizing) && output.starts_with("drr_") && output.ends_with(".exr"))
-            }
+            "drr" => output == CAMERAS.file || (size::reads_views(self.params.sizing) && is_drr_image(output)),
             _ => false,
         }
     }
@@ -279,15 +276,8 @@ impl Select {
 
 /// The three DRRs with their nominal cameras (the ones training fitted), for sizing by shadows.
 fn read_views(ctx: &Context, cameras: &CameraSet) -> anyhow::Result<shadows::Views> {
-    let images = cameras
-        .cameras
-        .iter()
-        .map(|camera| {
-            let name = drr_image(camera.view.name());
-            crate::formats::exr_image::decode(&ctx.read(CAMERAS.stage, &name)?).with_context(|| format!("drr/{name}"))
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    shadows::Views::new(&cameras.cameras, &images, cameras.frame, cameras.aabb)
+    let images = cameras.read_images(|name| ctx.read(CAMERAS.stage, name))?;
+    Ok(shadows::Views::new(&cameras.cameras, &images, cameras.frame, cameras.aabb))
 }
 
 #[cfg(test)]

@@ -83,27 +83,17 @@ pub struct Views {
 }
 
 impl Views {
-    /// Pairs each camera with its DRR, as optical depths −ln(I/I0).
-    pub fn new(cameras: &[Camera], images: &[DrrImage], frame: SceneFrame, aabb: Aabb) -> anyhow::Result<Views> {
+    /// Pairs each camera with its DRR (of the camera's size), as optical depths −ln(I/I0).
+    pub fn new(cameras: &[Camera], images: &[DrrImage], frame: SceneFrame, aabb: Aabb) -> Views {
         let views = cameras
             .iter()
             .zip(images)
             .map(|(camera, image)| {
-                if (image.width, image.height) != (camera.width, camera.height) {
-                    anyhow::bail!(
-                        "drr_{}.exr is {} × {} pixels, its camera in cameras.json {} × {}: rerun with --force drr",
-                        camera.view.name(),
-                        image.width,
-                        image.height,
-                        camera.width,
-                        camera.height
-                    );
-                }
                 let depths = image.pixels.iter().map(|&i| -f64::from(i).max(1e-12).ln()).collect();
-                Ok((*camera, depths))
+                (*camera, depths)
             })
-            .collect::<anyhow::Result<_>>()?;
-        Ok(Views { views, frame, aabb })
+            .collect();
+        Views { views, frame, aabb }
     }
 }
 
