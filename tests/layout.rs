@@ -28,16 +28,6 @@ fn modules() -> BTreeMap<String, PathBuf> {
     modules
 }
 
-/// The code of a file without comments and without its unit tests.
-fn code(path: &Path) -> String {
-    let text = std::fs::read_to_string(path).unwrap();
-    let text = match text.find("#[cfg(test)]\nmod tests") {
-        Some(at) => &text[..at],
-        None => &text,
-    };
-    text.lines().map(|l| l.split("//").next().unwrap_or("")).collect::<Vec<_>>().join("\n")
-}
-
 /// The module a path written in `module` names (the longest module prefix), if it is the crate's.
 fn target(modules: &BTreeMap<String, PathBuf>, module: &str, path: &[&str]) -> Option<String> {
     let (mut base, rest): (Vec<&str>, &[&str]) = match *path.first()? {
@@ -59,38 +49,69 @@ fn target(modules: &BTreeMap<String, PathBuf>, module: &str, path: &[&str]) -> O
     (1..=base.len()).rev().map(|n| base[..n].join("::")).find(|m| modules.contains_key(m))
 }
 
+/// Every path a file writes from `crate` or `super`, in its `use` items and in its code,
+/// outside its `#[cfg(test)]` modules.
+#[derive(Default)]
+struct Paths(Vec<Vec<String>>);
+
+impl Paths {
+    /// The paths a `use` tree names, below `prefix`.
+    fn add_tree(&mut self, prefix: &mut Vec<String>, tree: &syn::UseTree) {
+        match tree {
+            syn::UseTree::Path(p) => {
+                prefix.push(p.ident.to_string());
+                self.add_tree(prefix, &p.tree);
+                prefix.pop();
+            }
+            syn::UseTree::Name(n) => self.add([prefix.clone(), vec![n.ident.to_string()]].concat()),
+            syn::UseTree::Rename(r) => self.add([prefix.clone(), vec![r.ident.to_string()]].concat()),
+            syn::UseTree::Glob(_) => self.add(prefix.clone()),
+            syn::UseTree::Group(g) => g.items.iter().for_each(|t| self.add_tree(prefix, t)),
+        }
+    }
+
+    fn add(&mut self, path: Vec<String>) {
+        if matches!(path.first().map(String::as_str), Some("crate" | "super")) {
+            self.0.push(path);
+        }
+    }
+}
+
+impl<'ast> syn::visit::Visit<'ast> for Paths {
+    fn visit_item_mod(&mut self, module: &'ast syn::ItemMod) {
+        let test_only = module
+            .attrs
+            .iter()
+            .any(|a| a.path().is_ident("cfg") && a.parse_args::<syn::Ident>().is_ok_and(|i| i == "test"));
+        if !test_only {
+            syn::visit::visit_item_mod(self, module);
+        }
+    }
+
+    fn visit_item_use(&mut self, item: &'ast syn::ItemUse) {
+        self.add_tree(&mut Vec::new(), &item.tree);
+    }
+
+    fn visit_path(&mut self, path: &'ast syn::Path) {
+        self.add(path.segments.iter().map(|s| s.ident.to_string()).collect());
+        syn::visit::visit_path(self, path);
+    }
+}
+
 /// Each module's imports of other modules (not of the modules it lies in).
 fn imports() -> BTreeMap<String, BTreeSet<String>> {
     let modules = modules();
     let mut edges = BTreeMap::new();
     for (module, path) in &modules {
-        let code = code(path);
-        let mut to = BTreeSet::new();
-        // `use a::{b, c::d}` names a::b and a::c::d; any other path `crate::x::y` or `super::x`.
-        for statement in
-            code.split(';').filter_map(|s| s.trim().strip_prefix("use ").or(s.find(" use ").map(|i| &s[i + 5..])))
-        {
-            let statement: String = statement.split_whitespace().collect();
-            let (head, tail) = match statement.split_once("::{") {
-                Some((head, tail)) => (head.to_string(), tail.trim_end_matches('}').to_string()),
-                None => (statement.clone(), String::new()),
-            };
-            let items: Vec<String> = if tail.is_empty() {
-                vec![head]
-            } else {
-                tail.split(',').map(|item| format!("{head}::{}", item.split('{').next().unwrap())).collect()
-            };
-            for item in items {
-                let parts: Vec<&str> = item.split("::").filter(|p| !p.is_empty()).collect();
-                to.extend(target(&modules, module, &parts));
-            }
-        }
-        for (at, _) in code.match_indices("crate::").chain(code.match_indices("super::")) {
-            let path: String =
-                code[at..].chars().take_while(|c| c.is_alphanumeric() || *c == '_' || *c == ':').collect();
-            let parts: Vec<&str> = path.split("::").filter(|p| !p.is_empty()).collect();
-            to.extend(target(&modules, module, &parts));
-        }
+        let file = syn::parse_file(&std::fs::read_to_string(path).unwrap())
+            .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let mut paths = Paths::default();
+        syn::visit::Visit::visit_file(&mut paths, &file);
+        let mut to: BTreeSet<String> = paths
+            .0
+            .iter()
+            .filter_map(|p| target(&modules, module, &p.iter().map(String::as_str).collect::<Vec<_>>()))
+            .collect();
         to.retain(|t| t != module && !module.starts_with(&format!("{t}::")));
         edges.insert(module.clone(), to);
     }
