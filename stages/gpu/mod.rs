@@ -18,7 +18,6 @@ pub mod buffers;
 pub mod compose;
 pub mod contract_lines;
 pub mod contract_planes;
-pub mod csr_times;
 pub mod dense_fit;
 pub mod device;
 pub mod drr_march;

@@ -16,6 +16,7 @@ pub mod fit;
 pub mod gemm;
 pub mod huge_pages;
 pub mod params;
+pub mod projector;
 pub mod regularize;
 pub mod render;
 pub mod truth;

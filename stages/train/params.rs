@@ -66,8 +66,10 @@ pub struct TrainParams {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct DenseTvParams {
-    /// FISTA steps, each a projection and back-projection of every ray.
+    /// The most FISTA steps, each a projection and back-projection of every ray.
     pub iterations: usize,
+    /// The fit stops once a step changes σ by at most this fraction of its norm.
+    pub tolerance: f64,
     /// λ of the smoothed TV, per node, against the data term per ray.
     pub lambda: f64,
     /// ε of the smoothed TV `√(|∇σ|² + ε²)`, in σ per lattice step.
@@ -121,7 +123,7 @@ impl Default for TrainParams {
 
 impl Default for DenseTvParams {
     fn default() -> Self {
-        DenseTvParams { iterations: 500, lambda: 1e-2, epsilon: 1e-3 }
+        DenseTvParams { iterations: 500, tolerance: 5e-4, lambda: 1e-2, epsilon: 1e-3 }
     }
 }
 
@@ -204,6 +206,9 @@ impl DenseTvParams {
         }
         if !(self.epsilon.is_finite() && self.epsilon > 0.0) {
             bail!("[train.dense_tv] epsilon must be positive (got {})", self.epsilon);
+        }
+        if !(0.0..1.0).contains(&self.tolerance) {
+            bail!("[train.dense_tv] tolerance must be at least 0 and under 1 (got {})", self.tolerance);
         }
         if !(self.lambda.is_finite() && self.lambda >= 0.0) {
             bail!("[train.dense_tv] lambda must be 0 or more (got {})", self.lambda);

@@ -14,7 +14,6 @@ use crate::kernels::trilinear;
 use glam::DVec3;
 use num_traits::Float;
 use rayon::prelude::*;
-pub(crate) use walk::trilinear_weights;
 use walk::RayWalk;
 
 mod walk;
@@ -28,7 +27,7 @@ pub struct Lattice {
 
 impl Lattice {
     /// Continuous node index of the ray point `origin + t·dir` is `a + t·b` (before clamping).
-    fn index_line(&self, origin: DVec3, dir: DVec3) -> ([f64; 3], [f64; 3]) {
+    pub(crate) fn index_line(&self, origin: DVec3, dir: DVec3) -> ([f64; 3], [f64; 3]) {
         let cell: [f64; 3] = std::array::from_fn(|k| (self.aabb.max[k] - self.aabb.min[k]) / self.n as f64);
         (
             std::array::from_fn(|k| (origin[k] - self.aabb.min[k]) / cell[k] - 0.5),
@@ -69,7 +68,7 @@ pub enum PhotoLoss {
 }
 
 /// The smallest measured intensity whose logarithm the log loss takes (a fully blocked ray).
-pub(crate) const MIN_INTENSITY: f64 = 1e-6;
+pub const MIN_INTENSITY: f64 = 1e-6;
 
 impl PhotoLoss {
     /// One ray's squared error, predicted `p` against measured `target`.

@@ -1,0 +1,139 @@
+//! FISTA on the CPU, in f32 with rayon: each step projects the look-ahead point, back-projects
+//! its residual, then one pass over z-slabs takes the TV's gradient, the step and the next
+//! look-ahead together. Its sums (the change, the restart test) are per slab, added in slab
+//! order, so a solve is the same whatever the thread count.
+
+use super::tv::{self, PlaneDirections};
+use super::{next_momentum, DenseProblem, FistaSolver, Stop};
+use rayon::prelude::*;
+
+/// z-planes per task of the step's pass.
+const PLANES_PER_TASK: usize = 4;
+
+/// The solver's buffers, reused from step to step.
+pub struct CpuFista {
+    ahead: Vec<f32>,
+    ahead_next: Vec<f32>,
+    back: Vec<f32>,
+    depths: Vec<f64>,
+    residual: Vec<f64>,
+    /// `p` on a task's current plane and the one below, per task.
+    scratch: Vec<[PlaneDirections; 2]>,
+}
+
+/// What a step's pass adds up: `Σ (σ' − σ)²`, `Σ σ'²`, and the restart test
+/// `Σ (σ̂ − σ')(σ' − σ) / step` (positive when the momentum points uphill; O'Donoghue and
+/// Candès's gradient test in the steps' metric).
+#[derive(Default, Clone, Copy)]
+struct StepSums {
+    change: f64,
+    norm: f64,
+    uphill: f64,
+}
+
+impl CpuFista {
+    pub fn new(problem: &DenseProblem) -> CpuFista {
+        let (n, nodes) = (problem.n, problem.nodes());
+        let tasks = n.div_ceil(PLANES_PER_TASK);
+        CpuFista {
+            ahead: vec![0.0; nodes],
+            ahead_next: vec![0.0; nodes],
+            back: vec![0.0; nodes],
+            depths: vec![0.0; problem.projector.rays],
+            residual: vec![0.0; problem.projector.rays],
+            scratch: (0..tasks).map(|_| [PlaneDirections::new(n), PlaneDirections::new(n)]).collect(),
+        }
+    }
+
+    /// The TV gradient, the projected step from the look-ahead point and the next look-ahead
+    /// point (momentum `momentum`), writing σ and `ahead_next`.
+    fn step_pass(&mut self, problem: &DenseProblem, sigma: &mut [f32], momentum: f32) -> StepSums {
+        let n = problem.n;
+        let per_task = PLANES_PER_TASK * n * n;
+        let per_ray = (1.0 / problem.rays_seen) as f32;
+        let tv_weight = (problem.lambda / problem.nodes() as f64) as f32;
+        let epsilon = problem.epsilon as f32;
+        let (ahead, back, data_curvature) = (&self.ahead, &self.back, &problem.data_curvature);
+        let sums: Vec<StepSums> = sigma
+            .par_chunks_mut(per_task)
+            .zip(self.ahead_next.par_chunks_mut(per_task))
+            .zip(self.scratch.par_iter_mut())
+            .enumerate()
+            .map(|(task, ((sigma, ahead_next), [below, at]))| {
+                let z0 = task * PLANES_PER_TASK;
+                if z0 > 0 {
+                    below.compute(ahead, n, z0 - 1, epsilon);
+                }
+                let mut sums = StepSums::default();
+                for (dz, (sigma, ahead_next)) in sigma.chunks_mut(n * n).zip(ahead_next.chunks_mut(n * n)).enumerate() {
+                    let z = z0 + dz;
+                    at.compute(ahead, n, z, epsilon);
+                    let base = z * n * n;
+                    let mut plane = [0.0f32; 3];
+                    for y in 0..n {
+                        for x in 0..n {
+                            let (j, i) = (x + n * y, base + x + n * y);
+                            let lower = (z > 0).then_some(&*below);
+                            let g = back[i] * per_ray + tv_weight * tv::gradient(at, lower, n, x, y);
+                            let step =
+                                1.0 / (data_curvature[i] + tv_weight * tv::majoriser_curvature(at, lower, n, x, y));
+                            let next = (ahead[i] - step * g).max(0.0);
+                            let change = next - sigma[j];
+                            plane[0] += change * change;
+                            plane[1] += next * next;
+                            plane[2] += (ahead[i] - next) * change / step;
+                            ahead_next[j] = next + momentum * change;
+                            sigma[j] = next;
+                        }
+                    }
+                    sums.change += f64::from(plane[0]);
+                    sums.norm += f64::from(plane[1]);
+                    sums.uphill += f64::from(plane[2]);
+                    std::mem::swap(below, at);
+                }
+                sums
+            })
+            .collect();
+        sums.iter().fold(StepSums::default(), |a, s| StepSums {
+            change: a.change + s.change,
+            norm: a.norm + s.norm,
+            uphill: a.uphill + s.uphill,
+        })
+    }
+}
+
+impl FistaSolver for CpuFista {
+    fn solve(
+        &mut self,
+        problem: &DenseProblem,
+        sigma: &mut [f32],
+        stop: Stop,
+        wants: &dyn Fn(usize) -> bool,
+        checkpoint: &mut dyn FnMut(usize, &[f32]),
+    ) -> anyhow::Result<usize> {
+        self.ahead.copy_from_slice(sigma);
+        let mut t = 1.0f64;
+        for step in 1..=stop.steps {
+            problem.projector.project(&self.ahead, &mut self.depths);
+            problem.residual_into(&self.depths, &mut self.residual);
+            problem.projector.back_project(&self.residual, &mut self.back);
+            let (t_next, momentum) = next_momentum(t);
+            let sums = self.step_pass(problem, sigma, momentum as f32);
+            std::mem::swap(&mut self.ahead, &mut self.ahead_next);
+            t = t_next;
+            if sums.uphill > 0.0 {
+                // Adaptive restart: the momentum carried σ uphill, so start it again from σ.
+                t = 1.0;
+                self.ahead.copy_from_slice(sigma);
+            }
+            let settled = (sums.change / sums.norm.max(f64::MIN_POSITIVE)).sqrt() <= stop.tolerance;
+            if wants(step) || settled || step == stop.steps {
+                checkpoint(step, sigma);
+            }
+            if settled {
+                return Ok(step);
+            }
+        }
+        Ok(stop.steps)
+    }
+}

@@ -1,0 +1,148 @@
+//! Benchmark: the shipped dense fit (`[train] model = "dense_tv"`, `pipeline.toml`'s 128³
+//! lattice and 256² views) on the CPU, beside two peers run in the same process: the solver the
+//! tool used before its matrix-free projector ([`reference`]), and the same solve as a user
+//! would write it in Python (`tools/dense_fit_peer.py`: scipy.sparse `A`, numpy FISTA).
+//!
+//! `cargo run --release --example bench_dense_fit -- [PATIENT_DIR ...] [--runs 3]`: each
+//! PATIENT_DIR holds `cameras.json` and `drr_*.exr` (default: `out/LIDC-IDRI-0001`, `0003` and
+//! `0014` of the default pipeline). Prints per patient the median over the runs of the seconds a
+//! fit takes (set-up included), the steps taken, the final energy, the projector's throughput
+//! beside this machine's memory bandwidth, and each peer's time and ratio.
+
+mod reference;
+
+use aret_pipe::stage::drr::CameraSet;
+use aret_pipe::train::dense_tv::{self, DenseProblem};
+use aret_pipe::train::fit::{renderer, Views};
+use aret_pipe::train::params::{DenseTvParams, TrainParams};
+use aret_pipe::train::render::Ray;
+use clap::Parser;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Parser)]
+struct Args {
+    /// Patient folders of a pipeline's `out_dir`.
+    patients: Vec<PathBuf>,
+    /// Runs per patient; medians are quoted.
+    #[arg(long, default_value_t = 3)]
+    runs: usize,
+    /// The most FISTA steps (the shipped ceiling by default).
+    #[arg(long)]
+    steps: Option<usize>,
+    /// The stop's tolerance (the shipped one by default).
+    #[arg(long)]
+    tolerance: Option<f64>,
+    /// Nodes a side of the lattice.
+    #[arg(long, default_value_t = 128)]
+    grid: usize,
+    /// Skip the old CSR solver.
+    #[arg(long)]
+    no_reference: bool,
+    /// Print every step's energy of the new solver.
+    #[arg(long)]
+    trace: bool,
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let patients = if args.patients.is_empty() {
+        ["0001", "0003", "0014"].map(|p| PathBuf::from(format!("out/LIDC-IDRI-{p}"))).to_vec()
+    } else {
+        args.patients.clone()
+    };
+    let defaults = DenseTvParams::default();
+    let dense_tv = DenseTvParams {
+        iterations: args.steps.unwrap_or(defaults.iterations),
+        tolerance: args.tolerance.unwrap_or(defaults.tolerance),
+        ..defaults
+    };
+    let log_every = if args.trace { 1 } else { TrainParams::default().log_every };
+    let params = TrainParams { dense_tv, grid: args.grid, log_every, ..TrainParams::default() };
+    println!("CPU threads: {}", rayon::current_num_threads());
+    for dir in &patients {
+        let (set, images) = CameraSet::read_published(dir)?;
+        let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
+        let r = renderer(&params, views.aabb);
+        let mut times = Vec::new();
+        let mut fitted = None;
+        for _ in 0..args.runs {
+            let t = Instant::now();
+            let fit = dense_tv::fit(&params, &views, &r, |row| {
+                if args.trace && (row.iteration % 25 == 0 || row.iteration < 10) {
+                    println!(
+                        "  step {:4} E {:.9e} data {:.6e} tv {:.6e} {:.2}s",
+                        row.iteration, row.loss, row.photo, row.tv3d, row.seconds
+                    );
+                }
+            });
+            times.push(t.elapsed().as_secs_f64());
+            fitted = Some(fit);
+        }
+        let fitted = fitted.expect("at least one run");
+        let last = fitted.log.last().expect("a final row");
+        println!(
+            "{}: new solver {:.2} s (median of {}: {:?}), steps {} coarse + {} fine, E {:.9e}",
+            dir.display(),
+            median(&mut times),
+            args.runs,
+            times.iter().map(|t| (t * 100.0).round() / 100.0).collect::<Vec<_>>(),
+            fitted.steps[0],
+            fitted.steps[1],
+            last.loss
+        );
+        let rays: Vec<Ray> = views.rays().into_iter().flatten().collect();
+        let spans: Vec<(usize, usize)> = set.cameras.iter().map(|c| (c.width * c.height, c.width)).collect();
+        let (lambda, epsilon) = (params.dense_tv.lambda, params.dense_tv.epsilon);
+        let problem = DenseProblem::new(&r.lattice, r.scale, lambda, epsilon, &rays, &spans);
+        println!("  projector: {}", problem.projector.path());
+        let sigma = &fitted.sigma;
+        let mut depths = vec![0.0; problem.projector.rays];
+        let mut back = vec![0.0f32; problem.nodes()];
+        let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
+        for _ in 0..7 {
+            let t = Instant::now();
+            problem.projector.project(sigma, &mut depths);
+            fwd.push(t.elapsed().as_secs_f64());
+            let t = Instant::now();
+            problem.projector.back_project(&depths, &mut back);
+            bwd.push(t.elapsed().as_secs_f64());
+        }
+        let updates = (set.cameras.len() * problem.nodes()) as f64;
+        let (f, b) = (median(&mut fwd), median(&mut bwd));
+        println!(
+            "  projection {:.2} ms, back-projection {:.2} ms: {:.2} and {:.2} G voxel updates/s",
+            f * 1e3,
+            b * 1e3,
+            updates / f / 1e9,
+            updates / b / 1e9
+        );
+        if !args.no_reference {
+            let t = Instant::now();
+            let old = reference::CsrProblem::new(&r, &rays, lambda, epsilon);
+            let setup = t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let sigma = old.solve(500, |k, s| {
+                if args.trace && (k % 25 == 0 || k < 10) {
+                    println!("  old step {k:4} E {:.9e}", old.energy(s));
+                }
+            });
+            let solve = t.elapsed().as_secs_f64();
+            let ours: Vec<f64> = fitted.sigma.iter().map(|&v| f64::from(v)).collect();
+            let old_f32: Vec<f32> = sigma.iter().map(|&v| v as f32).collect();
+            println!(
+                "  reference: set-up {setup:.2} s + 500 steps {solve:.2} s; E_old(σ_old) {:.9e}, E_old(σ_new) {:.9e}, E_new(σ_old) {:.9e}",
+                old.energy(&sigma),
+                old.energy(&ours),
+                problem.evaluate(&old_f32).energy(lambda)
+            );
+        }
+    }
+    Ok(())
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    s[s.len() / 2]
+}
