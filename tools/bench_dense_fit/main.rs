@@ -42,6 +42,9 @@ struct Args {
     /// Print every step's energy of the new solver.
     #[arg(long)]
     trace: bool,
+    /// Run the reference this many steps (σ compared at 500 and at the end).
+    #[arg(long, default_value_t = 500)]
+    reference_steps: usize,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -122,11 +125,29 @@ fn main() -> anyhow::Result<()> {
             let old = reference::CsrProblem::new(&r, &rays, lambda, epsilon);
             let setup = t.elapsed().as_secs_f64();
             let t = Instant::now();
-            let sigma = old.solve(500, |k, s| {
+            let mut at_500 = Vec::new();
+            let sigma = old.solve(args.reference_steps, |k, s| {
                 if args.trace && (k % 25 == 0 || k < 10) {
                     println!("  old step {k:4} E {:.9e}", old.energy(s));
                 }
+                if k == 500 {
+                    at_500 = s.to_vec();
+                }
             });
+            let gap = |a: &[f64], b: &[f64]| {
+                let d: f64 = a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum();
+                (d / b.iter().map(|y| y * y).sum::<f64>()).sqrt()
+            };
+            let ours: Vec<f64> = fitted.sigma.iter().map(|&v| f64::from(v)).collect();
+            println!(
+                "  |σ_new − σ_old500| / |σ_old500| = {:.4}; |σ_old{} − σ_old500| / |σ_old500| = {:.4}; E_old(σ_old{}) {:.9e}",
+                gap(&ours, &at_500),
+                args.reference_steps,
+                gap(&sigma, &at_500),
+                args.reference_steps,
+                old.energy(&sigma)
+            );
+            let sigma = at_500;
             let solve = t.elapsed().as_secs_f64();
             let ours: Vec<f64> = fitted.sigma.iter().map(|&v| f64::from(v)).collect();
             let old_f32: Vec<f32> = sigma.iter().map(|&v| v as f32).collect();

@@ -59,6 +59,18 @@ pub fn gradient(at: &PlaneDirections, below: Option<&PlaneDirections>, n: usize,
     (from_x - at.x[i]) + (from_y - at.y[i]) + (from_z - at.z[i])
 }
 
+/// A bound on the curvature at node `(x, y)` of the TV's quadratic majoriser at the `p`'s σ
+/// (`Σ |∇σ|²/(2m)` with m frozen): `6/m` of its own differences and `2/m` of each lower
+/// neighbour's that reach it. At most `12/ε`, the smoothed TV's own bound.
+#[inline(always)]
+pub fn majoriser_curvature(at: &PlaneDirections, below: Option<&PlaneDirections>, n: usize, x: usize, y: usize) -> f32 {
+    let i = x + n * y;
+    let from_x = if x > 0 { at.inverse[i - 1] } else { 0.0 };
+    let from_y = if y > 0 { at.inverse[i - n] } else { 0.0 };
+    let from_z = below.map_or(0.0, |b| b.inverse[i]);
+    6.0 * at.inverse[i] + 2.0 * (from_x + from_y + from_z)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -107,16 +119,4 @@ mod tests {
             assert!((numeric - f64::from(gradient[i])).abs() < 1e-5, "node {i}: {numeric} against {}", gradient[i]);
         }
     }
-}
-
-/// A bound on the curvature at node `(x, y)` of the TV's quadratic majoriser at the `p`'s σ
-/// (`Σ |∇σ|²/(2m)` with m frozen): `6/m` of its own differences and `2/m` of each lower
-/// neighbour's that reach it. At most `12/ε`, the smoothed TV's own bound.
-#[inline(always)]
-pub fn majoriser_curvature(at: &PlaneDirections, below: Option<&PlaneDirections>, n: usize, x: usize, y: usize) -> f32 {
-    let i = x + n * y;
-    let from_x = if x > 0 { at.inverse[i - 1] } else { 0.0 };
-    let from_y = if y > 0 { at.inverse[i - n] } else { 0.0 };
-    let from_z = below.map_or(0.0, |b| b.inverse[i]);
-    6.0 * at.inverse[i] + 2.0 * (from_x + from_y + from_z)
 }
