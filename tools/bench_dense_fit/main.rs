@@ -1,7 +1,8 @@
 //! Benchmark: the shipped dense fit (`[train] model = "dense_tv"`, `pipeline.toml`'s 128³
 //! lattice and 256² views) on the CPU, beside two peers run in the same process: the solver the
 //! tool used before its matrix-free projector ([`reference`]), and the same solve as a user
-//! would write it in Python (`tools/dense_fit_peer.py`: scipy.sparse `A`, numpy FISTA).
+//! would write it in Python (`tools/dense_fit_peer.py`: scipy.sparse `A` of the same rays,
+//! numpy FISTA with the same steps and stop, 2 threads; `--python` names the interpreter).
 //!
 //! `cargo run --release --example bench_dense_fit -- [PATIENT_DIR ...] [--runs 3]`: each
 //! PATIENT_DIR holds `cameras.json` and `drr_*.exr` (default: `out/LIDC-IDRI-0001`, `0003` and
@@ -39,6 +40,12 @@ struct Args {
     /// Skip the old CSR solver.
     #[arg(long)]
     no_reference: bool,
+    /// Skip the Python peer (`tools/dense_fit_peer.py`).
+    #[arg(long)]
+    no_peer: bool,
+    /// The Python that runs the peer (with numpy and scipy).
+    #[arg(long, default_value = ".venv/bin/python")]
+    python: PathBuf,
     /// Print every step's energy of the new solver.
     #[arg(long)]
     trace: bool,
@@ -120,6 +127,18 @@ fn main() -> anyhow::Result<()> {
             updates / f / 1e9,
             updates / b / 1e9
         );
+        if !args.no_peer {
+            let peer = python_peer(&args.python, &rays, &r, &params)?;
+            println!(
+                "  Python peer (scipy.sparse A, numpy FISTA, 2 threads): build A {:.2} s ({} entries) + solve {:.2} s, {} steps, E {:.9e}; peer / ours = {:.1}",
+                peer.build_s,
+                peer.entries,
+                peer.solve_s,
+                peer.steps,
+                peer.energy,
+                (peer.build_s + peer.solve_s) / median(&mut times)
+            );
+        }
         if !args.no_reference {
             let t = Instant::now();
             let old = reference::CsrProblem::new(&r, &rays, lambda, epsilon);
@@ -160,6 +179,47 @@ fn main() -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// What `tools/dense_fit_peer.py` prints.
+#[derive(serde::Deserialize)]
+struct Peer {
+    build_s: f64,
+    solve_s: f64,
+    steps: usize,
+    energy: f64,
+    entries: usize,
+}
+
+/// Runs the Python peer on the same rays and parameters, 2 threads.
+fn python_peer(
+    python: &std::path::Path,
+    rays: &[Ray],
+    r: &aret_pipe::train::render::Renderer,
+    params: &TrainParams,
+) -> anyhow::Result<Peer> {
+    use anyhow::Context as _;
+    let dir = tempfile::tempdir()?;
+    let bytes: Vec<u8> = rays
+        .iter()
+        .flat_map(|ray| [ray.origin.x, ray.origin.y, ray.origin.z, ray.dir.x, ray.dir.y, ray.dir.z, ray.target])
+        .flat_map(f64::to_le_bytes)
+        .collect();
+    std::fs::write(dir.path().join("rays.f64"), bytes)?;
+    let problem = serde_json::json!({
+        "n": r.lattice.n, "aabb_min": r.lattice.aabb.min, "aabb_max": r.lattice.aabb.max, "scale": r.scale,
+        "lambda": params.dense_tv.lambda, "epsilon": params.dense_tv.epsilon,
+        "tolerance": params.dense_tv.tolerance, "iterations": params.dense_tv.iterations,
+    });
+    std::fs::write(dir.path().join("problem.json"), problem.to_string())?;
+    let out = std::process::Command::new(python)
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tools/dense_fit_peer.py"))
+        .arg(dir.path())
+        .envs([("OMP_NUM_THREADS", "2"), ("OPENBLAS_NUM_THREADS", "2"), ("MKL_NUM_THREADS", "2")])
+        .output()
+        .with_context(|| format!("running {} (make it with tools/setup-venv, or pass --python)", python.display()))?;
+    anyhow::ensure!(out.status.success(), "the Python peer failed: {}", String::from_utf8_lossy(&out.stderr));
+    Ok(serde_json::from_slice(&out.stdout)?)
 }
 
 fn median(v: &mut [f64]) -> f64 {
