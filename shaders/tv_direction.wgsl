@@ -1,7 +1,8 @@
-// The smoothed TV's normalised differences p = ∇σ / √(|∇σ|² + ε²) at every lattice node
-// (mirrors train::dense_tv's normalised_difference): forward differences in lattice steps,
-// none across the far faces. One invocation per node (index x + N·(y + N·z)); p is stored as
-// three floats per node. fista_step.wgsl takes their backward divergence.
+// The smoothed TV's normalised differences p = ∇σ / m and 1/m, m = √(|∇σ|² + ε²), at every
+// lattice node (mirrors train::dense_tv::tv's PlaneDirections): forward differences in lattice
+// steps, none across the far faces. One invocation per node (index x + N·(y + N·z)), four
+// floats a node (p, then 1/m). fista_step.wgsl takes p's backward divergence and the
+// majoriser's curvature from 1/m.
 
 struct TvDirection {
     n: u32,
@@ -13,7 +14,7 @@ struct TvDirection {
 
 @group(0) @binding(0) var<uniform> u: TvDirection;
 @group(0) @binding(1) var<storage, read> sigma: array<f32>;
-@group(0) @binding(2) var<storage, read_write> direction: array<f32>;
+@group(0) @binding(2) var<storage, read_write> direction: array<vec4<f32>>;
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -30,8 +31,6 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) g
             d[axis] = sigma[i + stride[axis]] - sigma[i];
         }
     }
-    let m = sqrt(dot(d, d) + u.epsilon * u.epsilon);
-    for (var axis = 0u; axis < 3u; axis++) {
-        direction[3u * i + axis] = d[axis] / m;
-    }
+    let inverse = 1.0 / sqrt(dot(d, d) + u.epsilon * u.epsilon);
+    direction[i] = vec4<f32>(d * inverse, inverse);
 }

@@ -9,8 +9,9 @@
 //! - [`drr_march`]: the DRR stage's Beer–Lambert march through the CT.
 //! - [`compose`], [`render`], [`grad_from_fixed`], [`contract_planes`], [`contract_lines`], [`l1`], [`tv`], [`tv_dense`], [`adam`],
 //!   [`alpha_mask`]: one training iteration, and [`fit`], the loop that keeps it on the device.
-//! - [`csr_times`], [`tv_direction`], [`fista_step`]: one step of the dense model's FISTA, and
-//!   [`dense_fit`], its loop on the device.
+//! - [`sheet_project`], [`sheet_back`], [`tv_direction`], [`fista_step`], [`fista_state`],
+//!   [`fista_restart`]: one step of the dense model's FISTA, and [`dense_fit`], its loop on the
+//!   device.
 
 pub mod adam;
 pub mod alpha_mask;
@@ -21,12 +22,16 @@ pub mod contract_planes;
 pub mod dense_fit;
 pub mod device;
 pub mod drr_march;
+pub mod fista_restart;
+pub mod fista_state;
 pub mod fista_step;
 pub mod fit;
 pub mod grad_from_fixed;
 pub mod kernel;
 pub mod l1;
 pub mod render;
+pub mod sheet_back;
+pub mod sheet_project;
 pub mod tv;
 pub mod tv_dense;
 pub mod tv_direction;

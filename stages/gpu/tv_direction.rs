@@ -1,5 +1,5 @@
-//! Host of `shaders/tv_direction.wgsl`: the smoothed TV's normalised differences `∇σ / m`
-//! (`train::dense_tv::normalised_difference`), one invocation per lattice node.
+//! Host of `shaders/tv_direction.wgsl`: the smoothed TV's normalised differences `∇σ / m` and
+//! `1/m` (`train::dense_tv::tv::PlaneDirections`), one invocation per lattice node.
 
 use super::buffers;
 use super::kernel::{groups, whole, Binding, Bound, Kernel, WORKGROUP};
@@ -28,7 +28,7 @@ impl TvDirection {
         Ok(TvDirection { kernel: Kernel::new(gpu, "tv_direction", SOURCE, &bindings)? })
     }
 
-    /// Binds `direction` (3 floats a node) = p of `sigma` on an `n³` lattice. The returned
+    /// Binds `direction` (4 floats a node) = p and 1/m of `sigma` on an `n³` lattice. The returned
     /// uniform buffer must live as long as the binding.
     pub fn bind(
         &self,

@@ -177,6 +177,19 @@ pub trait FistaSolver {
     ) -> anyhow::Result<usize>;
 }
 
+impl FistaSolver for Box<dyn FistaSolver> {
+    fn solve(
+        &mut self,
+        problem: &DenseProblem,
+        sigma: &mut [f32],
+        stop: Stop,
+        wants: &dyn Fn(usize) -> bool,
+        checkpoint: &mut dyn FnMut(usize, &[f32]),
+    ) -> anyhow::Result<usize> {
+        (**self).solve(problem, sigma, stop, wants, checkpoint)
+    }
+}
+
 /// FISTA's momentum weight after the step that takes `t` to the returned `t'`: `(t − 1)/t'`.
 pub fn next_momentum(t: f64) -> (f64, f64) {
     let t_next = (1.0 + (1.0 + 4.0 * t * t).sqrt()) / 2.0;

@@ -46,6 +46,9 @@ pub struct Sheet {
     /// Per plane `k` and lattice index `x` along the column axis (index `k·n + x`): the pixel
     /// columns whose cell starts at `x`, a run (the cells grow or shrink with the column).
     pub column_runs: Vec<[u32; 2]>,
+    /// The same for the pixel rows along the row axis (what an adjoint that gathers per node
+    /// reads: the GPU's).
+    pub row_runs: Vec<[u32; 2]>,
 }
 
 /// What a ray contributes to the tables: its axis, `(s0, ds)`-style parameters along the two
@@ -140,6 +143,8 @@ impl Sheet {
         };
         let columns = transpose(column_tables);
         let column_runs = runs(&columns, width, n)?;
+        let rows = transpose(row_tables);
+        let row_runs = runs(&rows, height, n)?;
         Some(Sheet {
             axis,
             row_axis,
@@ -147,10 +152,11 @@ impl Sheet {
             width,
             height,
             first_ray,
-            rows: transpose(row_tables),
+            rows,
             columns,
             weights,
             column_runs,
+            row_runs,
         })
     }
 
@@ -261,11 +267,11 @@ impl Sheet {
     }
 }
 
-/// For each plane and lattice index `x`, the run of pixel columns whose cell starts at `x`
-/// (empty runs where none does); `None` when some plane's cells are not a monotone run.
-fn runs(columns: &[Cell], width: usize, n: usize) -> Option<Vec<[u32; 2]>> {
+/// For each plane and lattice index `x`, the run of pixel columns (or rows) whose cell starts at
+/// `x` (empty runs where none does); `None` when some plane's cells are not a monotone run.
+fn runs(cells_per_plane: &[Cell], width: usize, n: usize) -> Option<Vec<[u32; 2]>> {
     let mut runs = vec![[0u32; 2]; n * n];
-    for (k, cells) in columns.chunks(width).enumerate() {
+    for (k, cells) in cells_per_plane.chunks(width).enumerate() {
         let runs = &mut runs[k * n..(k + 1) * n];
         let mut last: Option<u32> = None;
         for (i, c) in cells.iter().enumerate() {
