@@ -46,6 +46,9 @@ struct Args {
     /// The Python that runs the peer (with numpy and scipy).
     #[arg(long, default_value = ".venv/bin/python")]
     python: PathBuf,
+    /// Time the GPU fit too when only a software adapter (lavapipe) opens (slow: for checking).
+    #[arg(long)]
+    software_gpu: bool,
     /// Print every step's energy of the new solver.
     #[arg(long)]
     trace: bool,
@@ -70,6 +73,20 @@ fn main() -> anyhow::Result<()> {
     let log_every = if args.trace { 1 } else { TrainParams::default().log_every };
     let params = TrainParams { dense_tv, grid: args.grid, log_every, ..TrainParams::default() };
     println!("CPU threads: {}", rayon::current_num_threads());
+    let gpu = match aret_pipe::gpu::Gpu::shared() {
+        Ok(gpu) if !gpu.is_software() || args.software_gpu => {
+            println!("GPU: {}", gpu.describe());
+            Some(gpu)
+        }
+        Ok(gpu) => {
+            println!("GPU: only {} (software; --software-gpu times it anyway)", gpu.describe());
+            None
+        }
+        Err(e) => {
+            println!("GPU: none ({e})");
+            None
+        }
+    };
     for dir in &patients {
         let (set, images) = CameraSet::read_published(dir)?;
         let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
@@ -101,6 +118,28 @@ fn main() -> anyhow::Result<()> {
             fitted.steps[1],
             last.loss
         );
+        if let Some(gpu) = &gpu {
+            let mut on_gpu = Vec::new();
+            let mut fitted_gpu = None;
+            for _ in 0..args.runs {
+                let t = Instant::now();
+                fitted_gpu = Some(aret_pipe::gpu::dense_fit::fit(gpu, &params, &views, &r, |_| {})?);
+                on_gpu.push(t.elapsed().as_secs_f64());
+            }
+            let g = fitted_gpu.expect("at least one run");
+            let peak = fitted.sigma.iter().fold(0f32, |m, &v| m.max(v.abs()));
+            let gap = g.sigma.iter().zip(&fitted.sigma).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+            println!(
+                "  GPU: {:.3} s a patient, set-up included (median of {}), steps {} + {}, E {:.9e}; CPU / GPU = {:.1}; max |σ_gpu − σ_cpu| = {:.1e} of the peak",
+                median(&mut on_gpu),
+                args.runs,
+                g.steps[0],
+                g.steps[1],
+                g.log.last().expect("a final row").loss,
+                median(&mut times) / median(&mut on_gpu),
+                gap / peak
+            );
+        }
         let rays: Vec<Ray> = views.rays().into_iter().flatten().collect();
         let spans: Vec<(usize, usize)> = set.cameras.iter().map(|c| (c.width * c.height, c.width)).collect();
         let (lambda, epsilon) = (params.dense_tv.lambda, params.dense_tv.epsilon);
