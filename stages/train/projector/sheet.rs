@@ -49,6 +49,30 @@ pub struct Sheet {
     /// The same for the pixel rows along the row axis (what an adjoint that gathers per node
     /// reads: the GPU's).
     pub row_runs: Vec<[u32; 2]>,
+    /// Per plane: the pixel columns whose crossing lies inside the box, and the lattice indices
+    /// along the column axis they read (`[first, end)` each).
+    pub spans: Vec<Span>,
+}
+
+/// The columns of one plane that count, and the lattice line they read.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Span {
+    pub columns: [usize; 2],
+    pub lattice: [usize; 2],
+}
+
+impl Span {
+    /// The span of one plane's column cells.
+    fn of(cells: &[Cell]) -> Span {
+        let valid = |c: &Cell| c.lower != 0.0 || c.upper != 0.0;
+        let Some(first) = cells.iter().position(valid) else { return Span::default() };
+        let end = cells.iter().rposition(valid).expect("one is valid") + 1;
+        let (lo, hi) = cells[first..end]
+            .iter()
+            .filter(|c| valid(c))
+            .fold((u32::MAX, 0), |(lo, hi), c| (lo.min(c.index), hi.max(c.index)));
+        Span { columns: [first, end], lattice: [lo as usize, hi as usize + 2] }
+    }
 }
 
 /// What a ray contributes to the tables: its axis, `(s0, ds)`-style parameters along the two
@@ -145,6 +169,7 @@ impl Sheet {
         let column_runs = runs(&columns, width, n)?;
         let rows = transpose(row_tables);
         let row_runs = runs(&rows, height, n)?;
+        let spans = columns.chunks(width).map(Span::of).collect();
         Some(Sheet {
             axis,
             row_axis,
@@ -157,6 +182,7 @@ impl Sheet {
             weights,
             column_runs,
             row_runs,
+            spans,
         })
     }
 
@@ -183,19 +209,21 @@ impl Sheet {
                     if row.lower == 0.0 && row.upper == 0.0 {
                         continue;
                     }
+                    let Span { columns: [first, end], lattice: [lo, hi] } = self.spans[k];
                     let lower = &sigma[k * plane + row.index as usize * row_stride..];
                     let upper = &lower[row_stride..];
                     if column == 1 {
-                        for ((b, &a), &c) in blended.iter_mut().zip(&lower[..n]).zip(&upper[..n]) {
+                        let pairs = blended[lo..hi].iter_mut().zip(&lower[lo..hi]).zip(&upper[lo..hi]);
+                        for ((b, &a), &c) in pairs {
                             *b = row.lower * a + row.upper * c;
                         }
                     } else {
-                        for (x, b) in blended.iter_mut().enumerate() {
+                        for (x, b) in blended.iter_mut().enumerate().take(hi).skip(lo) {
                             *b = row.lower * lower[x * column] + row.upper * upper[x * column];
                         }
                     }
-                    let cells = &self.columns[k * width..(k + 1) * width];
-                    for (sum, c) in sums.iter_mut().zip(cells) {
+                    let cells = &self.columns[k * width + first..k * width + end];
+                    for (sum, c) in sums[first..end].iter_mut().zip(cells) {
                         let i = c.index as usize;
                         *sum += c.lower * blended[i] + c.upper * blended[i + 1];
                     }
@@ -229,7 +257,9 @@ impl Sheet {
                         let v = &weighted[j * width..(j + 1) * width];
                         // Lattice index x takes the columns whose cell starts there (their
                         // lower weight) and those whose cell starts at x − 1 (their upper one).
-                        let runs = &self.column_runs[k * n..(k + 1) * n];
+                        let [lo, hi] = self.spans[k].lattice;
+                        let runs = &self.column_runs[k * n + lo..k * n + hi];
+                        let buffer = &mut buffer[lo..hi];
                         let mut from_below = 0.0f32;
                         for (b, &[start, end]) in buffer.iter_mut().zip(runs) {
                             let (mut at, mut above) = (from_below, 0.0f32);
@@ -240,11 +270,12 @@ impl Sheet {
                             *b = at;
                             from_below = above;
                         }
-                        let lower = k * plane + row.index as usize * row_stride;
+                        let lower = k * plane + row.index as usize * row_stride + lo * column;
                         if column == 1 {
                             // SAFETY: two lattice rows of plane `k` (n apart or more, so
                             // disjoint), which only this slab's task writes, inside the lattice.
-                            let (low, high) = unsafe { (out.row(lower, n), out.row(lower + row_stride, n)) };
+                            let (low, high) =
+                                unsafe { (out.row(lower, hi - lo), out.row(lower + row_stride, hi - lo)) };
                             for ((l, h), &b) in low.iter_mut().zip(high.iter_mut()).zip(buffer.iter()) {
                                 *l += row.lower * b;
                                 *h += row.upper * b;
