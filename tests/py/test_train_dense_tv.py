@@ -1,9 +1,10 @@
 """`[train] model = "dense_tv"` against an independent numpy/scipy solution of its objective.
 
 A small CT (the DRR cross-check's phantom) goes through `aret-pipe run … --until grid` with a
-dense 12³ fit. numpy rebuilds the projection from the cameras (pixel-centre rays, midpoint
-samples every half mean cell, trilinear on the lattice of cell centres, clamped) and the
-objective `1/(2B) Σ (τ̂ − τ)² + λ mean √(|∇σ|² + ε²)`; then:
+dense 12³ fit (its stop's tolerance off, so it takes every step). numpy rebuilds the projection
+from the cameras (pixel-centre rays; Joseph's discretisation, as `tools/dense_fit_peer.py`
+writes it: per plane along each ray's dominant axis, bilinear on the lattice of cell centres,
+clamped) and the objective `1/(2B) Σ (τ̂ − τ)² + λ mean √(|∇σ|² + ε²)`; then:
 - the logged final loss is that objective at the stored σ;
 - scipy's L-BFGS-B (bounds σ ≥ 0) on the same objective reaches no lower, and its σ is close;
 - `density.mhd` is the stored σ; same inputs give the same bytes, and the VM-only keys
@@ -13,6 +14,7 @@ objective `1/(2B) Σ (τ̂ − τ)² + λ mean √(|∇σ|² + ε²)`; then:
 import csv
 import json
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,13 +26,16 @@ from safetensors import safe_open
 from safetensors.numpy import load_file
 from scipy.optimize import minimize
 
-from test_drr_numpy import phantom_hu, pixel_rays, slab, write_series
+from test_drr_numpy import phantom_hu, pixel_rays, write_series
 from test_train_safetensors import BIN
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+from dense_fit_peer import projector  # noqa: E402
 
 N, LAMBDA, EPSILON = 12, 2e-3, 1e-2
 TRAIN = (
     f'[train]\nmodel = "dense_tv"\ngrid = {N}\nlog_every = 100\n'
-    f"[train.dense_tv]\niterations = 400\nlambda = {LAMBDA}\nepsilon = {EPSILON}\n"
+    f"[train.dense_tv]\niterations = 400\ntolerance = 0.0\nlambda = {LAMBDA}\nepsilon = {EPSILON}\n"
 )
 
 
@@ -63,36 +68,18 @@ def out(tmp):
 
 
 def system(out):
-    """The projection A (rays × nodes, with s·δ) and the measured optical depths, from files."""
+    """The projection A (rays × nodes, with s × each ray's length between planes) and the
+    measured optical depths, from files."""
     cams = json.loads((out / "cameras.json").read_text())
     lo, hi = np.array(cams["aabb"]["min"]), np.array(cams["aabb"]["max"])
-    cell = (hi - lo) / N
-    step = 0.5 * cell.mean()
-    rows, cols, vals, taus = [], [], [], []
-    r0 = 0
+    rays, taus = [], []
     for cam in cams["cameras"]:
         o, d = pixel_rays(cam)
-        t0, t1 = slab(lo, hi, o, d)
         with OpenEXR.File(str(out / f"drr_{cam['view']}.exr")) as exr:
             pixels = exr.channels()["Y"].pixels.astype(np.float64).reshape(-1)
-        for r in range(len(d)):
-            taus.append(-np.log(max(pixels[r], 1e-6)))
-            first = t0[r] + step / 2
-            count = int(np.ceil((t1[r] - first) / step)) if t0[r] < t1[r] and first < t1[r] else 0
-            t = first + np.arange(count) * step
-            q = np.clip((o[r] + t[:, None] * d[r] - lo) / cell - 0.5, 0, N - 1)
-            base = np.minimum(np.floor(q), N - 2).astype(int)
-            frac = q - base
-            for c in range(8):
-                bit = [(c >> a) & 1 for a in range(3)]
-                weight = np.prod([frac[:, a] if bit[a] else 1 - frac[:, a] for a in range(3)], axis=0)
-                node = (base[:, 0] + bit[0]) + N * ((base[:, 1] + bit[1]) + N * (base[:, 2] + bit[2]))
-                rows.append(np.full(count, r0 + r))
-                cols.append(node)
-                vals.append(weight * step)  # [train] scale = 1
-        r0 += len(d)
-    a = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r0, N**3))
-    return a, np.array(taus)
+        rays.append(np.column_stack([o, d, pixels]))
+        taus.append(-np.log(np.maximum(pixels, 1e-6)))
+    return projector(np.concatenate(rays), N, lo, hi, 1.0), np.concatenate(taus)  # [train] scale = 1
 
 
 def objective(a, tau):
