@@ -123,7 +123,7 @@ impl Default for TrainParams {
 
 impl Default for DenseTvParams {
     fn default() -> Self {
-        DenseTvParams { iterations: 500, tolerance: 5e-4, lambda: 1e-2, epsilon: 1e-3 }
+        DenseTvParams { iterations: 500, tolerance: 1e-4, lambda: 1e-2, epsilon: 1e-3 }
     }
 }
 
