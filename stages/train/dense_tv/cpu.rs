@@ -17,8 +17,47 @@ pub struct CpuFista {
     back: Vec<f32>,
     depths: Vec<f64>,
     residual: Vec<f64>,
-    /// `p` on a task's current plane and the one below, per task.
-    scratch: Vec<[PlaneDirections; 2]>,
+    /// Per task of the step's pass.
+    scratch: Vec<TaskScratch>,
+}
+
+/// A task's `p` on its current plane and the one below, and a row's terms.
+struct TaskScratch {
+    below: PlaneDirections,
+    at: PlaneDirections,
+    gradient: Vec<f32>,
+    curvature: Vec<f32>,
+    /// Each node's `(σ' − σ)²`, `σ'²` and share of the restart test.
+    change: Vec<f32>,
+    norm: Vec<f32>,
+    uphill: Vec<f32>,
+}
+
+impl TaskScratch {
+    fn new(n: usize) -> TaskScratch {
+        TaskScratch {
+            below: PlaneDirections::new(n),
+            at: PlaneDirections::new(n),
+            gradient: vec![0.0; n],
+            curvature: vec![0.0; n],
+            change: vec![0.0; n],
+            norm: vec![0.0; n],
+            uphill: vec![0.0; n],
+        }
+    }
+}
+
+/// The sum of `values` in eight interleaved lanes (so it vectorises), in a fixed order.
+fn lane_sum(values: &[f32]) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    let chunks = values.chunks_exact(8);
+    let rest: f32 = chunks.remainder().iter().sum();
+    for chunk in chunks {
+        for (lane, &v) in lanes.iter_mut().zip(chunk) {
+            *lane += v;
+        }
+    }
+    lanes.iter().sum::<f32>() + rest
 }
 
 /// What a step's pass adds up: `Σ (σ' − σ)²`, `Σ σ'²`, and the restart test
@@ -41,7 +80,7 @@ impl CpuFista {
             back: vec![0.0; nodes],
             depths: vec![0.0; problem.projector.rays],
             residual: vec![0.0; problem.projector.rays],
-            scratch: (0..tasks).map(|_| [PlaneDirections::new(n), PlaneDirections::new(n)]).collect(),
+            scratch: (0..tasks).map(|_| TaskScratch::new(n)).collect(),
         }
     }
 
@@ -59,37 +98,44 @@ impl CpuFista {
             .zip(self.ahead_next.par_chunks_mut(per_task))
             .zip(self.scratch.par_iter_mut())
             .enumerate()
-            .map(|(task, ((sigma, ahead_next), [below, at]))| {
+            .map(|(task, ((sigma, ahead_next), scratch))| {
                 let z0 = task * PLANES_PER_TASK;
                 if z0 > 0 {
-                    below.compute(ahead, n, z0 - 1, epsilon);
+                    scratch.below.compute(ahead, n, z0 - 1, epsilon);
                 }
                 let mut sums = StepSums::default();
                 for (dz, (sigma, ahead_next)) in sigma.chunks_mut(n * n).zip(ahead_next.chunks_mut(n * n)).enumerate() {
                     let z = z0 + dz;
-                    at.compute(ahead, n, z, epsilon);
-                    let base = z * n * n;
+                    let s = &mut *scratch;
+                    s.at.compute(ahead, n, z, epsilon);
                     let mut plane = [0.0f32; 3];
                     for y in 0..n {
+                        tv::row_terms(&s.at, (z > 0).then_some(&s.below), n, y, &mut s.gradient, &mut s.curvature);
+                        let (at, row) = (z * n * n + y * n, y * n..(y + 1) * n);
+                        let (ahead, back, data_curvature) =
+                            (&ahead[at..at + n], &back[at..at + n], &data_curvature[at..at + n]);
+                        let (sigma, ahead_next) = (&mut sigma[row.clone()], &mut ahead_next[row]);
+                        let (tv_gradient, tv_curvature) = (&s.gradient[..n], &s.curvature[..n]);
+                        let (changes, norms, uphills) = (&mut s.change[..n], &mut s.norm[..n], &mut s.uphill[..n]);
                         for x in 0..n {
-                            let (j, i) = (x + n * y, base + x + n * y);
-                            let lower = (z > 0).then_some(&*below);
-                            let g = back[i] * per_ray + tv_weight * tv::gradient(at, lower, n, x, y);
-                            let step =
-                                1.0 / (data_curvature[i] + tv_weight * tv::majoriser_curvature(at, lower, n, x, y));
-                            let next = (ahead[i] - step * g).max(0.0);
-                            let change = next - sigma[j];
-                            plane[0] += change * change;
-                            plane[1] += next * next;
-                            plane[2] += (ahead[i] - next) * change / step;
-                            ahead_next[j] = next + momentum * change;
-                            sigma[j] = next;
+                            let g = back[x] * per_ray + tv_weight * tv_gradient[x];
+                            let curvature = data_curvature[x] + tv_weight * tv_curvature[x];
+                            let next = (ahead[x] - g / curvature).max(0.0);
+                            let change = next - sigma[x];
+                            changes[x] = change * change;
+                            norms[x] = next * next;
+                            uphills[x] = (ahead[x] - next) * change * curvature;
+                            ahead_next[x] = next + momentum * change;
+                            sigma[x] = next;
                         }
+                        plane[0] += lane_sum(changes);
+                        plane[1] += lane_sum(norms);
+                        plane[2] += lane_sum(uphills);
                     }
                     sums.change += f64::from(plane[0]);
                     sums.norm += f64::from(plane[1]);
                     sums.uphill += f64::from(plane[2]);
-                    std::mem::swap(below, at);
+                    std::mem::swap(&mut s.below, &mut s.at);
                 }
                 sums
             })

@@ -156,7 +156,13 @@ impl DenseProblem {
         let (n, epsilon) = (self.n, self.epsilon as f32);
         let per_plane: Vec<f64> = (0..n)
             .into_par_iter()
-            .map_init(|| PlaneDirections::new(n), |p, z| p.compute(sigma, n, z, epsilon))
+            .map_init(
+                || PlaneDirections::new(n),
+                |p, z| {
+                    p.compute(sigma, n, z, epsilon);
+                    p.smoothed_sum()
+                },
+            )
             .collect();
         Evaluation { data, tv: per_plane.iter().sum::<f64>() / self.nodes() as f64, depths }
     }

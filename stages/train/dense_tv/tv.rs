@@ -19,56 +19,76 @@ impl PlaneDirections {
         PlaneDirections { x: vec![0.0; n * n], y: vec![0.0; n * n], z: vec![0.0; n * n], inverse: vec![0.0; n * n] }
     }
 
-    /// `p` on plane `z` of `sigma`; returns `Σ √(|∇σ|² + ε²)` over the plane, in f64.
-    pub fn compute(&mut self, sigma: &[f32], n: usize, z: usize, epsilon: f32) -> f64 {
+    /// `p` on plane `z` of `sigma`.
+    pub fn compute(&mut self, sigma: &[f32], n: usize, z: usize, epsilon: f32) {
         let plane = n * n;
-        let at = &sigma[z * plane..];
-        let above = (z + 1 < n).then(|| &sigma[(z + 1) * plane..(z + 2) * plane]);
+        let at = &sigma[z * plane..(z + 1) * plane];
+        // Beyond a far face there is no difference: there a node reads itself.
+        let above = if z + 1 < n { &sigma[(z + 1) * plane..(z + 2) * plane] } else { at };
         let eps2 = epsilon * epsilon;
-        let mut sum = 0.0f64;
         for y in 0..n {
-            let row = &at[y * n..(y + 1) * n];
-            let next_row = (y + 1 < n).then(|| &at[(y + 1) * n..(y + 2) * n]);
-            let mut row_sum = 0.0f32;
-            for x in 0..n {
-                let s = row[x];
-                let dx = if x + 1 < n { row[x + 1] - s } else { 0.0 };
-                let dy = next_row.map_or(0.0, |r| r[x] - s);
-                let dz = above.map_or(0.0, |a| a[x + n * y] - s);
-                let m = (dx * dx + dy * dy + dz * dz + eps2).sqrt();
-                let i = x + n * y;
-                let inverse = 1.0 / m;
-                (self.x[i], self.y[i], self.z[i], self.inverse[i]) =
-                    (dx * inverse, dy * inverse, dz * inverse, inverse);
-                row_sum += m;
+            let r = y * n..(y + 1) * n;
+            let (row, up) = (&at[r.clone()], &above[r.clone()]);
+            let next_row = if y + 1 < n { &at[r.start + n..r.end + n] } else { row };
+            let (px, py, pz) = (&mut self.x[r.clone()], &mut self.y[r.clone()], &mut self.z[r.clone()]);
+            let inverse = &mut self.inverse[r];
+            let mut direction = |x: usize, dx: f32| {
+                let (dy, dz) = (next_row[x] - row[x], up[x] - row[x]);
+                let i = 1.0 / (dx * dx + dy * dy + dz * dz + eps2).sqrt();
+                (px[x], py[x], pz[x], inverse[x]) = (dx * i, dy * i, dz * i, i);
+            };
+            let last = n - 1;
+            for x in 0..last {
+                direction(x, row[x + 1] - row[x]);
             }
-            sum += f64::from(row_sum);
+            direction(last, 0.0);
         }
-        sum
+    }
+
+    /// `Σ √(|∇σ|² + ε²)` over the plane, in f64.
+    pub fn smoothed_sum(&self) -> f64 {
+        self.inverse.iter().map(|&i| 1.0 / f64::from(i)).sum()
     }
 }
 
-/// The TV gradient at node `(x, y)` of a plane whose `p` is `at`, `below` being the plane
-/// under it's (`None` on the lowest plane).
-#[inline(always)]
-pub fn gradient(at: &PlaneDirections, below: Option<&PlaneDirections>, n: usize, x: usize, y: usize) -> f32 {
-    let i = x + n * y;
-    let from_x = if x > 0 { at.x[i - 1] } else { 0.0 };
-    let from_y = if y > 0 { at.y[i - n] } else { 0.0 };
-    let from_z = below.map_or(0.0, |b| b.z[i]);
-    (from_x - at.x[i]) + (from_y - at.y[i]) + (from_z - at.z[i])
-}
-
-/// A bound on the curvature at node `(x, y)` of the TV's quadratic majoriser at the `p`'s σ
-/// (`Σ |∇σ|²/(2m)` with m frozen): `6/m` of its own differences and `2/m` of each lower
-/// neighbour's that reach it. At most `12/ε`, the smoothed TV's own bound.
-#[inline(always)]
-pub fn majoriser_curvature(at: &PlaneDirections, below: Option<&PlaneDirections>, n: usize, x: usize, y: usize) -> f32 {
-    let i = x + n * y;
-    let from_x = if x > 0 { at.inverse[i - 1] } else { 0.0 };
-    let from_y = if y > 0 { at.inverse[i - n] } else { 0.0 };
-    let from_z = below.map_or(0.0, |b| b.inverse[i]);
-    6.0 * at.inverse[i] + 2.0 * (from_x + from_y + from_z)
+/// The TV's gradient and a bound on its majoriser's curvature along row `y` of a plane whose `p`
+/// is `at`, `below` being the plane under it's (`None` on the lowest plane), into `gradient`
+/// and `curvature` (`n` each). The majoriser is `Σ |∇σ|²/(2m)` with m frozen at the `p`'s σ;
+/// the bound is `6/m` of a node's own differences and `2/m` of each lower neighbour's that
+/// reach it, at most `12/ε`, the smoothed TV's own.
+pub fn row_terms(
+    at: &PlaneDirections,
+    below: Option<&PlaneDirections>,
+    n: usize,
+    y: usize,
+    gradient: &mut [f32],
+    curvature: &mut [f32],
+) {
+    let r = y * n..(y + 1) * n;
+    let (gradient, curvature) = (&mut gradient[..n], &mut curvature[..n]);
+    let (px, py, pz, inverse) = (&at.x[r.clone()], &at.y[r.clone()], &at.z[r.clone()], &at.inverse[r.clone()]);
+    for x in 0..n {
+        gradient[x] = -(px[x] + py[x] + pz[x]);
+        curvature[x] = 6.0 * inverse[x];
+    }
+    for x in 1..n {
+        gradient[x] += px[x - 1];
+        curvature[x] += 2.0 * inverse[x - 1];
+    }
+    if y > 0 {
+        let (py, inverse) = (&at.y[r.start - n..r.start], &at.inverse[r.start - n..r.start]);
+        for x in 0..n {
+            gradient[x] += py[x];
+            curvature[x] += 2.0 * inverse[x];
+        }
+    }
+    if let Some(b) = below {
+        let (pz, inverse) = (&b.z[r.clone()], &b.inverse[r]);
+        for x in 0..n {
+            gradient[x] += pz[x];
+            curvature[x] += 2.0 * inverse[x];
+        }
+    }
 }
 
 #[cfg(test)]
@@ -80,12 +100,13 @@ mod tests {
         let (mut below, mut at) = (PlaneDirections::new(n), PlaneDirections::new(n));
         let mut sum = 0.0;
         let mut g = vec![0.0; sigma.len()];
+        let mut curvature = vec![0.0; n];
         for z in 0..n {
-            sum += at.compute(sigma, n, z, epsilon);
+            at.compute(sigma, n, z, epsilon);
+            sum += at.smoothed_sum();
             for y in 0..n {
-                for x in 0..n {
-                    g[x + n * (y + n * z)] = gradient(&at, (z > 0).then_some(&below), n, x, y);
-                }
+                let row = n * (y + n * z);
+                row_terms(&at, (z > 0).then_some(&below), n, y, &mut g[row..row + n], &mut curvature);
             }
             std::mem::swap(&mut below, &mut at);
         }
