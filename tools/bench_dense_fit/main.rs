@@ -73,6 +73,8 @@ fn main() -> anyhow::Result<()> {
     let log_every = if args.trace { 1 } else { TrainParams::default().log_every };
     let params = TrainParams { dense_tv, grid: args.grid, log_every, ..TrainParams::default() };
     println!("CPU threads: {}", rayon::current_num_threads());
+    let bandwidth = memory_bandwidth();
+    println!("memory bandwidth (a parallel copy of 256 MiB, read + write, median of 7): {:.1} GB/s", bandwidth / 1e9);
     let gpu = match aret_pipe::gpu::Gpu::shared() {
         Ok(gpu) if !gpu.is_software() || args.software_gpu => {
             println!("GPU: {}", gpu.describe());
@@ -159,12 +161,15 @@ fn main() -> anyhow::Result<()> {
         }
         let updates = (set.cameras.len() * problem.nodes()) as f64;
         let (f, b) = (median(&mut fwd), median(&mut bwd));
+        // Each view reads (or writes) σ once in f32: what either direction moves at the least.
+        let floor = updates * 4.0 / bandwidth;
         println!(
-            "  projection {:.2} ms, back-projection {:.2} ms: {:.2} and {:.2} G voxel updates/s",
+            "  projection {:.2} ms, back-projection {:.2} ms: {:.2} and {:.2} G voxel updates/s; moving σ once per view at the measured bandwidth takes {:.2} ms",
             f * 1e3,
             b * 1e3,
             updates / f / 1e9,
-            updates / b / 1e9
+            updates / b / 1e9,
+            floor * 1e3
         );
         if !args.no_peer {
             let peer = python_peer(&args.python, &rays, &r, &params)?;
@@ -259,6 +264,23 @@ fn python_peer(
         .with_context(|| format!("running {} (make it with tools/setup-venv, or pass --python)", python.display()))?;
     anyhow::ensure!(out.status.success(), "the Python peer failed: {}", String::from_utf8_lossy(&out.stderr));
     Ok(serde_json::from_slice(&out.stdout)?)
+}
+
+/// Bytes a second that a parallel copy of 256 MiB moves (read and written), median of 7.
+fn memory_bandwidth() -> f64 {
+    use rayon::prelude::*;
+    let len = 64 << 20;
+    let from: Vec<f32> = (0..len).map(|i| i as f32).collect();
+    let mut to = vec![0.0f32; len];
+    let mut times: Vec<f64> = (0..7)
+        .map(|_| {
+            let t = Instant::now();
+            to.par_chunks_mut(1 << 20).zip(from.par_chunks(1 << 20)).for_each(|(t, f)| t.copy_from_slice(f));
+            t.elapsed().as_secs_f64()
+        })
+        .collect();
+    assert_eq!(to[len - 1], from[len - 1]);
+    2.0 * (len * 4) as f64 / median(&mut times)
 }
 
 fn median(v: &mut [f64]) -> f64 {
