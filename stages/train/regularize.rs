@@ -299,7 +299,7 @@ fn apply_step<T: Float>(g: &mut [T], shift: usize, step: &[T]) {
 /// `Σ f(x)` over `values` in eight interleaved partial sums (so the loop vectorises), then
 /// the remainder, then the partials pairwise: one fixed order.
 #[inline(always)]
-fn lane_sum<T: Float>(values: &[T], f: impl Fn(T) -> T) -> T {
+pub(crate) fn lane_sum<T: Float>(values: &[T], f: impl Fn(T) -> T) -> T {
     let mut lanes = [T::zero(); 8];
     let chunks = values.chunks_exact(8);
     let tail = chunks.remainder().iter().fold(T::zero(), |t, &v| t + f(v));

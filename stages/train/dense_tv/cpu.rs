@@ -5,6 +5,7 @@
 
 use super::tv::{self, PlaneDirections};
 use super::{next_momentum, DenseProblem, FistaSolver, Stop};
+use crate::train::regularize::lane_sum;
 use rayon::prelude::*;
 
 /// z-planes per task of the step's pass.
@@ -45,19 +46,6 @@ impl TaskScratch {
             uphill: vec![0.0; n],
         }
     }
-}
-
-/// The sum of `values` in eight interleaved lanes (so it vectorises), in a fixed order.
-fn lane_sum(values: &[f32]) -> f32 {
-    let mut lanes = [0.0f32; 8];
-    let chunks = values.chunks_exact(8);
-    let rest: f32 = chunks.remainder().iter().sum();
-    for chunk in chunks {
-        for (lane, &v) in lanes.iter_mut().zip(chunk) {
-            *lane += v;
-        }
-    }
-    lanes.iter().sum::<f32>() + rest
 }
 
 /// What a step's pass adds up: `Σ (σ' − σ)²`, `Σ σ'²`, and the restart test
@@ -128,9 +116,9 @@ impl CpuFista {
                             ahead_next[x] = next + momentum * change;
                             sigma[x] = next;
                         }
-                        plane[0] += lane_sum(changes);
-                        plane[1] += lane_sum(norms);
-                        plane[2] += lane_sum(uphills);
+                        plane[0] += lane_sum(changes, |v| v);
+                        plane[1] += lane_sum(norms, |v| v);
+                        plane[2] += lane_sum(uphills, |v| v);
                     }
                     sums.change += f64::from(plane[0]);
                     sums.norm += f64::from(plane[1]);
