@@ -1,7 +1,8 @@
 // After each FISTA step of the dense fit (mirrors CpuFista::solve between its passes): one
 // workgroup adds fista_step.wgsl's partial sums in a fixed order, then restarts the momentum
 // when it pointed uphill, sets the next step's momentum, counts the step and marks the solve
-// settled once the step changed σ by at most `tolerance` of its norm.
+// settled once a step whose look-ahead carried momentum changed σ by at most `tolerance` of its
+// norm.
 
 struct State {
     t: f32,
@@ -10,8 +11,8 @@ struct State {
     settled: u32,
     steps: u32,
     tolerance: f32,
+    coasting: u32,
     _pad0: u32,
-    _pad1: u32,
 }
 
 struct Partials {
@@ -49,17 +50,21 @@ fn main(@builtin(local_invocation_index) lane: u32) {
         return;
     }
     let total = lanes[0];
+    // Only a step whose look-ahead carried momentum may end the solve (CpuFista::solve says why).
+    let coasted = state.coasting;
     state.steps += 1u;
     var t = next_t(state.t);
     state.restarted = 0u;
+    state.coasting = select(0u, 1u, state.momentum > 0.0);
     if (total.z > 0.0) {
         // Adaptive restart: fista_restart.wgsl puts the look-ahead back on σ.
         t = 1.0;
         state.restarted = 1u;
+        state.coasting = 0u;
     }
     state.t = t;
     state.momentum = (t - 1.0) / next_t(t);
-    if (sqrt(total.x / max(total.y, 1e-30)) <= state.tolerance) {
+    if (coasted != 0u && sqrt(total.x / max(total.y, 1e-30)) <= state.tolerance) {
         state.settled = 1u;
     }
 }

@@ -27,8 +27,8 @@ struct State {
     settled: u32,
     steps: u32,
     tolerance: f32,
+    coasting: u32,
     _pad0: u32,
-    _pad1: u32,
 }
 
 @group(0) @binding(0) var<uniform> u: FistaStep;

@@ -220,7 +220,8 @@ impl FistaSolver for DeviceFista {
             settled: 0,
             steps: 0,
             tolerance: stop.tolerance as f32,
-            _pad: [0; 2],
+            coasting: 0,
+            _pad: 0,
         };
         queue.write_buffer(&self.state, 0, bytemuck::bytes_of(&start));
         for step in 1..=stop.steps {

@@ -30,7 +30,9 @@ pub struct State {
     pub settled: u32,
     pub steps: u32,
     pub tolerance: f32,
-    pub _pad: [u32; 2],
+    /// Whether the next step's look-ahead carries momentum (1) or is σ itself (0).
+    pub coasting: u32,
+    pub _pad: u32,
 }
 
 pub struct FistaStep {

@@ -147,6 +147,11 @@ impl FistaSolver for CpuFista {
     ) -> anyhow::Result<usize> {
         self.ahead.copy_from_slice(sigma);
         let mut t = 1.0f64;
+        // Whether this step's look-ahead carries momentum. A step from σ itself (the first two,
+        // and the two after a restart) is a plain projected gradient step, which on this
+        // ill-conditioned E changes σ far less than the distance left to the minimum: only a
+        // coasting step may end the solve.
+        let mut coasting = false;
         for step in 1..=stop.steps {
             problem.projector.project(&self.ahead, &mut self.depths);
             problem.residual_into(&self.depths, &mut self.residual);
@@ -155,12 +160,14 @@ impl FistaSolver for CpuFista {
             let sums = self.step_pass(problem, sigma, momentum as f32);
             std::mem::swap(&mut self.ahead, &mut self.ahead_next);
             t = t_next;
+            let coasted = std::mem::replace(&mut coasting, momentum > 0.0);
             if sums.uphill > 0.0 {
                 // Adaptive restart: the momentum carried σ uphill, so start it again from σ.
                 t = 1.0;
                 self.ahead.copy_from_slice(sigma);
+                coasting = false;
             }
-            let settled = (sums.change / sums.norm.max(f64::MIN_POSITIVE)).sqrt() <= stop.tolerance;
+            let settled = coasted && (sums.change / sums.norm.max(f64::MIN_POSITIVE)).sqrt() <= stop.tolerance;
             if wants(step) || settled || step == stop.steps {
                 checkpoint(step, sigma);
             }
@@ -169,5 +176,32 @@ impl FistaSolver for CpuFista {
             }
         }
         Ok(stop.steps)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::Aabb;
+    use crate::train::render::{Lattice, Ray};
+
+    #[test]
+    fn only_a_step_that_carries_momentum_ends_the_solve() {
+        // Every ray sees nothing (I = 1), so σ = 0 is the minimum and no step moves it: the
+        // first step that may end the solve is the third, the first whose look-ahead coasts.
+        let lattice = Lattice { n: 6, aabb: Aabb { min: [-1.0; 3], max: [1.0; 3] } };
+        let rays: Vec<Ray> = (0..30)
+            .map(|i| {
+                let a = i as f64 * 0.41;
+                let origin = glam::DVec3::new(4.0 * a.cos(), 3.0 * a.sin(), 0.5 * (2.0 * a).sin());
+                Ray { origin, dir: (-origin).normalize(), target: 1.0 }
+            })
+            .collect();
+        let problem = DenseProblem::new(&lattice, 1.0, 1e-2, 1e-3, &rays, &[(30, 30)]);
+        let mut sigma = vec![0.0; problem.nodes()];
+        let stop = Stop { steps: 50, tolerance: 1e-4 };
+        let steps = CpuFista::new(&problem).solve(&problem, &mut sigma, stop, &|_| false, &mut |_, _| {}).unwrap();
+        assert_eq!(steps, 3);
+        assert!(sigma.iter().all(|&s| s == 0.0));
     }
 }

@@ -11,10 +11,10 @@
 //! quadratic majoriser of E at the look-ahead point (`AᵀA ≤ diag(AᵀA·1)` as `A ≥ 0`; the TV's
 //! majoriser `|∇σ|²/(2m)` with `m = √(|∇σ|² + ε²)` frozen, whose curvature is `6/m` and `2/m`
 //! a neighbour, at most the smoothed TV's `12/ε`), with Nesterov momentum restarted whenever
-//! it points uphill. It stops when a step changes σ by at most `tolerance` of its norm, or after
-//! `iterations` steps. It starts from the same fit, to a looser tolerance, on a lattice of half
-//! the nodes a side, trilinearly enlarged. E is convex and nothing is random: the seed plays no
-//! part.
+//! it points uphill. It stops when a step whose look-ahead carries momentum changes σ by at most
+//! `tolerance` of its norm, or after `iterations` steps. It starts from the same fit, to a looser
+//! tolerance, on a lattice of half the nodes a side, trilinearly enlarged. E is convex and
+//! nothing is random: the seed plays no part.
 //!
 //! Why: the VM factorisation explains each view with products of planes and lines, and those
 //! products cross everywhere as streaks; a dense lattice with TV is the classic few-view CT
@@ -62,8 +62,8 @@ impl Evaluation {
     }
 }
 
-/// When a solve stops: after `steps` steps, or sooner once a step changes σ by at most
-/// `tolerance` of its norm.
+/// When a solve stops: after `steps` steps, or sooner once a step whose look-ahead carries
+/// momentum changes σ by at most `tolerance` of its norm.
 #[derive(Debug, Clone, Copy)]
 pub struct Stop {
     pub steps: usize,
