@@ -21,7 +21,7 @@ use crate::train::truth;
 use crate::volume::Volume;
 use std::fmt::Write as _;
 
-pub const VERSION: u32 = 6;
+pub const VERSION: u32 = 7;
 
 /// `[train]` is the fit's own parameter table.
 pub use crate::train::params::{Backend, TrainParams as Params};
