@@ -93,6 +93,9 @@ pub const SWEEP: Artifact = artifact!("sweep", "sweep.json");
 /// The lung field found in σ (uint8), where the sweep looked.
 pub const LUNG_FIELD: VolumeArtifact = volume!("sweep", "lung_field");
 
+/// The bright blobs of σ each blob search chooses among.
+pub const BLOBS: Artifact = artifact!("blobs", "blobs.json");
+
 /// Every rule's selection, its localization and the verdict.
 pub const RESULT: Artifact = artifact!("select", "result.json");
 /// The primary selection's mask (uint8).
@@ -121,7 +124,7 @@ mod tests {
 
     #[test]
     fn every_artifact_belongs_to_a_stage() {
-        let files = [CT_SERIES, GROUND_TRUTH, TARGET_SITE, CAMERAS, MODEL, RESULT, SUMMARY, REPORT];
+        let files = [CT_SERIES, GROUND_TRUTH, TARGET_SITE, CAMERAS, MODEL, BLOBS, RESULT, SUMMARY, REPORT];
         let volumes = [CT_HU, GT_MASK, CT_UNIT, DENSITY, UNCERTAINTY, LUNG_FIELD, NODULE_MASK];
         let stages = files.iter().map(|a| a.stage).chain(volumes.iter().map(|v| v.stage));
         for stage in stages {

@@ -3,7 +3,7 @@
 
 use crate::config::{Config, DatasetKind};
 use crate::engine::{Stage, StageGraph, SOURCE};
-use crate::stage::{drr, grid, hu, ingest, metrics, phantom, select, sweep, train};
+use crate::stage::{blobs, drr, grid, hu, ingest, metrics, phantom, select, sweep, train};
 
 /// The per-patient and cohort stages, configured from `config`.
 pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
@@ -21,6 +21,11 @@ pub fn graph(config: &Config) -> anyhow::Result<StageGraph> {
     stages.push(Box::new(train::Train { params: config.train.clone() }));
     stages.push(Box::new(grid::Grid { params: config.grid.clone() }));
     stages.push(Box::new(sweep::Sweep { params: config.sweep.clone() }));
+    // The blob search's responses are a stage of their own, so that an edit of how select
+    // chooses among the blobs reuses them.
+    if config.select.localize == select::Localize::Blob {
+        stages.push(Box::new(blobs::Blobs { params: config.select.blob.search() }));
+    }
     stages.push(Box::new(select::Select { params: config.select.clone() }));
     stages.push(Box::new(metrics::Metrics { params: config.metrics.clone() }));
     StageGraph::new(stages)

@@ -4,12 +4,25 @@
 
 use aret_pipe::kernels::localization::ground_truth_on_grid;
 use aret_pipe::stage::select::{
-    verdict, Analysis, BlobParams, Localize, Params as SelectParams, Rule, Sizing, TieBreak,
+    centres, verdict, Analysis, BlobParams, Centre, Centres, Localize, Params as SelectParams, Rule, Search, Sizing,
+    TieBreak, Weighed,
 };
 
 /// The blob search with `blob`'s keys.
 fn blob_search(blob: BlobParams) -> SelectParams {
     SelectParams { blob, ..SelectParams::default() }
+}
+
+/// The centres `params` finds in `density` with the whole lattice as its lung field, the guided
+/// search at an annotated diameter of 18 mm.
+fn centres_in(
+    params: &SelectParams,
+    density: &Volume<f32>,
+    judge: &(dyn Fn(Search, &Centre) -> Weighed + Sync),
+) -> Centres {
+    let lungs = vec![true; density.geometry.len()];
+    let blobs = aret_pipe::stage::blobs::search(&params.blob.search(), density, Some(&lungs), Some(18.0));
+    centres(params, &density.geometry, Some(&blobs), [0.0; 3], None, judge)
 }
 
 /// A search that takes the strongest blob it accepts anywhere in the lungs: no tie-break, no
@@ -217,7 +230,6 @@ fn two_balls(weak_level: f32) -> (Volume<f32>, [usize; 3], [usize; 3]) {
 fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
     use aret_pipe::kernels::filters::hessian_blob_response;
     use aret_pipe::kernels::lung_mask::ranked_blobs;
-    use aret_pipe::stage::select::{centres, Search};
     let (density, strong, weak) = two_balls(0.5);
     let g = density.geometry.clone();
     let (dims, spacing) = (g.dims, g.spacing_mm);
@@ -231,9 +243,8 @@ fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
     assert!(off(ranked[1].voxel, weak) <= 1, "{:?}", ranked[1]);
     // The guided search (18 mm annotated: scale 5.2 mm) takes the strongest blob it accepts.
     let params = blob_search(strongest());
-    let lungs = vec![true; g.len()];
     let find = |accept: &(dyn Fn(Search, &aret_pipe::stage::select::Centre) -> bool + Sync)| {
-        centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|s, c| accept(s, c).into())
+        centres_in(&params, &density, &|s, c| accept(s, c).into())
     };
     let all = find(&|_, _| true);
     let first = all.guided.expect("a guided centre");
@@ -250,13 +261,11 @@ fn blob_searches_rank_every_peak_and_take_the_strongest_they_accept() {
 
 #[test]
 fn a_rival_blob_that_answers_nearly_as_strongly_makes_the_centre_ambiguous() {
-    use aret_pipe::stage::select::{centres, Centre, Search};
-    let lungs = vec![true; 48 * 40 * 36];
     let off = |v: [f64; 3], c: [usize; 3]| (0..3).map(|a| (v[a] / 2.0 - c[a] as f64).abs()).fold(0.0, f64::max);
     let search = |weak_level: f32, rival_ratio: f64, accept: &(dyn Fn(Search, &Centre) -> bool + Sync)| {
         let (density, strong, weak) = two_balls(weak_level);
         let params = blob_search(BlobParams { rival_ratio, ..strongest() });
-        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|s, c| accept(s, c).into());
+        let found = centres_in(&params, &density, &|s, c| accept(s, c).into());
         let taken = found.guided.expect("a guided centre");
         assert!(off(taken.position_mm, strong) <= 1.0, "{taken:?}");
         (taken, weak)
@@ -279,8 +288,7 @@ fn a_rival_blob_that_answers_nearly_as_strongly_makes_the_centre_ambiguous() {
 
 #[test]
 fn the_roundness_tie_break_takes_the_roundest_of_the_blobs_that_answer_alike() {
-    use aret_pipe::stage::select::{centres, Centre, RegionShape, Search, TieBreak, Weighed};
-    let lungs = vec![true; 48 * 40 * 36];
+    use aret_pipe::stage::select::{RegionShape, TieBreak};
     let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
     // The caller measures the strong ball's region as drawn out (0.3) and the weak one's as
     // round (0.9); the search decides only from what it is told.
@@ -294,7 +302,7 @@ fn the_roundness_tie_break_takes_the_roundest_of_the_blobs_that_answer_alike() {
                 peak_score: 1.0,
             }),
         };
-        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &judge);
+        let found = centres_in(&params, &density, &judge);
         let taken = found.guided.expect("a guided centre");
         (near(taken.position_mm, strong), near(taken.position_mm, weak), taken)
     };
@@ -311,8 +319,7 @@ fn the_roundness_tie_break_takes_the_roundest_of_the_blobs_that_answer_alike() {
 
 #[test]
 fn the_score_tie_break_ranks_the_strongest_few_by_response_over_peak_and_roundness() {
-    use aret_pipe::stage::select::{blob_score, centres, Centre, RegionShape, Search, TieBreak, Weighed};
-    let lungs = vec![true; 48 * 40 * 36];
+    use aret_pipe::stage::select::{blob_score, RegionShape, TieBreak};
     let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
     // The caller cuts the strong ball's region with a high peak (a dense speck: 1.0) and the
     // weak one's with a low one (0.2); both alike round.
@@ -325,7 +332,7 @@ fn the_score_tie_break_ranks_the_strongest_few_by_response_over_peak_and_roundne
         }),
     };
     let search = |params: SelectParams| {
-        let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &judge);
+        let found = centres_in(&params, &density, &judge);
         let [guided, blind] = [found.guided, found.blind].map(|c| c.expect("a centre"));
         // Every accepted blob is recorded, strongest first, the taken one among them.
         let ranks: Vec<usize> = found.blind_accepted.iter().map(|c| c.rank).collect();
@@ -350,14 +357,11 @@ fn the_score_tie_break_ranks_the_strongest_few_by_response_over_peak_and_roundne
 
 #[test]
 fn with_no_guided_centre_the_guided_rule_may_fall_back_to_the_blind_one() {
-    use aret_pipe::stage::select::{centres, Centre, Search, Weighed};
     let (density, strong, _) = two_balls(0.3);
-    let lungs = vec![true; density.geometry.len()];
     let params = blob_search(strongest());
     let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
     // The guided search accepts nothing; the blind one takes the strong ball.
-    let found =
-        centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|s, _| Weighed::from(s == Search::Blind));
+    let found = centres_in(&params, &density, &|s, _| Weighed::from(s == Search::Blind));
     assert!(found.guided.is_none());
     let blind = found.blind.clone().expect("a blind centre");
     assert!(near(blind.position_mm, strong) && !blind.from_blind);
@@ -379,11 +383,10 @@ fn with_no_guided_centre_the_guided_rule_may_fall_back_to_the_blind_one() {
 
 #[test]
 fn a_guided_centre_far_fainter_than_the_blind_one_gives_way_to_it() {
-    use aret_pipe::stage::select::{centres, Centre, RegionShape, Weighed};
+    use aret_pipe::stage::select::RegionShape;
     let (density, strong, weak) = two_balls(0.3);
-    let lungs = vec![true; density.geometry.len()];
     let params = blob_search(strongest());
-    let found = centres(&params, &density, Some(&lungs), [0.0; 3], Some(18.0), None, &|_, _| Weighed::from(true));
+    let found = centres_in(&params, &density, &|_, _| Weighed::from(true));
     let shape = |peak_score| Some(RegionShape { roundness: 0.8, diameter_mm: 18.0, peak_score });
     let blind = Centre { voxel: strong, region: shape(0.30), ..found.blind.clone().expect("a blind centre") };
     let guided = Centre { voxel: weak, region: shape(0.05), ..found.guided.clone().expect("a guided centre") };

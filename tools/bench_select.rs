@@ -59,12 +59,13 @@ fn main() -> anyhow::Result<()> {
         let analysis = Analysis::new(&levels, Some(&gt), &density.geometry);
         let t_analysis = t.elapsed().as_secs_f64();
         let select = SelectParams::default();
+        let blobs =
+            aret_pipe::stage::blobs::search(&select.blob.search(), &density, scored.region.as_deref(), annotated);
         let centres = centres(
             &select,
-            &density,
-            scored.region.as_deref(),
+            &density.geometry,
+            Some(&blobs),
             set.frame.roi_center_mm,
-            annotated,
             Some(&gt.coverage),
             &|_, _| true.into(), // the built-in default sizes with the candidates: the strongest blob
         );

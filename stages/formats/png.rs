@@ -68,7 +68,7 @@ fn encode_8bit(width: usize, height: usize, color: ::png::ColorType, bytes: &[u8
         let mut encoder = ::png::Encoder::new(&mut out, width as u32, height as u32);
         encoder.set_color(color);
         encoder.set_depth(::png::BitDepth::Eight);
-        encoder.set_compression(::png::Compression::Best);
+        encoder.set_compression(::png::Compression::Fast);
         let mut writer = encoder.write_header().expect("PNG header to memory");
         writer.write_image_data(bytes).expect("PNG data to memory");
     }

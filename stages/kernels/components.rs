@@ -245,7 +245,9 @@ pub fn component_within(
         .flat_map(|dz| (-1..=1).flat_map(move |dy| (-1..=1).map(move |dx| [dx, dy, dz])))
         .filter(|&d| d != [0, 0, 0] && connectivity.touches(d))
         .collect();
-    let mut seen = std::collections::HashSet::from([seed]);
+    let mut seen = vec![false; dims.iter().product()];
+    seen[seed] = true;
+    let mut voxels = vec![seed];
     let mut stack = vec![seed];
     while let Some(i) = stack.pop() {
         let at = [i % dims[0], (i / dims[0]) % dims[1], i / (dims[0] * dims[1])].map(|v| v as i64);
@@ -255,16 +257,17 @@ pub fn component_within(
                 continue;
             }
             let j = n[0] as usize + dims[0] * (n[1] as usize + dims[1] * n[2] as usize);
-            if inside(j) && seen.insert(j) {
-                if seen.len() > max_voxels {
+            if !seen[j] && inside(j) {
+                seen[j] = true;
+                voxels.push(j);
+                if voxels.len() > max_voxels {
                     return None;
                 }
                 stack.push(j);
             }
         }
     }
-    let mut voxels: Vec<usize> = seen.into_iter().collect();
-    // The set's order is random; callers sum over the voxels, and sums must not depend on it.
+    // Callers sum over the voxels: in index order, as a scan of the labels would.
     voxels.sort_unstable();
     Some(voxels)
 }

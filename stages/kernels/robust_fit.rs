@@ -5,7 +5,8 @@
 //!
 //! Levenberg–Marquardt on the reweighted problem (each step solves the Gauss–Newton system with
 //! weights ρ'(rᵢ²) = 1/√(1 + (rᵢ/s)²)), a central-difference Jacobian, and steps projected onto
-//! the bounds. Deterministic: the same inputs give the same bits.
+//! the bounds; the normal equations skip each column's zeros before its first and after its last
+//! non-zero entry. Deterministic: the same inputs give the same bits.
 
 /// The solution and how it was reached.
 #[derive(Debug, Clone, PartialEq)]
@@ -76,13 +77,22 @@ pub fn fit_soft_l1(problem: &Problem, x0: &[f64]) -> Fit {
             }
         }
         let weights: Vec<f64> = r.iter().map(|ri| 1.0 / (1.0 + ri * ri / s2).sqrt()).collect();
+        // Each column's non-zero span: the products outside it add zeros.
+        let support: Vec<(usize, usize)> = jacobian
+            .iter()
+            .map(|c| match c.iter().position(|&v| v != 0.0) {
+                Some(first) => (first, c.iter().rposition(|&v| v != 0.0).expect("one is non-zero") + 1),
+                None => (0, 0),
+            })
+            .collect();
         // Normal equations of the reweighted problem: (JᵀWJ) δ = −JᵀW r.
         let mut normal = vec![vec![0.0; n]; n];
         let mut gradient = vec![0.0; n];
         for a in 0..n {
-            gradient[a] = (0..m).map(|i| jacobian[a][i] * weights[i] * r[i]).sum();
+            gradient[a] = (support[a].0..support[a].1).map(|i| jacobian[a][i] * weights[i] * r[i]).sum();
             for b in 0..=a {
-                let v: f64 = (0..m).map(|i| jacobian[a][i] * weights[i] * jacobian[b][i]).sum();
+                let span = support[a].0.max(support[b].0)..support[a].1.min(support[b].1);
+                let v: f64 = span.map(|i| jacobian[a][i] * weights[i] * jacobian[b][i]).sum();
                 normal[a][b] = v;
                 normal[b][a] = v;
             }

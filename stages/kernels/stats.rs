@@ -40,8 +40,33 @@ pub fn percentiles(values: &[f64], ps: &[f64]) -> Result<Vec<f64>, PercentileErr
     if let Some(&p) = ps.iter().find(|p| !(0.0..=100.0).contains(*p)) {
         return Err(PercentileError::OutOfRange(p));
     }
-    let v = sorted(values);
+    let v = ordered_at(values, ps);
     Ok(ps.iter().map(|&p| percentile_of_sorted(&v, p)).collect())
+}
+
+/// `values` with the order statistics [`percentile_of_sorted`] reads for each `p` (and the
+/// largest) at their ranks, as [`sorted`] would place them: selections in rank order, each in
+/// what the one before left above it, instead of a sort. `total_cmp` is a total order, so the
+/// value at each rank is the sort's, bit for bit.
+fn ordered_at(values: &[f64], ps: &[f64]) -> Vec<f64> {
+    let mut v = values.to_vec();
+    let last = v.len() - 1;
+    let mut ranks: Vec<usize> = ps
+        .iter()
+        .flat_map(|&p| {
+            let below = ((last as f64 * (p / 100.0)).floor() as usize).min(last);
+            [below, (below + 1).min(last)]
+        })
+        .chain([last])
+        .collect();
+    ranks.sort_unstable();
+    ranks.dedup();
+    let mut start = 0;
+    for rank in ranks {
+        v[start..].select_nth_unstable_by(rank - start, f64::total_cmp);
+        start = rank + 1;
+    }
+    v
 }
 
 /// [`percentiles`] for one `p`.
@@ -104,5 +129,30 @@ mod tests {
         assert_eq!(percentile(&[], 50.0), Err(PercentileError::Empty));
         assert_eq!(percentile(&[1.0], 100.5), Err(PercentileError::OutOfRange(100.5)));
         assert_eq!(percentiles(&[1.0], &[-1.0]).unwrap_err().to_string(), "percentiles must be in [0, 100], got -1");
+    }
+
+    #[test]
+    fn selections_read_what_a_sort_reads() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        let ps = [99.0, 0.0, 85.0, 85.0, 37.5, 100.0, 50.0, 99.9, 1e-9];
+        for n in [1, 2, 3, 10, 1001] {
+            // Repeats, signed zeros and a wide range, as a density's values have.
+            let values: Vec<f64> = (0..n)
+                .map(|_| match rng.gen_range(0..4) {
+                    0 => 0.0,
+                    1 => -0.0,
+                    2 => f64::from(rng.gen_range(-3i8..3)),
+                    _ => rng.gen_range(-1e3..1e3),
+                })
+                .collect();
+            let by_sort: Vec<f64> = ps.iter().map(|&p| percentile_of_sorted(&sorted(&values), p)).collect();
+            let got = percentiles(&values, &ps).unwrap();
+            assert_eq!(
+                got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                by_sort.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                "n = {n}"
+            );
+        }
     }
 }

@@ -3,6 +3,7 @@
 //! Each module reads like the SPEC: its `Params`, its inputs and outputs, a `VERSION`, and one
 //! pure `run`. Stages know nothing about caching.
 
+pub mod blobs;
 pub mod drr;
 pub mod grid;
 pub mod hu;
@@ -17,8 +18,10 @@ use crate::artifacts::{Artifact, VolumeArtifact};
 use crate::engine::{Context, Output};
 use anyhow::Context as _;
 
-/// Every stage name, in pipeline order (`phantom` only for phantom datasets).
-pub const STAGE_NAMES: &[&str] = &["phantom", "ingest", "hu", "drr", "train", "grid", "sweep", "select", "metrics"];
+/// Every stage name, in pipeline order (`phantom` only for phantom datasets, `blobs` only for
+/// `[select] localize = "blob"`).
+pub const STAGE_NAMES: &[&str] =
+    &["phantom", "ingest", "hu", "drr", "train", "grid", "sweep", "blobs", "select", "metrics"];
 
 /// Serialises a stage's parameters for its cache key.
 pub(crate) fn params_json<P: serde::Serialize>(params: &P) -> serde_json::Value {

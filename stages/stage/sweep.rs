@@ -234,6 +234,18 @@ pub fn equivalent_diameter_mm(volume_mm3: f64) -> f64 {
     (6.0 * volume_mm3 / std::f64::consts::PI).cbrt()
 }
 
+/// The centroid (patient mm) of `voxels`, ascending: [`summarize`]'s of the component they are.
+pub(crate) fn centroid_mm(voxels: &[usize], geometry: &Geometry) -> [f64; 3] {
+    let [nx, ny, _] = geometry.dims;
+    let mut sum = [0f64; 3];
+    for &i in voxels {
+        for (a, c) in [i % nx, (i / nx) % ny, i / (nx * ny)].into_iter().enumerate() {
+            sum[a] += c as f64;
+        }
+    }
+    geometry.voxel_to_patient_mm(sum.map(|v| v / voxels.len() as f64))
+}
+
 /// Each component's centroid in patient mm.
 pub(crate) fn summarize(components: &Components, geometry: &Geometry) -> Vec<[f64; 3]> {
     let [nx, ny, _] = geometry.dims;

@@ -3,8 +3,9 @@
 //! Inputs: `grid/density` (the lattice), `sweep/sweep.json` (candidates and the parameters to
 //! regenerate their masks), `ingest/ground_truth.json` (the annotated diameter the guided rule
 //! uses), `ingest/gt_mask` (localization only: never used to choose) and `drr/cameras.json`
-//! (the scene origin, for `localize = "origin"`); with `sizing = "shadows"` also the three
-//! `drr/drr_<view>.exr` ([`size::shadows`]).
+//! (the scene origin, for `localize = "origin"`); with `localize = "blob"` also
+//! `blobs/blobs.json` (the blobs the search chooses among, [`crate::stage::blobs`]); with
+//! `sizing = "shadows"` also the three `drr/drr_<view>.exr` ([`size::shadows`]).
 //!
 //! The rooms: [`find`] finds each rule's centre (`localize`: the blob search, its ranking and
 //! the guided rule's fallback, a file each); [`size`] sizes the nodule there (`sizing`);
@@ -29,7 +30,7 @@
 //! also `shadows.png` (the primary selection's fitted ellipsoid over its three shadows).
 
 use crate::artifacts::{
-    is_drr_image, CAMERAS, DENSITY, GROUND_TRUTH, GT_MASK, LUNG_FIELD, NODULE_MASK, NODULE_MESH, NODULE_PREVIEW,
+    is_drr_image, BLOBS, CAMERAS, DENSITY, GROUND_TRUTH, GT_MASK, LUNG_FIELD, NODULE_MASK, NODULE_MESH, NODULE_PREVIEW,
     RESULT, SHADOWS_PREVIEW, SWEEP,
 };
 use crate::engine::{Context, Output, Stage};
@@ -58,7 +59,7 @@ pub use result::{Oracle, SelectResult, Selection, ShadowFit, TileScore};
 pub use size::candidates::Analysis;
 pub use verdict::verdict;
 
-pub const VERSION: u32 = 18;
+pub const VERSION: u32 = 19;
 
 pub struct Select {
     pub params: Params,
@@ -72,7 +73,10 @@ impl Stage for Select {
         VERSION
     }
     fn inputs(&self) -> &'static [&'static str] {
-        &["ingest", "drr", "grid", "sweep"]
+        match self.params.localize {
+            Localize::Blob => &["ingest", "drr", "grid", "sweep", "blobs"],
+            Localize::None | Localize::Origin => &["ingest", "drr", "grid", "sweep"],
+        }
     }
     fn params(&self) -> serde_json::Value {
         self.params.key()
@@ -83,6 +87,7 @@ impl Stage for Select {
             "grid" => DENSITY.holds(output),
             "sweep" => output == SWEEP.file || LUNG_FIELD.holds(output),
             "drr" => output == CAMERAS.file || (size::reads_views(self.params.sizing) && is_drr_image(output)),
+            "blobs" => output == BLOBS.file,
             _ => false,
         }
     }
@@ -171,12 +176,15 @@ impl Select {
         };
         // A search passes over blobs the sizing cannot size (size::weigh).
         let accept = |search: Search, centre: &Centre| size::weigh(&inputs, search, centre);
+        let blobs = match p.localize {
+            Localize::Blob => Some(super::read_json(ctx, BLOBS)?),
+            Localize::None | Localize::Origin => None,
+        };
         let mut centres = find::centres(
             p,
-            &density,
-            scored.region.as_deref(),
+            &density.geometry,
+            blobs.as_ref(),
             cameras.frame.roi_center_mm,
-            annotated,
             gt.as_ref().map(|g| g.coverage.as_slice()),
             &accept,
         );

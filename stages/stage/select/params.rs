@@ -171,13 +171,13 @@ impl Default for HalfMaxParams {
 }
 
 impl BlobParams {
+    /// What finds the blobs: the `blobs` stage's parameters.
+    pub fn search(&self) -> crate::stage::blobs::Params {
+        crate::stage::blobs::Params { scales_mm: self.scales_mm.clone(), inside_mm: self.inside_mm }
+    }
+
     fn check(&self, sizing: Sizing) -> anyhow::Result<()> {
-        if self.scales_mm.is_empty() || self.scales_mm.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
-            bail!("[select.blob] scales_mm must be a non-empty list of positive numbers");
-        }
-        if !(self.inside_mm.is_finite() && self.inside_mm >= 0.0) {
-            bail!("[select.blob] inside_mm must be a number ≥ 0 (got {})", self.inside_mm);
-        }
+        self.search().check()?;
         if !(self.rival_ratio.is_finite() && self.rival_ratio > 0.0) {
             bail!("[select.blob] rival_ratio must be a number > 0 (got {})", self.rival_ratio);
         }

@@ -7,7 +7,7 @@
 //!   otherwise (the stage says so in its verdict's localization line).
 //! - `blob` (assistance B for the guided rule, C for the blind ones): the strongest bright-blob
 //!   response of σ (the Hessian of Gaussian's, [`crate::kernels::filters::hessian_blob_response`])
-//!   more than `inside_mm` inside the lung field found in σ. The guided rule uses the scale
+//!   more than `inside_mm` inside the lung field found in σ, as the `blobs` stage found them. The guided rule uses the scale
 //!   matched to the annotated diameter (s = d / (2√3): a ball of radius √3·s answers most at
 //!   s); the blind rules the maximum over `scales_mm`.
 //!
@@ -35,9 +35,7 @@ mod rank;
 pub use blob::centres;
 pub use rank::blob_score;
 
-/// How many of the strongest blobs a search weighs before it gives up: a bound on the work,
-/// far beyond the ranks at which a nodule still stands out.
-pub const MAX_WEIGHED: usize = 16;
+pub use crate::stage::blobs::MAX_WEIGHED;
 
 /// Which search a centre is for: the guided rule's (the scale matched to the annotated
 /// diameter) or the blind rules' (`scales_mm`).

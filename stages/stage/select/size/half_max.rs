@@ -20,7 +20,7 @@ use crate::kernels::localization::GroundTruthOnGrid;
 use crate::stage::select::find::{Centre, Centres, RegionShape, Search, Weighed};
 use crate::stage::select::params::{HalfMaxParams, Rule};
 use crate::stage::select::result::Selection;
-use crate::stage::sweep::{equivalent_diameter_mm, summarize, Candidate, Params as SweepParams, Scored};
+use crate::stage::sweep::{centroid_mm, equivalent_diameter_mm, summarize, Candidate, Params as SweepParams, Scored};
 use crate::volume::Geometry;
 
 /// How far below and above the fraction the volume interval looks (absolute, in units of the peak).
@@ -194,8 +194,7 @@ pub fn half_max_selection(
     let mut interval = [volume_mm3; 2];
     for neighbour in [fraction - INTERVAL_STEP, fraction + INTERVAL_STEP].into_iter().filter(|f| *f > 0.0 && *f <= 1.0)
     {
-        let (c, l) = at(neighbour);
-        let v = c.size(l) as f64 * voxel_mm3;
+        let v = seed_region(scored, sweep, seed, neighbour * peak, cut.reach_mm).len() as f64 * voxel_mm3;
         interval = [interval[0].min(v), interval[1].max(v)];
     }
     let localization =
@@ -220,13 +219,13 @@ pub fn region_of_volume(
     let geometry = &scored.score.geometry;
     let voxel_mm3: f64 = geometry.spacing_mm.iter().product();
     let (seed, peak) = peak_near(scored, centre.voxel)?;
-    let at = |fraction: f64| region_at(scored, sweep, seed, fraction * f64::from(peak), reach_mm);
+    let at = |fraction: f64| seed_region(scored, sweep, seed, fraction * f64::from(peak), reach_mm);
     let (mut lo, mut hi) = (0.0, 1.0);
-    let mut best: Option<(f64, (Components, u32))> = None;
+    let mut best: Option<(f64, Vec<usize>)> = None;
     for _ in 0..BISECTION_STEPS {
         let fraction = 0.5 * (lo + hi);
-        let (components, own) = at(fraction);
-        let volume = components.size(own) as f64 * voxel_mm3;
+        let voxels = at(fraction);
+        let volume = voxels.len() as f64 * voxel_mm3;
         let miss = (volume - volume_mm3).abs();
         if volume > volume_mm3 {
             lo = fraction;
@@ -234,12 +233,13 @@ pub fn region_of_volume(
             hi = fraction;
         }
         if best.as_ref().is_none_or(|(m, _)| miss < *m) {
-            best = Some((miss, (components, own)));
+            best = Some((miss, voxels));
         }
     }
-    let (_, (components, own)) = best?;
-    let centroid_mm = summarize(&components, geometry)[own as usize - 1];
-    Some((components.mask_of(own), centroid_mm))
+    let (_, voxels) = best?;
+    let mut mask = vec![false; geometry.len()];
+    voxels.iter().for_each(|&i| mask[i] = true);
+    Some((mask, centroid_mm(&voxels, geometry)))
 }
 
 /// Steps of [`region_of_volume`]'s bisection: the fraction to 1/4096 of the peak.
@@ -283,6 +283,14 @@ fn member(scored: &Scored, seed: usize, threshold: f64, reach_mm: Option<f64>) -
         };
         f64::from(scored.score.data[i]) >= threshold && scored.region.as_ref().is_none_or(|r| r[i]) && near()
     }
+}
+
+/// The nodes of `seed`'s component of [`member`]'s (the one [`region_at`] labels `seed`'s),
+/// ascending: grown from the seed, it costs what it holds.
+fn seed_region(scored: &Scored, sweep: &SweepParams, seed: usize, threshold: f64, reach_mm: Option<f64>) -> Vec<usize> {
+    let is_member = member(scored, seed, threshold, reach_mm);
+    let dims = scored.score.geometry.dims;
+    component_within(is_member, dims, sweep.connectivity, seed, usize::MAX).expect("the seed's score is the peak")
 }
 
 /// The components of the nodes that may belong to `seed`'s region ([`member`]), and the label

@@ -35,7 +35,9 @@ use crate::stage::select::result::{Selection, ShadowFit};
 use crate::stage::sweep::equivalent_diameter_mm;
 use crate::volume::Volume;
 use glam::DVec3;
+use std::collections::HashMap;
 use std::f64::consts::PI;
+use std::sync::Mutex;
 
 /// The window's radius, in equivalent radii of the half-maximum region (plus a margin).
 const WINDOW_RADII: f64 = 2.0;
@@ -186,15 +188,27 @@ pub fn fit_ellipsoid(
         centre: DVec3::new(x[0], x[1], x[2]),
         semi_axes: DVec3::new(x[3].exp(), x[4].exp(), x[5].exp()),
     };
+    // Each pixel's chord through the last shape evaluated: most evaluations (the Jacobian's
+    // columns of the background's coefficients) move the background alone.
+    let chords: Mutex<([f64; 6], Vec<f64>)> = Mutex::new(([f64::NAN; 6], Vec::new()));
     let residuals = |x: &[f64], r: &mut [f64]| {
-        let ellipsoid = shape(x);
+        let mut chords = chords.lock().expect("a fit runs on one thread");
+        let (key, chords) = &mut *chords;
+        if key.iter().zip(x).any(|(k, v)| k.to_bits() != v.to_bits()) {
+            let ellipsoid = shape(x);
+            chords.clear();
+            chords.extend(
+                windows.iter().flat_map(|(eye, pixels)| pixels.iter().map(|p| ellipsoid.chord(*eye, p.dir, p.box_t))),
+            );
+            *key = std::array::from_fn(|i| x[i]);
+        }
         let contrast = x[6];
         let mut k = 0;
-        for (w, (eye, pixels)) in windows.iter().enumerate() {
+        for (w, (_, pixels)) in windows.iter().enumerate() {
             let coefficients = &x[SHAPE_PARAMS + BACKGROUND_TERMS * w..][..BACKGROUND_TERMS];
             for p in pixels {
                 let background: f64 = p.basis.iter().zip(coefficients).map(|(b, c)| b * c).sum();
-                r[k] = background + contrast * ellipsoid.chord(*eye, p.dir, p.box_t) - p.depth;
+                r[k] = background + contrast * chords[k] - p.depth;
                 k += 1;
             }
         }
@@ -238,7 +252,13 @@ pub fn shadow_selection(
     let radius = 0.5 * region.diameter_mm / mm_per_unit;
     let cleared = without_nodule(density, half_max_mask, lungs);
     let field = VolumeField::new(&cleared, &views.frame);
-    let background = |eye: DVec3, dir: DVec3| march_ray(&field, &views.aabb, eye, dir, f64::INFINITY);
+    // The fits' windows overlap: each ray is marched once.
+    let marched = Mutex::new(HashMap::new());
+    let background = |eye: DVec3, dir: DVec3| {
+        let ray = [eye.x, eye.y, eye.z, dir.x, dir.y, dir.z].map(f64::to_bits);
+        let mut marched = marched.lock().expect("the fits run on one thread");
+        *marched.entry(ray).or_insert_with(|| march_ray(&field, &views.aabb, eye, dir, f64::INFINITY))
+    };
     let volume_mm3 = |e: &Ellipsoid| e.volume() * mm_per_unit.powi(3);
     let (ellipsoid, contrast) = fit_ellipsoid(views, &background, centre, radius, WINDOW_RADII)?;
     let volume = volume_mm3(&ellipsoid);
