@@ -81,7 +81,7 @@ pub fn size(inputs: &Inputs, centres: &Centres) -> [Sized; 3] {
 pub fn size_then(
     inputs: &Inputs,
     centres: &Centres,
-    then: impl Fn(&Centre, Cut, (Selection, Vec<bool>)) -> Sized,
+    then: impl Fn(&Centre, Cut, (Selection, Vec<bool>)) -> Sized + Sync,
 ) -> [Sized; 3] {
     let half_max = &inputs.params.half_max;
     let guided_cut = Cut { fraction: half_max.fraction, reach_mm: half_max.guided_reach_mm(inputs.annotated_mm) };
@@ -90,9 +90,13 @@ pub fn size_then(
         let region = half_max_selection(inputs.scored, inputs.sweep, centre, cut, inputs.gt, rule)?;
         then(centre, cut, region)
     };
-    let blind = at(Rule::BlindLargest, &centres.blind, Cut::at(half_max.fraction));
+    // Independent: side by side, a patient's last sizing does not wait for its first.
+    let (guided, blind) = rayon::join(
+        || at(Rule::Guided, &centres.guided, guided_cut),
+        || at(Rule::BlindLargest, &centres.blind, Cut::at(half_max.fraction)),
+    );
     let persistent = blind.clone().map(|(s, m)| (Selection { rule: Rule::BlindPersistent, ..s }, m));
-    [at(Rule::Guided, &centres.guided, guided_cut), blind, persistent]
+    [guided, blind, persistent]
 }
 
 /// Whether the half-maximum region at `centre` can be the nodule: the score has a positive
