@@ -8,6 +8,8 @@
 //! the bounds; the normal equations skip each column's zeros before its first and after its last
 //! non-zero entry. Deterministic: the same inputs give the same bits.
 
+use std::ops::Range;
+
 /// The solution and how it was reached.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Fit {
@@ -90,11 +92,27 @@ pub fn fit_soft_l1(problem: &Problem, x0: &[f64]) -> Fit {
         let mut gradient = vec![0.0; n];
         for a in 0..n {
             gradient[a] = (support[a].0..support[a].1).map(|i| jacobian[a][i] * weights[i] * r[i]).sum();
-            for b in 0..=a {
-                let span = support[a].0.max(support[b].0)..support[a].1.min(support[b].1);
-                let v: f64 = span.map(|i| jacobian[a][i] * weights[i] * jacobian[b][i]).sum();
-                normal[a][b] = v;
-                normal[b][a] = v;
+            let span_with = |b: usize| support[a].0.max(support[b].0)..support[a].1.min(support[b].1);
+            let mut b = 0;
+            while b <= a {
+                // Up to four columns over the same span in one pass, each sum still in index order.
+                let span = span_with(b);
+                let mut end = b + 1;
+                while end <= a && end - b < 4 && span_with(end) == span {
+                    end += 1;
+                }
+                let column = |k: usize| &jacobian[b + k][..];
+                let sums = match end - b {
+                    1 => products(&jacobian[a], &weights, [column(0)], span).to_vec(),
+                    2 => products(&jacobian[a], &weights, [column(0), column(1)], span).to_vec(),
+                    3 => products(&jacobian[a], &weights, [column(0), column(1), column(2)], span).to_vec(),
+                    _ => products(&jacobian[a], &weights, [column(0), column(1), column(2), column(3)], span).to_vec(),
+                };
+                for (k, v) in sums.into_iter().enumerate() {
+                    normal[a][b + k] = v;
+                    normal[b + k][a] = v;
+                }
+                b = end;
             }
         }
         let mut improved = false;
@@ -130,6 +148,26 @@ pub fn fit_soft_l1(problem: &Problem, x0: &[f64]) -> Fit {
         }
     }
     Fit { x, cost, iterations }
+}
+
+/// `Σᵢ (a[i]·w[i])·c[i]` over `span` for each column `c` of `columns`: each sum adds its terms in
+/// index order from the empty sum's value, as `Iterator::sum` does, so the bits are the same as
+/// one sum at a time; side by side, the sums do not wait on each other's additions.
+fn products<const K: usize>(a: &[f64], w: &[f64], columns: [&[f64]; K], span: Range<usize>) -> [f64; K] {
+    let zero: f64 = std::iter::empty::<f64>().sum();
+    let mut sums = [zero; K];
+    if span.is_empty() {
+        return sums; // disjoint supports (the range may run backwards)
+    }
+    let (a, w) = (&a[span.clone()], &w[span.clone()]);
+    let columns = columns.map(|c| &c[span.clone()]);
+    for i in 0..a.len() {
+        let weighted = a[i] * w[i];
+        for (sum, c) in sums.iter_mut().zip(&columns) {
+            *sum += weighted * c[i];
+        }
+    }
+    sums
 }
 
 /// Solves `a x = b` for symmetric positive-definite `a` by Cholesky; `None` when it is not.
