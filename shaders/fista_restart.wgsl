@@ -1,16 +1,5 @@
 // After fista_state.wgsl: where it restarted the momentum, the look-ahead point is σ itself.
 
-struct State {
-    t: f32,
-    momentum: f32,
-    restarted: u32,
-    settled: u32,
-    steps: u32,
-    tolerance: f32,
-    coasting: u32,
-    _pad0: u32,
-}
-
 struct Nodes {
     nodes: u32,
     _pad0: u32,

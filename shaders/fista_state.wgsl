@@ -4,17 +4,6 @@
 // settled once a step whose look-ahead carried momentum changed σ by at most `tolerance` of its
 // norm.
 
-struct State {
-    t: f32,
-    momentum: f32,
-    restarted: u32,
-    settled: u32,
-    steps: u32,
-    tolerance: f32,
-    coasting: u32,
-    _pad0: u32,
-}
-
 struct Partials {
     // Workgroups of fista_step (three sums each).
     count: u32,

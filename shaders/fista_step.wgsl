@@ -20,17 +20,6 @@ struct FistaStep {
     _pad3: u32,
 }
 
-struct State {
-    t: f32,
-    momentum: f32,
-    restarted: u32,
-    settled: u32,
-    steps: u32,
-    tolerance: f32,
-    coasting: u32,
-    _pad0: u32,
-}
-
 @group(0) @binding(0) var<uniform> u: FistaStep;
 // Aᵀ(Aσ̂ − τ), from sheet_back.wgsl.
 @group(0) @binding(1) var<storage, read> back: array<f32>;

@@ -2,6 +2,7 @@
 //! look-ahead point becomes σ, one invocation per node.
 
 use super::buffers;
+use super::fista_step::SOLVE_STATE;
 use super::kernel::{groups, whole, Binding, Bound, Kernel, WORKGROUP};
 use super::Gpu;
 use bytemuck::{Pod, Zeroable};
@@ -24,7 +25,7 @@ impl FistaRestart {
     pub fn new(gpu: &Gpu) -> anyhow::Result<FistaRestart> {
         let read = Binding::Storage { read_only: true };
         let bindings = [Binding::Uniform, read, read, Binding::Storage { read_only: false }];
-        Ok(FistaRestart { kernel: Kernel::new(gpu, "fista_restart", SOURCE, &bindings)? })
+        Ok(FistaRestart { kernel: Kernel::new(gpu, "fista_restart", &[SOURCE, SOLVE_STATE].concat(), &bindings)? })
     }
 
     /// Binds the restart over `nodes`; the returned uniform buffer must outlive the binding.

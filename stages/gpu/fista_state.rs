@@ -3,6 +3,7 @@
 //! (`CpuFista::solve` between its passes).
 
 use super::buffers;
+use super::fista_step::SOLVE_STATE;
 use super::kernel::{whole, Binding, Bound, Kernel};
 use super::Gpu;
 use bytemuck::{Pod, Zeroable};
@@ -24,7 +25,7 @@ pub struct FistaState {
 impl FistaState {
     pub fn new(gpu: &Gpu) -> anyhow::Result<FistaState> {
         let bindings = [Binding::Uniform, Binding::Storage { read_only: true }, Binding::Storage { read_only: false }];
-        Ok(FistaState { kernel: Kernel::new(gpu, "fista_state", SOURCE, &bindings)? })
+        Ok(FistaState { kernel: Kernel::new(gpu, "fista_state", &[SOURCE, SOLVE_STATE].concat(), &bindings)? })
     }
 
     /// Binds the update of `state` from `workgroups` triples of `partials`. The returned

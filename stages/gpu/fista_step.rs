@@ -20,6 +20,10 @@ pub struct Uniforms {
     pub _pad2: [u32; 2],
 }
 
+/// `shaders/fista_solve_state.wgsl`, which the FISTA kernels' hosts append to their shader: its
+/// `struct State`, [`State`] on the device.
+pub const SOLVE_STATE: &str = include_str!("../../shaders/fista_solve_state.wgsl");
+
 /// `struct State` of the shaders: the solve's momentum, restart, count and stop, on the device.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -55,7 +59,7 @@ impl FistaStep {
     pub fn new(gpu: &Gpu) -> anyhow::Result<FistaStep> {
         let (read, write) = (Binding::Storage { read_only: true }, Binding::Storage { read_only: false });
         let bindings = [Binding::Uniform, read, read, read, read, write, write, write];
-        Ok(FistaStep { kernel: Kernel::new(gpu, "fista_step", SOURCE, &bindings)? })
+        Ok(FistaStep { kernel: Kernel::new(gpu, "fista_step", &[SOURCE, SOLVE_STATE].concat(), &bindings)? })
     }
 
     /// Workgroups of a step over `nodes`: each writes three partial sums.
