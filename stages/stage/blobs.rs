@@ -16,7 +16,7 @@ use crate::engine::{Context, Output, Stage};
 use crate::kernels::filters::distance_inside_mm;
 use crate::kernels::lung_mask::{blob_sites, lung_field, ranked_blobs, BlobPeak};
 use crate::stage::ingest::truth::GroundTruth;
-use crate::stage::sweep::{Region, SweepFile};
+use crate::stage::sweep::{swept_lung_field, SweepFile};
 use crate::volume::Volume;
 use anyhow::bail;
 use serde::{Deserialize, Serialize};
@@ -157,14 +157,7 @@ impl Stage for Blobs {
         let sweep: SweepFile = super::read_json(ctx, SWEEP)?;
         let truth: GroundTruth = super::read_json(ctx, GROUND_TRUTH)?;
         let annotated = truth.target.map(|t| truth.nodules[t].annotated_diameter_mm);
-        // The sweep's lung field, when it swept one: the same σ gives the same field.
-        let lungs = match sweep.params.region {
-            Region::LungField => {
-                let field: Volume<u8> = super::read_volume(ctx, LUNG_FIELD)?;
-                Some(field.data.iter().map(|&v| v != 0).collect::<Vec<bool>>())
-            }
-            Region::Box => None,
-        };
+        let lungs = swept_lung_field(ctx, &sweep.params)?;
         let searches = search(&self.params, &density, lungs.as_deref(), annotated);
         Ok(vec![Output::new(BLOBS.file, serde_json::to_vec_pretty(&searches)?)])
     }

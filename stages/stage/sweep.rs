@@ -236,27 +236,45 @@ pub fn equivalent_diameter_mm(volume_mm3: f64) -> f64 {
 
 /// The centroid (patient mm) of `voxels`, ascending: [`summarize`]'s of the component they are.
 pub(crate) fn centroid_mm(voxels: &[usize], geometry: &Geometry) -> [f64; 3] {
-    let [nx, ny, _] = geometry.dims;
     let mut sum = [0f64; 3];
     for &i in voxels {
-        for (a, c) in [i % nx, (i / nx) % ny, i / (nx * ny)].into_iter().enumerate() {
-            sum[a] += c as f64;
-        }
+        add_coordinates(&mut sum, i, geometry.dims);
     }
-    geometry.voxel_to_patient_mm(sum.map(|v| v / voxels.len() as f64))
+    mean_mm(sum, voxels.len(), geometry)
 }
 
 /// Each component's centroid in patient mm.
 pub(crate) fn summarize(components: &Components, geometry: &Geometry) -> Vec<[f64; 3]> {
-    let [nx, ny, _] = geometry.dims;
     let mut sums = vec![[0f64; 3]; components.count()];
     for (i, &l) in components.labels.iter().enumerate().filter(|(_, &l)| l != 0) {
-        let s = &mut sums[l as usize - 1];
-        for (a, c) in [i % nx, (i / nx) % ny, i / (nx * ny)].into_iter().enumerate() {
-            s[a] += c as f64;
-        }
+        add_coordinates(&mut sums[l as usize - 1], i, geometry.dims);
     }
-    sums.iter().zip(&components.sizes).map(|(s, &n)| geometry.voxel_to_patient_mm(s.map(|v| v / n as f64))).collect()
+    sums.iter().zip(&components.sizes).map(|(&s, &n)| mean_mm(s, n, geometry)).collect()
+}
+
+/// Adds node `i`'s lattice coordinates to `sum`: every centroid here adds its nodes in index
+/// order, so a component's centroid is the same bits however it was found.
+fn add_coordinates(sum: &mut [f64; 3], i: usize, [nx, ny, _]: [usize; 3]) {
+    for (a, c) in [i % nx, (i / nx) % ny, i / (nx * ny)].into_iter().enumerate() {
+        sum[a] += c as f64;
+    }
+}
+
+/// The patient-mm position of the mean of `count` nodes whose coordinates add up to `sum`.
+fn mean_mm(sum: [f64; 3], count: usize, geometry: &Geometry) -> [f64; 3] {
+    geometry.voxel_to_patient_mm(sum.map(|v| v / count as f64))
+}
+
+/// The lung field the sweep wrote, when it swept one (`region = "lung_field"`): the same σ gives
+/// the same field, so the stages after it read it rather than find it again.
+pub(crate) fn swept_lung_field(ctx: &Context, params: &Params) -> anyhow::Result<Option<Vec<bool>>> {
+    Ok(match params.region {
+        Region::LungField => {
+            let field: Volume<u8> = super::read_volume(ctx, LUNG_FIELD)?;
+            Some(field.data.iter().map(|&v| v != 0).collect())
+        }
+        Region::Box => None,
+    })
 }
 
 /// `sweep.csv`: `percentile,threshold,candidate,voxels,volume_mm3,diameter_mm,centroid_mm`,

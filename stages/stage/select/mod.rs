@@ -40,7 +40,7 @@ use crate::kernels::marching_cubes::mesh_mask;
 use crate::kernels::mesh::{enclosed_volume_mm3, vertex_normals};
 use crate::stage::drr::CameraSet;
 use crate::stage::ingest::truth::GroundTruth;
-use crate::stage::sweep::{levels_of, scored, Candidate, Region, SweepFile};
+use crate::stage::sweep::{levels_of, scored, swept_lung_field, Candidate, SweepFile};
 use crate::volume::Volume;
 use anyhow::{bail, Context as _};
 use size::shadows;
@@ -141,14 +141,7 @@ impl Select {
             Some(_) => Some(ground_truth_on_grid(&super::read_volume(ctx, GT_MASK)?, &density.geometry)?),
             None => None,
         };
-        // The sweep's lung field, when it swept one: the same σ gives the same field.
-        let lungs = match sweep.params.region {
-            Region::LungField => {
-                let field: Volume<u8> = super::read_volume(ctx, LUNG_FIELD)?;
-                Some(field.data.iter().map(|&v| v != 0).collect::<Vec<bool>>())
-            }
-            Region::Box => None,
-        };
+        let lungs = swept_lung_field(ctx, &sweep.params)?;
         let scored = scored(&density, &sweep.params, lungs)?;
         let levels = levels_of(&scored, &sweep.params)?;
         let found: Vec<Candidate> = levels.iter().flat_map(|l| l.candidates.iter().cloned()).collect();

@@ -182,21 +182,12 @@ impl FistaSolver for CpuFista {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::Aabb;
-    use crate::train::render::{Lattice, Ray};
 
     #[test]
     fn only_a_step_that_carries_momentum_ends_the_solve() {
         // Every ray sees nothing (I = 1), so σ = 0 is the minimum and no step moves it: the
         // first step that may end the solve is the third, the first whose look-ahead coasts.
-        let lattice = Lattice { n: 6, aabb: Aabb { min: [-1.0; 3], max: [1.0; 3] } };
-        let rays: Vec<Ray> = (0..30)
-            .map(|i| {
-                let a = i as f64 * 0.41;
-                let origin = glam::DVec3::new(4.0 * a.cos(), 3.0 * a.sin(), 0.5 * (2.0 * a).sin());
-                Ray { origin, dir: (-origin).normalize(), target: 1.0 }
-            })
-            .collect();
+        let (lattice, rays) = super::super::ring_of_rays(1.0);
         let problem = DenseProblem::new(&lattice, 1.0, 1e-2, 1e-3, &rays, &[(30, 30)]);
         let mut sigma = vec![0.0; problem.nodes()];
         let stop = Stop { steps: 50, tolerance: 1e-4 };

@@ -313,10 +313,24 @@ fn view_mse(per_view: &[Vec<Ray>], depths: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// A 6³ lattice in the box [−1, 1]³ and 30 rays at it from a ring around it, each measuring
+/// `target` (I/I₀): a small problem for the solvers' tests.
+#[cfg(test)]
+fn ring_of_rays(target: f64) -> (Lattice, Vec<Ray>) {
+    let lattice = Lattice { n: 6, aabb: crate::geometry::Aabb { min: [-1.0; 3], max: [1.0; 3] } };
+    let rays = (0..30)
+        .map(|i| {
+            let a = i as f64 * 0.41;
+            let origin = glam::DVec3::new(4.0 * a.cos(), 3.0 * a.sin(), 0.5 * (2.0 * a).sin());
+            Ray { origin, dir: (-origin).normalize(), target }
+        })
+        .collect();
+    (lattice, rays)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::Aabb;
 
     #[test]
     fn enlarging_keeps_a_linear_field_inside_and_a_constant_one_everywhere() {
@@ -335,14 +349,7 @@ mod tests {
     #[test]
     fn each_nodes_data_curvature_bounds_a_change_there() {
         // For a unit change δ at one node, E's data term grows by ½ |A δ|²/B ≤ ½ δ² (AᵀA·1)/B.
-        let lattice = Lattice { n: 6, aabb: Aabb { min: [-1.0; 3], max: [1.0; 3] } };
-        let rays: Vec<Ray> = (0..30)
-            .map(|i| {
-                let a = i as f64 * 0.41;
-                let origin = glam::DVec3::new(4.0 * a.cos(), 3.0 * a.sin(), 0.5 * (2.0 * a).sin());
-                Ray { origin, dir: (-origin).normalize(), target: 0.5 }
-            })
-            .collect();
+        let (lattice, rays) = ring_of_rays(0.5);
         let problem = DenseProblem::new(&lattice, 1.0, 0.0, 1.0, &rays, &[(30, 30)]);
         for node in 0..problem.nodes() {
             let mut delta = vec![0.0f32; problem.nodes()];

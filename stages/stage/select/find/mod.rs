@@ -7,9 +7,9 @@
 //!   otherwise (the stage says so in its verdict's localization line).
 //! - `blob` (assistance B for the guided rule, C for the blind ones): the strongest bright-blob
 //!   response of σ (the Hessian of Gaussian's, [`crate::kernels::filters::hessian_blob_response`])
-//!   more than `inside_mm` inside the lung field found in σ, as the `blobs` stage found them. The guided rule uses the scale
-//!   matched to the annotated diameter (s = d / (2√3): a ball of radius √3·s answers most at
-//!   s); the blind rules the maximum over `scales_mm`.
+//!   more than `inside_mm` inside the lung field found in σ, as the `blobs` stage found them.
+//!   The guided rule uses the scale matched to the annotated diameter (s = d / (2√3): a ball of
+//!   radius √3·s answers most at s); the blind rules the maximum over `scales_mm`.
 //!
 //! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
 //! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
