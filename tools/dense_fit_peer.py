@@ -5,12 +5,14 @@ Reads a problem that `bench_dense_fit` wrote (`problem.json` and `rays.f64`: per
 unit direction and measured I/I0, seven float64), builds Joseph's projector of the same rays as a
 `scipy.sparse` matrix, and runs the shipped solve on it with numpy: FISTA on
 E = 1/(2B) |Aσ − τ|² + λ/N³ Σ √(|∇σ|² + ε²), σ ≥ 0, each node's step from the majoriser's
-curvature, restarts, and the relative-change stop (no coarse start). Prints one JSON line:
-the seconds to build A and to solve, the steps taken and the final energy.
+curvature, restarts, and the relative-change stop of a step that carries momentum (no coarse
+start). Prints one JSON line: the seconds to build A and to solve, the steps taken and the final
+energy. `lab/scripts/dense_*.py` build their experiments on its `Problem` and `Fista`.
 
     python3 tools/dense_fit_peer.py DIR    # DIR holds problem.json and rays.f64
 """
 
+import functools
 import json
 import os
 import sys
@@ -88,55 +90,112 @@ def tv_parts(s, eps):
     return m, g
 
 
-def solve(A, tau, seen, n, lam, eps, steps, tol):
-    B = max(seen.sum(), 1)
-    mu = lam / n ** 3
-    data_curv = (A.T @ (A @ np.ones(n ** 3))).reshape(n, n, n) / B
-    sigma = np.zeros((n, n, n))
-    ahead, t = sigma.copy(), 1.0
-    for step in range(1, steps + 1):
-        r = np.where(seen, A @ ahead.ravel() - tau, 0.0)
-        m, g_tv = tv_parts(ahead, eps)
+class Problem:
+    """E's parts for the rays of a DIR that `bench_dense_fit` wrote (`problem.json`, `rays.f64`):
+    A, which rays meet the box, the measured depths τ, B, λ/N³, ε and (AᵀA·1)/B."""
+
+    def __init__(self, folder):
+        with open(os.path.join(folder, "problem.json")) as f:
+            self.params = json.load(f)
+        rays = np.fromfile(os.path.join(folder, "rays.f64"), dtype="<f8").reshape(-1, 7)
+        self.n = n = self.params["n"]
+        lo, hi = np.array(self.params["aabb_min"]), np.array(self.params["aabb_max"])
+        started = time.perf_counter()
+        self.A = projector(rays, n, lo, hi, self.params["scale"])
+        self.build_s = time.perf_counter() - started
+        self.seen = np.diff(self.A.indptr) > 0
+        self.tau = -np.log(np.maximum(rays[:, 6], 1e-6))
+        self.B = max(self.seen.sum(), 1)
+        self.mu = self.params["lambda"] / n**3
+        self.eps = self.params["epsilon"]
+
+    @functools.cached_property
+    def data_curvature(self):
+        """(AᵀA·1)/B: each node's bound on the data term's curvature."""
+        return self.curvature_of(self.rows())
+
+    def rows(self, which=None):
+        """A, which rays meet the box and τ for the rays `which` (a slice; all by default)."""
+        if which is None:
+            return self.A, self.seen, self.tau
+        return self.A[which], self.seen[which], self.tau[which]
+
+    def curvature_of(self, rows, scale=1.0):
+        """`scale` × (AᵀA·1)/B of `rows` (as [`rows`] gives them)."""
+        A = rows[0]
+        return scale * (A.T @ (A @ np.ones(self.n**3))).reshape((self.n,) * 3) / self.B
+
+    def data_gradient(self, s, rows=None, scale=1.0):
+        """`scale` × Aᵀ(Aσ − τ)/B at σ over `rows` (all rays by default)."""
+        A, seen, tau = rows or self.rows()
+        r = np.where(seen, A @ s.ravel() - tau, 0.0)
+        return scale * (A.T @ r).reshape(s.shape) / self.B
+
+    def energy(self, s, eps=None):
+        r = np.where(self.seen, self.A @ s.ravel() - self.tau, 0.0)
+        return (r**2).sum() / (2 * self.B) + self.mu * tv_parts(s, self.eps if eps is None else eps)[0].sum()
+
+
+class Fista:
+    """The shipped solve's state (σ, the look-ahead point, t) and its step: the majoriser's
+    per-node step from the look-ahead point, Nesterov's momentum restarted when it points uphill."""
+
+    def __init__(self, sigma):
+        self.sigma, self.ahead, self.t = sigma, sigma.copy(), 1.0
+        self.coasting = False  # whether the look-ahead point carries momentum
+
+    def step(self, gradient, data_curvature, mu, eps):
+        """One step, `gradient(ahead)` the data term's gradient. Returns σ's change and whether
+        this step's look-ahead carried momentum (only such a step may end a solve)."""
+        m, g_tv = tv_parts(self.ahead, eps)
         inv = 1.0 / m
         curv = 6.0 * inv
         curv[:, :, 1:] += 2.0 * inv[:, :, :-1]
         curv[:, 1:, :] += 2.0 * inv[:, :-1, :]
         curv[1:, :, :] += 2.0 * inv[:-1, :, :]
-        step_size = 1.0 / (data_curv + mu * curv)
-        g = (A.T @ r).reshape(n, n, n) / B + mu * g_tv
-        nxt = np.maximum(ahead - step_size * g, 0.0)
-        change = nxt - sigma
-        t_next = (1 + np.sqrt(1 + 4 * t * t)) / 2
-        uphill = ((ahead - nxt) * change / step_size).sum() > 0
-        ahead = nxt + (t - 1) / t_next * change
-        t = t_next
+        step_size = 1.0 / (data_curvature + mu * curv)
+        g = gradient(self.ahead) + mu * g_tv
+        nxt = np.maximum(self.ahead - step_size * g, 0.0)
+        change = nxt - self.sigma
+        t_next = (1 + np.sqrt(1 + 4 * self.t * self.t)) / 2
+        uphill = ((self.ahead - nxt) * change / step_size).sum() > 0
+        momentum = (self.t - 1) / t_next
+        coasted, self.coasting = self.coasting, momentum > 0
+        self.ahead = nxt + momentum * change
+        self.t = t_next
         if uphill:
-            t, ahead = 1.0, nxt.copy()
-        sigma = nxt
-        if np.sqrt((change ** 2).sum() / max((nxt ** 2).sum(), 1e-300)) <= tol:
+            self.t, self.ahead, self.coasting = 1.0, nxt.copy(), False
+        self.sigma = nxt
+        return change, coasted
+
+
+def relative_change(change, sigma):
+    return np.sqrt((change**2).sum() / max((sigma**2).sum(), 1e-300))
+
+
+def solve(problem, steps, tol, sigma=None, eps=None, on_step=None):
+    """The shipped solve from `sigma` (zero by default) at `eps` (the problem's by default):
+    at most `steps` steps, stopping once a coasting step changes σ by at most `tol`;
+    `on_step(k, σ)` after each."""
+    eps = problem.eps if eps is None else eps
+    fista = Fista(np.zeros((problem.n,) * 3) if sigma is None else sigma)
+    for step in range(1, steps + 1):
+        change, coasted = fista.step(problem.data_gradient, problem.data_curvature, problem.mu, eps)
+        if on_step:
+            on_step(step, fista.sigma)
+        if coasted and relative_change(change, fista.sigma) <= tol:
             break
-    r = np.where(seen, A @ sigma.ravel() - tau, 0.0)
-    energy = (r ** 2).sum() / (2 * B) + mu * tv_parts(sigma, eps)[0].sum()
-    return step, energy
+    return fista.sigma, step
 
 
 def main():
-    folder = sys.argv[1]
-    with open(os.path.join(folder, "problem.json")) as f:
-        problem = json.load(f)
-    rays = np.fromfile(os.path.join(folder, "rays.f64"), dtype="<f8").reshape(-1, 7)
-    n = problem["n"]
-    lo, hi = np.array(problem["aabb_min"]), np.array(problem["aabb_max"])
+    problem = Problem(sys.argv[1])
     started = time.perf_counter()
-    A = projector(rays, n, lo, hi, problem["scale"])
-    built = time.perf_counter()
-    seen = np.diff(A.indptr) > 0
-    tau = -np.log(np.maximum(rays[:, 6], 1e-6))
-    steps, energy = solve(A, tau, seen, n, problem["lambda"], problem["epsilon"], problem["iterations"],
-                          problem["tolerance"])
-    done = time.perf_counter()
-    print(json.dumps({"build_s": built - started, "solve_s": done - built, "steps": steps, "energy": energy,
-                      "entries": int(A.nnz)}))
+    sigma, steps = solve(problem, problem.params["iterations"], problem.params["tolerance"])
+    energy = problem.energy(sigma)
+    solved = time.perf_counter() - started
+    print(json.dumps({"build_s": problem.build_s, "solve_s": solved, "steps": steps, "energy": energy,
+                      "entries": int(problem.A.nnz)}))
 
 
 if __name__ == "__main__":

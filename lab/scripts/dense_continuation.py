@@ -8,8 +8,8 @@ come within 1e-4 of the shipped fit's energy.
     python3 lab/scripts/dense_continuation.py DIR TARGET_E [--epsilons 1e-2,3e-3,1e-3]
         [--stage-tolerance 1e-3] [--steps 500]
 
-DIR and TARGET_E as for `lab/scripts/dense_lbfgs.py`. Every stage is the peer's FISTA
-(`tools/dense_fit_peer.py`: the majoriser's per-node step, restarts), from zero for the first.
+DIR and TARGET_E as for `lab/scripts/dense_lbfgs.py`. Every stage is `tools/dense_fit_peer.py`'s
+solve (the shipped FISTA), from zero for the first.
 """
 
 import argparse
@@ -18,10 +18,8 @@ import os
 import sys
 import time
 
-import numpy as np
-
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "tools"))
-from dense_fit_peer import projector, tv_parts  # noqa: E402
+from dense_fit_peer import Problem, solve  # noqa: E402
 
 
 def main():
@@ -32,59 +30,24 @@ def main():
     ap.add_argument("--stage-tolerance", type=float, default=1e-3)
     ap.add_argument("--steps", type=int, default=500)
     args = ap.parse_args()
-    with open(os.path.join(args.dir, "problem.json")) as f:
-        problem = json.load(f)
-    rays = np.fromfile(os.path.join(args.dir, "rays.f64"), dtype="<f8").reshape(-1, 7)
-    n = problem["n"]
-    lo, hi = np.array(problem["aabb_min"]), np.array(problem["aabb_max"])
-    A = projector(rays, n, lo, hi, problem["scale"])
-    seen = np.diff(A.indptr) > 0
-    tau = -np.log(np.maximum(rays[:, 6], 1e-6))
-    B = max(seen.sum(), 1)
-    mu = problem["lambda"] / n**3
-    shipped_eps, tolerance = problem["epsilon"], problem["tolerance"]
-    data_curv = (A.T @ (A @ np.ones(n**3))).reshape(n, n, n) / B
-
-    def energy(s, eps):
-        r = np.where(seen, A @ s.ravel() - tau, 0.0)
-        return (r**2).sum() / (2 * B) + mu * tv_parts(s, eps)[0].sum()
-
+    p = Problem(args.dir)
     started = time.perf_counter()
     epsilons = [float(e) for e in args.epsilons.split(",")]
-    sigma = np.zeros((n, n, n))
-    total, reached, stages = 0, None, []
+    sigma, total, reached = None, 0, None
     for i, eps in enumerate(epsilons):
         last = i == len(epsilons) - 1
-        tol = tolerance if last else args.stage_tolerance
-        ahead, t = sigma.copy(), 1.0
-        for step in range(1, args.steps + 1):
-            r = np.where(seen, A @ ahead.ravel() - tau, 0.0)
-            m, g_tv = tv_parts(ahead, eps)
-            inv = 1.0 / m
-            curv = 6.0 * inv
-            curv[:, :, 1:] += 2.0 * inv[:, :, :-1]
-            curv[:, 1:, :] += 2.0 * inv[:, :-1, :]
-            curv[1:, :, :] += 2.0 * inv[:-1, :, :]
-            step_size = 1.0 / (data_curv + mu * curv)
-            g = (A.T @ r).reshape(n, n, n) / B + mu * g_tv
-            nxt = np.maximum(ahead - step_size * g, 0.0)
-            change = nxt - sigma
-            t_next = (1 + np.sqrt(1 + 4 * t * t)) / 2
-            uphill = ((ahead - nxt) * change / step_size).sum() > 0
-            coasted = t > 1.0  # this step's look-ahead carried momentum (the shipped stop's rule)
-            ahead = nxt + (t - 1) / t_next * change
-            t = t_next
-            if uphill:
-                t, ahead = 1.0, nxt.copy()
-            sigma = nxt
-            total += 1
-            if last and reached is None and step % 5 == 0 and energy(sigma, shipped_eps) <= args.target * (1 + 1e-4):
-                reached = total
-            if coasted and np.sqrt((change**2).sum() / max((nxt**2).sum(), 1e-300)) <= tol:
-                break
-        e = energy(sigma, shipped_eps)
-        stages.append({"epsilon": eps, "steps": step, "energy_at_shipped_epsilon": e, "over_target": e / args.target - 1})
-        print(json.dumps(stages[-1]), flush=True)
+
+        def watch(k, s):
+            nonlocal reached
+            if last and reached is None and k % 5 == 0 and p.energy(s) <= args.target * (1 + 1e-4):
+                reached = total + k
+
+        tol = p.params["tolerance"] if last else args.stage_tolerance
+        sigma, steps = solve(p, args.steps, tol, sigma=sigma, eps=eps, on_step=watch)
+        total += steps
+        e = p.energy(sigma)
+        print(json.dumps({"epsilon": eps, "steps": steps, "energy_at_shipped_epsilon": e,
+                          "over_target": e / args.target - 1}), flush=True)
     print(json.dumps({"total_steps": total, "steps_to_within_1e-4": reached, "seconds": time.perf_counter() - started}))
 
 

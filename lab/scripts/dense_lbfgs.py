@@ -4,8 +4,8 @@ need to reach the shipped FISTA's energy on the dense fit's own problem?
 
 The shipped solver takes 386-500 FISTA steps at 128³ (each one `A` and one `Aᵀ`) after a 64³
 start. A solver that reaches the same minimum in a third of the products would bring a fit near
-the 3 s a patient the issue asks for. This runs the same objective as `tools/dense_fit_peer.py`
-(its projector and TV, imported), from zero, and prints the energy against the evaluations.
+the 3 s a patient the issue asks for. This runs the objective of `tools/dense_fit_peer.py` (its
+`Problem`) from zero and prints the energy against the evaluations.
 
     python3 lab/scripts/dense_lbfgs.py DIR TARGET_E [--evals 600] [--memory 10]
 
@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "tools"))
-from dense_fit_peer import projector, tv_parts  # noqa: E402
+from dense_fit_peer import Problem, tv_parts  # noqa: E402
 
 
 def main():
@@ -34,33 +34,23 @@ def main():
     ap.add_argument("--evals", type=int, default=600)
     ap.add_argument("--memory", type=int, default=10)
     args = ap.parse_args()
-    with open(os.path.join(args.dir, "problem.json")) as f:
-        problem = json.load(f)
-    rays = np.fromfile(os.path.join(args.dir, "rays.f64"), dtype="<f8").reshape(-1, 7)
-    n = problem["n"]
-    lo, hi = np.array(problem["aabb_min"]), np.array(problem["aabb_max"])
-    A = projector(rays, n, lo, hi, problem["scale"])
-    seen = np.diff(A.indptr) > 0
-    tau = -np.log(np.maximum(rays[:, 6], 1e-6))
-    B = max(seen.sum(), 1)
-    mu = problem["lambda"] / n**3
-    eps = problem["epsilon"]
+    p = Problem(args.dir)
+    shape = (p.n,) * 3
     evals = []
 
     def energy(x):
-        s = x.reshape(n, n, n)
-        r = np.where(seen, A @ x - tau, 0.0)
-        m, g_tv = tv_parts(s, eps)
-        e = (r**2).sum() / (2 * B) + mu * m.sum()
-        g = (A.T @ r) / B + mu * g_tv.ravel()
+        s = x.reshape(shape)
+        r = np.where(p.seen, p.A @ x - p.tau, 0.0)
+        m, g_tv = tv_parts(s, p.eps)
+        e = (r**2).sum() / (2 * p.B) + p.mu * m.sum()
+        g = (p.A.T @ r) / p.B + p.mu * g_tv.ravel()
         evals.append(e)
         if len(evals) % 25 == 0:
             print(f"eval {len(evals)}: E {e:.9e} ({e / args.target - 1:+.2e} of the target)", flush=True)
         return e, g
 
     started = time.perf_counter()
-    x0 = np.zeros(n**3)
-    minimize(energy, x0, jac=True, method="L-BFGS-B", bounds=[(0.0, None)] * n**3,
+    minimize(energy, np.zeros(p.n**3), jac=True, method="L-BFGS-B", bounds=[(0.0, None)] * p.n**3,
              options={"maxfun": args.evals, "maxiter": args.evals, "maxcor": args.memory, "ftol": 0.0, "gtol": 0.0})
     reached = [i + 1 for i, e in enumerate(evals) if e <= args.target * (1 + 1e-4)]
     best = min(evals)

@@ -6,9 +6,9 @@ step (OS-SQS, Erdogan and Fessler 1999) and Nesterov's momentum with the gradien
 steps, the shipped solve, so the minimiser is the same. Prints the full energy after each epoch
 and how many view-products it took to come within 1e-4 of the shipped fit's energy.
 
-    python3 lab/scripts/dense_os.py DIR TARGET_E [--epochs 60] [--full 400]
+    python3 lab/scripts/dense_os.py DIR TARGET_E [--epochs 60] [--full 300]
 
-DIR and TARGET_E as for `lab/scripts/dense_lbfgs.py`.
+DIR and TARGET_E as for `lab/scripts/dense_lbfgs.py`; the solve is `tools/dense_fit_peer.py`'s.
 """
 
 import argparse
@@ -20,16 +20,9 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "tools"))
-from dense_fit_peer import projector, tv_parts  # noqa: E402
+from dense_fit_peer import Fista, Problem, solve  # noqa: E402
 
-
-def tv_curvature(m):
-    inv = 1.0 / m
-    curv = 6.0 * inv
-    curv[:, :, 1:] += 2.0 * inv[:, :, :-1]
-    curv[:, 1:, :] += 2.0 * inv[:, :-1, :]
-    curv[1:, :, :] += 2.0 * inv[:-1, :, :]
-    return curv
+VIEWS = 3
 
 
 def main():
@@ -37,78 +30,36 @@ def main():
     ap.add_argument("dir")
     ap.add_argument("target", type=float)
     ap.add_argument("--epochs", type=int, default=60)
-    ap.add_argument("--full", type=int, default=400)
+    ap.add_argument("--full", type=int, default=300)
     args = ap.parse_args()
-    with open(os.path.join(args.dir, "problem.json")) as f:
-        problem = json.load(f)
-    rays = np.fromfile(os.path.join(args.dir, "rays.f64"), dtype="<f8").reshape(-1, 7)
-    n = problem["n"]
-    lo, hi = np.array(problem["aabb_min"]), np.array(problem["aabb_max"])
-    A = projector(rays, n, lo, hi, problem["scale"])
-    seen = np.diff(A.indptr) > 0
-    tau = -np.log(np.maximum(rays[:, 6], 1e-6))
-    B = max(seen.sum(), 1)
-    mu = problem["lambda"] / n**3
-    eps = problem["epsilon"]
-    views = 3
-    per_view = len(rays) // views
-    subsets = []
-    for v in range(views):
-        rows = slice(v * per_view, (v + 1) * per_view)
-        Av = A[rows]
-        curv = views * (Av.T @ (Av @ np.ones(n**3))).reshape(n, n, n) / B
-        subsets.append((Av, tau[rows], seen[rows], curv))
-    full_curv = (A.T @ (A @ np.ones(n**3))).reshape(n, n, n) / B
-
-    def energy(s):
-        r = np.where(seen, A @ s.ravel() - tau, 0.0)
-        return (r**2).sum() / (2 * B) + mu * tv_parts(s, eps)[0].sum()
-
-    def gradient(s, Av, tv, sv, scale):
-        r = np.where(sv, Av @ s.ravel() - tv, 0.0)
-        m, g_tv = tv_parts(s, eps)
-        return scale * (Av.T @ r).reshape(n, n, n) / B + mu * g_tv, m
-
+    p = Problem(args.dir)
+    per_view = len(p.tau) // VIEWS
+    subsets = [p.rows(slice(v * per_view, (v + 1) * per_view)) for v in range(VIEWS)]
+    curvatures = [p.curvature_of(rows, VIEWS) for rows in subsets]
     started = time.perf_counter()
-    sigma = np.zeros((n, n, n))
-    ahead, t = sigma.copy(), 1.0
-    products = 0.0  # in view-products: one view's A and Aᵀ
-    trace = []
-
-    def step(Av, tv, sv, data_curv, scale):
-        nonlocal sigma, ahead, t
-        g, m = gradient(ahead, Av, tv, sv, scale)
-        step_size = 1.0 / (data_curv + mu * tv_curvature(m))
-        nxt = np.maximum(ahead - step_size * g, 0.0)
-        change = nxt - sigma
-        t_next = (1 + np.sqrt(1 + 4 * t * t)) / 2
-        uphill = ((ahead - nxt) * change / step_size).sum() > 0
-        ahead = nxt + (t - 1) / t_next * change
-        t = t_next
-        if uphill:
-            t, ahead = 1.0, nxt.copy()
-        sigma = nxt
-
+    fista = Fista(np.zeros((p.n,) * 3))
+    products, trace = 0, []  # view-products: one view's A and Aᵀ
     for epoch in range(1, args.epochs + 1):
-        for Av, tv, sv, curv in subsets:
-            step(Av, tv, sv, curv, views)
+        for rows, curvature in zip(subsets, curvatures):
+            fista.step(lambda s, rows=rows: p.data_gradient(s, rows, VIEWS), curvature, p.mu, p.eps)
             products += 1
-        e = energy(sigma)
+        e = p.energy(fista.sigma)
         trace.append((products, e))
-        print(f"epoch {epoch}: {products:.0f} view-products, E {e:.9e} ({e / args.target - 1:+.2e})", flush=True)
-    t, ahead = 1.0, sigma.copy()
-    for k in range(1, args.full + 1):
-        step(A, tau, seen, full_curv, 1)
-        products += views
+        print(f"epoch {epoch}: {products} view-products, E {e:.9e} ({e / args.target - 1:+.2e})", flush=True)
+
+    def after_full(k, sigma):
         if k % 10 == 0:
-            e = energy(sigma)
-            trace.append((products, e))
-            print(f"full step {k}: {products:.0f} view-products, E {e:.9e} ({e / args.target - 1:+.2e})", flush=True)
-    within = next((p for p, e in trace if e <= args.target * (1 + 1e-4)), None)
+            e = p.energy(sigma)
+            trace.append((products + VIEWS * k, e))
+            print(f"full step {k}: {products + VIEWS * k} view-products, E {e:.9e} ({e / args.target - 1:+.2e})",
+                  flush=True)
+
+    solve(p, args.full, 0.0, sigma=fista.sigma, on_step=after_full)
+    within = next((n for n, e in trace if e <= args.target * (1 + 1e-4)), None)
     print(json.dumps({
         "epochs": args.epochs,
         "view_products_to_within_1e-4": within,
-        "full_step_equivalents": within / views if within else None,
+        "full_step_equivalents": within / VIEWS if within else None,
         "final_over_target": trace[-1][1] / args.target - 1,
         "seconds": time.perf_counter() - started,
     }))
