@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Hit rates by kind of nodule: solid and enclosed by the lung, solid and against its wall, subsolid.
+"""Hit rates by kind of nodule (solid and enclosed by the lung, solid and against its wall,
+subsolid) and by diameter band (10–15, 15–20, ≥ 20 mm).
 
     lab/scripts/strata.py out out-default-seed2 ...      # run out dirs: <patient>/result.json,
                                                          # ground_truth.json, target_site.json
@@ -15,6 +16,9 @@ what ingest read in the annotations and the CT (never from a result), as `summar
   lies outside the CT's lung field, juxtapleural or on the mediastinum or the spine);
 - **free**: solid, enclosed by the lung.
 
+It then sorts the same targets by their annotated diameter into the bands of `summary.json`'s
+groups `ge10mm_lt15mm`, `ge15mm_lt20mm` and `ge20mm` (each band holds its lower edge).
+
 It prints, per out dir and stratum, the guided and the blind rule's hits (`result.json`'s
 `localization.hit`) and which patients each missed: the names behind the summary's rates.
 """
@@ -24,6 +28,8 @@ import os
 
 SOLID_RATING = 3.5  # summary.json's `solid`: the readers' mean texture rating from 3.5 up
 STRATA = ("free", "attached", "subsolid")
+# (name, lowest diameter, diameter it stops below), mm.
+BANDS = (("10-15 mm", 10.0, 15.0), ("15-20 mm", 15.0, 20.0), (">=20 mm", 20.0, float("inf")))
 
 
 def kind(texture_mean, attached):
@@ -54,6 +60,19 @@ def hits(patient_dir):
     return hit("guided"), hit(result.get("blind_rule", "blind_persistent"))
 
 
+def band(diameter_mm):
+    """The band of a target `diameter_mm` across, or None below 10 mm."""
+    return next((name for name, low, high in BANDS if low <= diameter_mm < high), None)
+
+
+def print_rows(name, rows):
+    """One stratum's line: its count, hits, and the patients each rule missed."""
+    guided, blind = sum(r[1] for r in rows), sum(r[2] for r in rows)
+    missed = lambda i: " ".join(r[0].removeprefix("LIDC-IDRI-") for r in rows if not r[i]) or "-"
+    print(f"  {name:9s} n={len(rows):2d}  guided {guided:2d}  blind {blind:2d}"
+          f"   guided misses: {missed(1)}; blind misses: {missed(2)}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out_dirs", nargs="+")
@@ -61,6 +80,7 @@ def main():
     args = parser.parse_args()
     for out in args.out_dirs:
         table = {s: [] for s in STRATA}
+        bands = {name: [] for name, _, _ in BANDS}
         for patient in sorted(os.listdir(out)):
             patient_dir = os.path.join(out, patient)
             if not os.path.exists(os.path.join(patient_dir, "result.json")):
@@ -68,14 +88,15 @@ def main():
             found = stratum(patient_dir)
             if found is None or found[1] < args.min_diameter_mm:
                 continue
-            table[found[0]].append((patient, *hits(patient_dir)))
+            row = (patient, *hits(patient_dir))
+            table[found[0]].append(row)
+            if band(found[1]):
+                bands[band(found[1])].append(row)
         print(f"{out} (targets ≥ {args.min_diameter_mm:g} mm)")
         for s in STRATA:
-            rows = table[s]
-            guided, blind = sum(r[1] for r in rows), sum(r[2] for r in rows)
-            missed = lambda i: " ".join(r[0].removeprefix("LIDC-IDRI-") for r in rows if not r[i]) or "-"
-            print(f"  {s:9s} n={len(rows):2d}  guided {guided:2d}  blind {blind:2d}"
-                  f"   guided misses: {missed(1)}; blind misses: {missed(2)}")
+            print_rows(s, table[s])
+        for name, rows in bands.items():
+            print_rows(name, rows)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,21 @@ def test_the_table_counts_hits_per_stratum_and_names_the_misses(tmp_path, capsys
     assert "subsolid  n= 1  guided  0  blind  0   guided misses: 0002; blind misses: 0002" in lines[3]
 
 
+def test_the_bands_hold_their_lower_edge(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    patient(out, "LIDC-IDRI-0001", 10.0, 4.8, False, True, False)
+    patient(out, "LIDC-IDRI-0002", 15.0, 1.5, False, False, False)
+    patient(out, "LIDC-IDRI-0003", 19.9, 4.0, True, True, True)
+    patient(out, "LIDC-IDRI-0004", 20.0, 5.0, False, False, True)
+    patient(out, "LIDC-IDRI-0005", 9.9, 5.0, False, True, True)  # below 10 mm: left out
+    monkeypatch.setattr(sys, "argv", ["strata.py", str(out)])
+    strata.main()
+    lines = capsys.readouterr().out.splitlines()
+    assert "10-15 mm  n= 1  guided  1  blind  0   guided misses: -; blind misses: 0001" in lines[4]
+    assert "15-20 mm  n= 2  guided  1  blind  1   guided misses: 0002; blind misses: 0002" in lines[5]
+    assert ">=20 mm   n= 1  guided  0  blind  1   guided misses: 0004; blind misses: -" in lines[6]
+
+
 def test_an_out_dir_from_before_the_site_says_to_rerun(tmp_path, monkeypatch):
     out = tmp_path / "out"
     patient(out, "LIDC-IDRI-0001", 32.8, 4.8, True, True, False)

@@ -28,7 +28,7 @@ pub mod summary;
 pub use rows::{PatientRow, Site, SizeClass};
 
 /// 10: the solid nodules' groups by site (`ingest/target_site.json`).
-pub const VERSION: u32 = 10;
+pub const VERSION: u32 = 11;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]

@@ -1,4 +1,5 @@
-//! `summary.json`: the cohort statistics for `all`, `ge10mm` and each size class.
+//! `summary.json`: the cohort statistics for `all`, `ge10mm`, each size class, the diameter bands
+//! at and above 10 mm, each texture and each site.
 //!
 //! Localization comes first: hit rates (guided, blind, oracle) and median Dice. Every APE
 //! statistic is given over all scored patients and again over hits only, so no volume error
@@ -166,12 +167,16 @@ const CONFIDENCE: f64 = 0.95;
 
 /// The summary of `rows`.
 pub fn summarize(rows: &[PatientRow], failed: &[String], unscored: &[String], params: &Params) -> Summary {
-    let subsets: [Subset; 13] = [
+    let subsets: [Subset; 16] = [
         ("all", |_| true),
         ("ge10mm", ge10mm),
         ("small", |r| r.size_class == SizeClass::Small),
         ("medium", |r| r.size_class == SizeClass::Medium),
         ("large", |r| r.size_class == SizeClass::Large),
+        // The bands a nodule's targets are stated in (the size classes split at 20 mm the other way).
+        ("ge10mm_lt15mm", |r| (10.0..15.0).contains(&r.gt_diameter_mm)),
+        ("ge15mm_lt20mm", |r| (15.0..20.0).contains(&r.gt_diameter_mm)),
+        ("ge20mm", |r| r.gt_diameter_mm >= 20.0),
         // By texture (beside the SPEC's groups): how much of a miss rate is the subsolid
         // nodules', which stand barely above the lung.
         ("solid", solid),
@@ -442,8 +447,25 @@ mod tests {
         // By site among the solid: A enclosed, C attached; the subsolid B is in neither.
         assert_eq!((s.groups["solid_enclosed"].n, s.groups["solid_attached"].n), (1, 1));
         assert_eq!((s.groups["ge10mm_solid_enclosed"].n, s.groups["ge10mm_solid_attached"].n), (1, 0));
+        // By band: A and B lie in 10–15 mm, one hit of two.
+        let band = &s.groups["ge10mm_lt15mm"];
+        assert_eq!((band.n, band.localization.hit_rate_ours), (2, Some(0.5)));
         // An empty class is reported, not dropped.
         assert_eq!(s.groups["large"].n, 0);
         assert_eq!(s.groups["large"].localization.hit_rate_ours, None);
+    }
+
+    #[test]
+    fn each_band_holds_its_lower_edge_and_the_bands_cover_10_mm_and_above_once() {
+        let params = Params { bootstrap_resamples: 20, seed: 1 };
+        let diameters: [f64; 7] = [9.9, 10.0, 14.9, 15.0, 19.9, 20.0, 31.0];
+        let rows: Vec<PatientRow> =
+            diameters.iter().map(|&d| row(&format!("{d}"), d.powi(3), d, d.powi(3), true)).collect();
+        let s = summarize(&rows, &[], &[], &params);
+        let n = |group: &str| s.groups[group].n;
+        assert_eq!([n("ge10mm_lt15mm"), n("ge15mm_lt20mm"), n("ge20mm")], [2, 2, 2]);
+        assert_eq!(n("ge10mm_lt15mm") + n("ge15mm_lt20mm") + n("ge20mm"), n("ge10mm"));
+        // The SPEC's classes split at 20 mm the other way: 20.0 is medium, and ≥ 20 mm.
+        assert_eq!((n("medium"), n("large")), (5, 1));
     }
 }
