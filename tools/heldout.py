@@ -140,6 +140,14 @@ def show(name, value):
     return f"{100 * value:.0f} %" if name in PERCENT else f"{value:.2f}" if name == "median_dice" else f"{value:.1f} %"
 
 
+def print_spread(label, spreads):
+    """A table row of each figure's mean ± sd (range)."""
+    def cell(f):
+        s = spreads[f]
+        return "–" if s is None else f"{show(f, s['mean'])} ± {show(f, s['sd'])} ({show(f, s['min'])}–{show(f, s['max'])})"
+    print(f"| {label} | | " + " | ".join(cell(f) for f, _, _ in FIGURES) + " |")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config")
@@ -182,12 +190,8 @@ def main():
     print("|" + " --- |" * (len(heads) + 2))
     for s in args.seeds:
         print(f"| {s} | {chosen[s]} | " + " | ".join(show(f, held_out[s][f]) for f, _, _ in FIGURES) + " |")
-    def summary_row(label, figures):
-        cell = lambda f: "–" if figures[f] is None else (
-            f"{show(f, figures[f]['mean'])} ± {show(f, figures[f]['sd'])} ({show(f, figures[f]['min'])}–{show(f, figures[f]['max'])})")
-        print(f"| {label} | | " + " | ".join(cell(f) for f, _, _ in FIGURES) + " |")
-    summary_row("held out: mean ± sd (range)", report["held_out"])
-    summary_row(f"in sample ({in_sample})", report["in_sample"]["figures"])
+    print_spread("held out: mean ± sd (range)", report["held_out"])
+    print_spread(f"in sample ({in_sample})", report["in_sample"]["figures"])
     print(f"\n{os.path.join(args.out, 'heldout.json')} holds every figure.")
 
 
