@@ -185,13 +185,15 @@ def main():
     with open(os.path.join(args.out, "heldout.json"), "w") as f:
         json.dump(report, f, indent=2)
     heads = [h for _, h, _ in FIGURES]
-    print(f"\n{args.group}, each anatomy under the candidate chosen on the others:")
+    values = {name: ", ".join(v for _, v in settings) for name, settings in grid}
+    print(f"\n{args.group}, each anatomy under the candidate chosen on the others "
+          f"(chosen: {', '.join(k for k, _ in args.choose)}):")
     print("| anatomy | chosen | " + " | ".join(heads) + " |")
     print("|" + " --- |" * (len(heads) + 2))
     for s in args.seeds:
-        print(f"| {s} | {chosen[s]} | " + " | ".join(show(f, held_out[s][f]) for f, _, _ in FIGURES) + " |")
+        print(f"| {s} | {values[chosen[s]]} | " + " | ".join(show(f, held_out[s][f]) for f, _, _ in FIGURES) + " |")
     print_spread("held out: mean ± sd (range)", report["held_out"])
-    print_spread(f"in sample ({in_sample})", report["in_sample"]["figures"])
+    print_spread(f"in sample ({values[in_sample]})", report["in_sample"]["figures"])
     print(f"\n{os.path.join(args.out, 'heldout.json')} holds every figure.")
 
 
