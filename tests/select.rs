@@ -396,7 +396,7 @@ fn a_guided_centre_far_fainter_than_the_blind_one_gives_way_to_it() {
         ..found.clone()
     };
     // 0.05 against 0.30: under a ratio of 0.5 the blind centre is taken, and the peak it
-    // replaced is recorded; under 0.1 (and 0, the default) the guided centre stays.
+    // replaced is recorded; under 0.1 and 0 (off) the guided centre stays.
     let mut replaced = with(guided.clone());
     replaced.fall_back_to_blind(0.5, |_: &Centre| Weighed::from(true));
     let taken = replaced.guided.expect("a centre");

@@ -159,7 +159,7 @@ impl Default for BlobParams {
             score_roundness: 3.0,
             score_top: 5,
             guided_fallback: true,
-            guided_faint_ratio: 0.2,
+            guided_faint_ratio: 0.5,
         }
     }
 }
