@@ -75,19 +75,30 @@ def projector(rays, n, lo, hi, scale):
     return sp.csr_matrix((vals, (rows, cols)), shape=(len(rays), n ** 3))
 
 
-def tv_parts(s, eps):
-    """Per node m = √(|∇σ|² + ε²) and the gradient of Σ m (σ as [z, y, x])."""
+def gradient(s):
+    """∇σ on the lattice: forward differences along x, y, z (σ as [z, y, x]), zero at each
+    axis' last node."""
     d = np.zeros((3,) + s.shape)
     d[0, :, :, :-1] = s[:, :, 1:] - s[:, :, :-1]
     d[1, :, :-1, :] = s[:, 1:, :] - s[:, :-1, :]
     d[2, :-1, :, :] = s[1:, :, :] - s[:-1, :, :]
-    m = np.sqrt((d * d).sum(0) + eps * eps)
-    p = d / m
+    return d
+
+
+def gradient_adjoint(p):
+    """∇ᵀp, for p zero wherever ∇ has no row (each axis' last node)."""
     g = -p.sum(0)
     g[:, :, 1:] += p[0, :, :, :-1]
     g[:, 1:, :] += p[1, :, :-1, :]
     g[1:, :, :] += p[2, :-1, :, :]
-    return m, g
+    return g
+
+
+def tv_parts(s, eps):
+    """Per node m = √(|∇σ|² + ε²) and the gradient of Σ m (σ as [z, y, x])."""
+    d = gradient(s)
+    m = np.sqrt((d * d).sum(0) + eps * eps)
+    return m, gradient_adjoint(d / m)
 
 
 class Problem:

@@ -20,7 +20,8 @@ rating), and measures:
 - **the target nodule**: its mean HU inside the consensus eroded by one voxel in-plane (away
   from the partial-volume edge), beside its readers' mean texture rating.
 
-Prints a table per patient and the cohort's medians; `--json` writes every figure.
+Prints a table per patient and the cohort's medians; `--json` writes every figure and each
+patient's parenchyma histogram.
 """
 import argparse
 import json
@@ -34,6 +35,8 @@ from scipy import ndimage
 AIR_HU = -400.0
 VESSEL_HU = -500.0
 CROSS_SECTIONS_MM2 = (5.0, 10.0)
+# The parenchyma histogram's bin edges, HU (4 HU bins up to the vessel threshold).
+HISTOGRAM_HU = np.arange(-1024, VESSEL_HU + 4, 4)
 # The largest hole in an axial slice of the lung field that is lung: a 35 mm nodule's section.
 HOLE_MM2 = 1000.0
 
@@ -123,7 +126,8 @@ def patient_stats(folder):
     if target is not None and nodule.any():
         stats["nodule_core_hu"] = nodule_core_hu(hu, nodule)
         stats["nodule_texture_mean"] = truth["nodules"][target].get("texture_mean")
-    stats["_parenchyma_hu"] = hu[lung & (hu < VESSEL_HU)]
+    counts, _ = np.histogram(hu[lung & (hu < VESSEL_HU)], bins=HISTOGRAM_HU)
+    stats["parenchyma_histogram"] = counts.tolist()
     return stats
 
 
@@ -138,10 +142,10 @@ def figures(rows, folder):
 
     os.makedirs(folder, exist_ok=True)
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    bins = np.arange(-1024, -480, 4)
-    for name, s in rows.items():
-        h, _ = np.histogram(s["_parenchyma_hu"], bins=bins, density=True)
-        ax.plot(bins[:-1] + 2, h, lw=0.7, alpha=0.6)
+    centres, width = HISTOGRAM_HU[:-1] + 2, np.diff(HISTOGRAM_HU)
+    for s in rows.values():
+        counts = np.array(s["parenchyma_histogram"], dtype=float)
+        ax.plot(centres, counts / (counts.sum() * width), lw=0.7, alpha=0.6)
     ax.axvline(-950, color="k", ls="--", lw=0.8)
     ax.text(-948, ax.get_ylim()[1] * 0.9, "−950 HU", fontsize=8)
     ax.set_xlabel("HU (lung field below −500 HU)")
@@ -188,9 +192,8 @@ def main():
                for c in COLUMNS if any(s.get(c) is not None for s in rows.values())}
     print("| median | " + " | ".join(fmt(medians.get(c)) for c in COLUMNS) + " |")
     if args.json:
-        clean = {n: {k: v for k, v in s.items() if not k.startswith("_")} for n, s in rows.items()}
         with open(args.json, "w") as f:
-            json.dump({"patients": clean, "medians": medians}, f, indent=2)
+            json.dump({"patients": rows, "medians": medians, "histogram_edges_hu": HISTOGRAM_HU.tolist()}, f, indent=2)
     if args.figures:
         figures(rows, args.figures)
 

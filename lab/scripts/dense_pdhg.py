@@ -27,25 +27,7 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "tools"))
-from dense_fit_peer import Problem, solve  # noqa: E402
-
-
-def gradient(s):
-    """Forward differences along x, y, z (σ as [z, y, x]), zero at each axis' last node."""
-    d = np.zeros((3,) + s.shape)
-    d[0, :, :, :-1] = s[:, :, 1:] - s[:, :, :-1]
-    d[1, :, :-1, :] = s[:, 1:, :] - s[:, :-1, :]
-    d[2, :-1, :, :] = s[1:, :, :] - s[:-1, :, :]
-    return d
-
-
-def gradient_adjoint(p):
-    """∇ᵀp, for p zero wherever ∇ has no row."""
-    g = -p.sum(0)
-    g[:, :, 1:] += p[0, :, :, :-1]
-    g[:, 1:, :] += p[1, :, :-1, :]
-    g[1:, :, :] += p[2, :-1, :, :]
-    return g
+from dense_fit_peer import Problem, gradient, gradient_adjoint, solve  # noqa: E402
 
 
 def rows_of_gradient(n):

@@ -27,7 +27,8 @@ pub mod summary;
 
 pub use rows::{PatientRow, Site, SizeClass};
 
-/// 10: the solid nodules' groups by site (`ingest/target_site.json`).
+/// 10: the solid nodules' groups by site (`ingest/target_site.json`); 11: the diameter bands
+/// at and above 10 mm.
 pub const VERSION: u32 = 11;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
