@@ -115,14 +115,14 @@ def mean_score(rows):
     return tuple(statistics.fmean(parts) for parts in zip(*(score(r) for r in rows)))
 
 
+def best(table, names, anatomies):
+    """The candidate with the best mean score over `anatomies` (ties to the first as listed)."""
+    return max(names, key=lambda n: (mean_score([table[(a, n)] for a in anatomies]), -names.index(n)))
+
+
 def leave_one_out(table, names, anatomies):
-    """Per held-out anatomy: the candidate best on the others, by mean score (ties to the
-    first candidate as listed)."""
-    chosen = {}
-    for held in anatomies:
-        others = [a for a in anatomies if a != held]
-        chosen[held] = max(names, key=lambda n: (mean_score([table[(a, n)] for a in others]), -names.index(n)))
-    return chosen
+    """Per held-out anatomy: the candidate best on the others."""
+    return {held: best(table, names, [a for a in anatomies if a != held]) for held in anatomies}
 
 
 def spread(values):
@@ -170,7 +170,7 @@ def main():
             table[(seed, name)] = figures(out, args.group)
     chosen = leave_one_out(table, names, args.seeds)
     held_out = {seed: table[(seed, chosen[seed])] for seed in args.seeds}
-    in_sample = max(names, key=lambda n: (mean_score([table[(a, n)] for a in args.seeds]), -names.index(n)))
+    in_sample = best(table, names, args.seeds)
     report = {
         "config": args.config,
         "group": args.group,
