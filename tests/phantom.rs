@@ -7,7 +7,8 @@ use aret_pipe::formats::dicom_writer::{write_ct_series, SeriesMeta};
 use aret_pipe::formats::png::{axial_slice, coronal_projection, encode_gray8, image_png, LUNG_WINDOW};
 use aret_pipe::phantom::{
     add_scanner_noise, ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_fraction,
-    occupancy_from_mask, phantom_ct, thorax_hu, BoxGrid, NoduleInsert, PhantomParams, Thorax, Tissue,
+    occupancy_from_mask, phantom_ct, solid_share_for_texture, textured_nodule, thorax_hu, BoxGrid, NoduleInsert,
+    PhantomParams, Thorax, Tissue,
 };
 use aret_pipe::volume::{Geometry, Volume};
 use std::collections::HashMap;
@@ -331,13 +332,14 @@ fn inserting_a_nodule_blends_its_hu_by_occupancy() {
     let background = -850.0f32;
     let mut ct = Volume { geometry: g.clone(), data: vec![background; g.len()] };
     let (spacing, mask) = ellipsoid_case([9.0, 7.0, 6.0]);
-    let nodule = NoduleInsert { occupancy: occupancy_from_mask(&mask, spacing), hu: nodule_hu_for_texture(Some(5)) };
+    let hu = nodule_hu_for_texture(Some(5));
+    let nodule = NoduleInsert::uniform(occupancy_from_mask(&mask, spacing), hu);
     insert_nodule(&mut ct, &nodule);
     let excess: f64 = ct.data.iter().map(|&v| f64::from(v - background)).sum();
     let occupied: f64 = nodule.occupancy.data.iter().map(|&o| f64::from(o)).sum();
-    let want = occupied * f64::from(nodule.hu - background);
+    let want = occupied * f64::from(hu - background);
     assert!((excess - want).abs() < 1e-3 * want.abs(), "{excess} vs {want}");
-    assert_eq!(ct.data[g.index(40, 36, 12)], nodule.hu);
+    assert_eq!(ct.data[g.index(40, 36, 12)], hu);
     // Texture ratings: solid brightest, ground glass darkest, unrated solid.
     let hu: Vec<f32> = (1..=5).map(|t| nodule_hu_for_texture(Some(t))).collect();
     assert!(hu.windows(2).all(|w| w[0] < w[1]), "{hu:?}");
@@ -347,6 +349,52 @@ fn inserting_a_nodule_blends_its_hu_by_occupancy() {
     let mut edge = nodule.clone();
     edge.occupancy.origin = [-5, -5, -3];
     insert_nodule(&mut ct, &edge);
+}
+
+#[test]
+fn a_textured_nodule_is_a_solid_core_in_a_ground_glass_halo_with_its_ratings_mean() {
+    let (spacing, mask) = ellipsoid_case([10.0, 9.0, 8.0]);
+    let fraction = BoxGrid {
+        origin: mask.origin,
+        dims: mask.dims,
+        data: mask.data.iter().map(|&m| f32::from(u8::from(m))).collect(),
+    };
+    let centre = |n: &NoduleInsert| {
+        let at =
+            [40 - n.occupancy.origin[0], 36 - n.occupancy.origin[1], 12 - n.occupancy.origin[2]].map(|v| v as usize);
+        n.tissue_hu[n.occupancy.index(at[0], at[1], at[2])]
+    };
+    for rating in 1..=5u8 {
+        let nodule = textured_nodule(&fraction, Some(rating), spacing, 11);
+        assert_eq!(nodule, textured_nodule(&fraction, Some(rating), spacing, 11), "rating {rating}: not deterministic");
+        assert_ne!(nodule.tissue_hu, textured_nodule(&fraction, Some(rating), spacing, 12).tissue_hu);
+        // The tissue is the mask's, whatever the rating.
+        let occupied: f64 = nodule.occupancy.data.iter().map(|&o| f64::from(o)).sum();
+        assert!((occupied - mask.data.iter().filter(|&&m| m).count() as f64).abs() < 1e-2, "rating {rating}");
+        // Its mean attenuation is the rating's, up to the texture's mean over the nodule.
+        let weighted: f64 =
+            nodule.occupancy.data.iter().zip(&nodule.tissue_hu).map(|(&o, &h)| f64::from(o) * f64::from(h)).sum();
+        let mean = weighted / occupied;
+        let want = f64::from(nodule_hu_for_texture(Some(rating)));
+        assert!((mean - want).abs() < 25.0, "rating {rating}: mean {mean:.0} HU against {want} HU");
+        // Solid at the centre from non-solid/mixed on; ground glass at the rim below solid (for
+        // solid/mixed the halo is thinner than a voxel, so the rim is a mixture).
+        let rim = nodule.occupancy.data.iter().zip(&nodule.tissue_hu).filter(|(&o, _)| o > 0.05 && o < 0.5);
+        let rim_max = rim.map(|(_, &h)| h).fold(f32::MIN, f32::max);
+        let mut filled = nodule.occupancy.data.iter().zip(&nodule.tissue_hu).filter(|(&o, _)| o > 0.0);
+        match rating {
+            1 => assert!(filled.all(|(_, &h)| h < -350.0), "ground glass throughout"),
+            5 => assert!(filled.all(|(_, &h)| h > -60.0), "solid throughout"),
+            _ => {
+                let halo = if rating == 4 { -150.0 } else { -350.0 };
+                assert!(rim_max < halo, "rating {rating}: the rim reaches {rim_max} HU");
+                assert!(centre(&nodule) > -60.0, "rating {rating}: the centre is {} HU", centre(&nodule));
+            }
+        }
+    }
+    let ratings: Vec<f32> = (1..=5).map(|t| solid_share_for_texture(Some(t))).collect();
+    assert_eq!(ratings, [0.0, 0.3, 0.6, 0.9, 1.0]);
+    assert_eq!(solid_share_for_texture(None), 1.0);
 }
 
 #[test]

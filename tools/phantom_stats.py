@@ -17,8 +17,10 @@ rating), and measures:
 - **the vessels**: the lung field's voxels above −500 HU outside the target nodule (dilated
   by 3 voxels), as a share of the lung field, split by the cross-section of each vessel
   profile in the axial slice (the `BV5` convention: below 5 mm², 5–10 mm², above 10 mm²);
-- **the target nodule**: its mean HU inside the consensus eroded by one voxel in-plane (away
-  from the partial-volume edge), beside its readers' mean texture rating.
+- **the target nodule**: its mean HU and standard deviation inside the consensus eroded by one
+  voxel in-plane (away from the partial-volume edge), and the share of its consensus at or
+  above −300 HU (its solid component, by the threshold part-solid nodules are commonly
+  segmented at), beside its readers' mean texture rating.
 
 Prints a table per patient and the cohort's medians; `--json` writes every figure and each
 patient's parenchyma histogram.
@@ -34,6 +36,8 @@ from scipy import ndimage
 
 AIR_HU = -400.0
 VESSEL_HU = -500.0
+# A nodule's voxels at or above this are its solid component.
+SOLID_HU = -300.0
 CROSS_SECTIONS_MM2 = (5.0, 10.0)
 # The parenchyma histogram's bin edges, HU (4 HU bins up to the vessel threshold).
 HISTOGRAM_HU = np.arange(-1024, VESSEL_HU + 4, 4)
@@ -108,10 +112,16 @@ def vessels(hu, lung, nodule, spacing):
     }
 
 
-def nodule_core_hu(hu, nodule):
-    """The mean HU inside the mask eroded by one voxel in-plane (None when nothing is left)."""
+def nodule_stats(hu, nodule):
+    """The mean and standard deviation of HU inside the mask eroded by one voxel in-plane (None
+    when nothing is left), and the share of the mask at or above SOLID_HU, %."""
     core = np.stack([ndimage.binary_erosion(s) for s in nodule])
-    return float(hu[core].mean()) if core.any() else None
+    inside = hu[core] if core.any() else None
+    return {
+        "nodule_core_hu": None if inside is None else float(inside.mean()),
+        "nodule_core_sd_hu": None if inside is None else float(inside.std()),
+        "nodule_solid_pct": float(100 * (hu[nodule] >= SOLID_HU).mean()),
+    }
 
 
 def patient_stats(folder):
@@ -124,7 +134,7 @@ def patient_stats(folder):
     stats = {**parenchyma(hu, lung, spacing), **vessels(hu, lung, nodule, spacing)}
     target = truth.get("target")
     if target is not None and nodule.any():
-        stats["nodule_core_hu"] = nodule_core_hu(hu, nodule)
+        stats.update(nodule_stats(hu, nodule))
         stats["nodule_texture_mean"] = truth["nodules"][target].get("texture_mean")
     counts, _ = np.histogram(hu[lung & (hu < VESSEL_HU)], bins=HISTOGRAM_HU)
     stats["parenchyma_histogram"] = counts.tolist()
@@ -132,7 +142,8 @@ def patient_stats(folder):
 
 
 COLUMNS = ("mean_lung_density_hu", "p15_hu", "laa950_pct", "laa910_pct", "gradient_hu_per_cm", "vessel_fraction_pct",
-           "bv5_pct_of_vessels", "bv5_10_pct_of_vessels", "bv10_pct_of_vessels", "nodule_core_hu", "nodule_texture_mean")
+           "bv5_pct_of_vessels", "bv5_10_pct_of_vessels", "bv10_pct_of_vessels", "nodule_core_hu", "nodule_core_sd_hu", "nodule_solid_pct",
+           "nodule_texture_mean")
 
 
 def figures(rows, folder):
@@ -156,9 +167,10 @@ def figures(rows, folder):
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    pairs = [(s["nodule_texture_mean"], s["nodule_core_hu"]) for s in rows.values()
+    pairs = [(s["nodule_texture_mean"], s["nodule_core_hu"], s["nodule_core_sd_hu"]) for s in rows.values()
              if s.get("nodule_core_hu") is not None and s.get("nodule_texture_mean") is not None]
-    ax.scatter([p[0] for p in pairs], [p[1] for p in pairs], s=18, label="phantom: each target's core")
+    ax.errorbar([p[0] for p in pairs], [p[1] for p in pairs], yerr=[p[2] for p in pairs], fmt="o", ms=4,
+                capsize=2, label="phantom: each target's core, mean ± SD inside")
     ax.axhspan(-633 - 53, -491 + 155, xmin=0, xmax=0.25, color="tab:orange", alpha=0.2,
                label="ground-glass nodules, mean ± SD range (AJR 2017)")
     ax.set_xlim(0.5, 5.5)

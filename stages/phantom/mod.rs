@@ -29,8 +29,8 @@ mod tubes;
 mod vessels;
 
 pub use nodule::{
-    ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_fraction, occupancy_from_mask, BoxGrid,
-    NoduleInsert,
+    ellipsoid_mask, insert_nodule, nodule_hu_for_texture, occupancy_from_fraction, occupancy_from_mask,
+    solid_share_for_texture, textured_nodule, BoxGrid, NoduleInsert,
 };
 pub use thorax::Thorax;
 
@@ -70,11 +70,11 @@ pub enum NoduleExtent {
     Union,
     /// Each voxel filled by the fraction of readers who drew it: where they disagree the edge
     /// is graded, and the object's half-attenuation surface is the 50 % consensus.
+    #[default]
     Readers,
     /// The 50 % consensus itself (pylidc's default `clevel`, the metrics' default), at full
     /// attenuation: the object is the ground truth the metrics score against, with the same
     /// partial-volume edge as the union.
-    #[default]
     Consensus,
 }
 
@@ -86,7 +86,7 @@ impl Default for PhantomParams {
             lung_hu: -850.0,
             lung_texture_hu: 25.0,
             min_vessel_radius_mm: 0.3,
-            nodule_extent: NoduleExtent::Consensus,
+            nodule_extent: NoduleExtent::Readers,
         }
     }
 }
@@ -166,8 +166,8 @@ mod tests {
     #[test]
     fn the_extent_is_part_of_the_cache_key() {
         let default = serde_json::to_value(PhantomParams::default()).unwrap();
-        assert_eq!(default["nodule_extent"], "consensus", "{default}");
-        let readers = PhantomParams { nodule_extent: NoduleExtent::Readers, ..PhantomParams::default() };
-        assert_eq!(serde_json::to_value(readers).unwrap()["nodule_extent"], "readers");
+        assert_eq!(default["nodule_extent"], "readers", "{default}");
+        let consensus = PhantomParams { nodule_extent: NoduleExtent::Consensus, ..PhantomParams::default() };
+        assert_eq!(serde_json::to_value(consensus).unwrap()["nodule_extent"], "consensus");
     }
 }

@@ -1,14 +1,11 @@
 //! One cohort patient's phantom: the real scan geometry (`<patient>.scan.json`), a synthetic
-//! thorax, and the real nodules drawn where the radiologists drew them — the union of the
-//! readers' contours (pylidc-exact masks) with partial-volume edges, at the HU of their texture
-//! rating — written as a CT DICOM series to be read back through the real ingest path beside
+//! thorax, and the real nodules drawn where the radiologists drew them — graded by their readers,
+//! or their union or consensus (pylidc-exact masks), with partial-volume edges and the solid core
+//! and ground-glass halo of their texture rating — written as a CT DICOM series to be read back through the real ingest path beside
 //! the original LIDC XML. The ground truth is *not* taken from here: ingest recomputes it from
 //! the XML, exactly as for a real LIDC scan.
 
-use super::{
-    nodule_hu_for_texture, occupancy_from_fraction, occupancy_from_mask, phantom_ct, BoxGrid, NoduleExtent,
-    NoduleInsert, PhantomParams,
-};
+use super::{noise, phantom_ct, textured_nodule, BoxGrid, NoduleExtent, NoduleInsert, PhantomParams};
 use crate::formats::dicom_writer::{write_ct_series, SeriesMeta};
 use crate::formats::lidc_xml::{self, ReadMessage};
 use crate::formats::png;
@@ -109,12 +106,14 @@ pub fn generate(
     let inserts: Vec<NoduleInsert> = truth
         .nodules
         .iter()
-        .map(|n| {
+        .enumerate()
+        .map(|(index, n)| {
             let textures = n.annotation_indices.iter().map(|&a| {
                 let r = &truth.sources[a];
                 annotations.sessions[r.session].reads[r.read].characteristics.texture
             });
-            nodule_insert(n, median_rating(textures.collect()), params.nodule_extent, &geometry)
+            let seed = noise::stream_seed(params.seed, "nodule", index as u64);
+            nodule_insert(n, median_rating(textures.collect()), params.nodule_extent, &geometry, seed)
         })
         .collect();
     let ct = phantom_ct(&geometry, &params, &inserts);
@@ -132,9 +131,16 @@ pub fn generate(
     Ok(PatientPhantom { ct, series, annotations: xml, previews })
 }
 
-/// The drawn shape of a nodule, softened at the edges: the union of all its readers' masks,
-/// each voxel at the fraction of readers who drew it, or their 50 % consensus (`extent`).
-fn nodule_insert(nodule: &NoduleTruth, texture: Option<u8>, extent: NoduleExtent, geometry: &Geometry) -> NoduleInsert {
+/// The drawn shape of a nodule with the tissue of its texture rating: the union of all its
+/// readers' masks, each voxel at the fraction of readers who drew it, or their 50 % consensus
+/// (`extent`); its internal texture is drawn from `seed`.
+fn nodule_insert(
+    nodule: &NoduleTruth,
+    texture: Option<u8>,
+    extent: NoduleExtent,
+    geometry: &Geometry,
+    seed: u64,
+) -> NoduleInsert {
     // Every mask of a nodule covers its consensus box, so one origin serves them all.
     let [i0, j0, k0] = nodule.bbox.min_ijk;
     let [i1, j1, k1] = nodule.bbox.max_ijk;
@@ -143,17 +149,14 @@ fn nodule_insert(nodule: &NoduleTruth, texture: Option<u8>, extent: NoduleExtent
     let dims = [j1 - j0 + 1, i1 - i0 + 1, k1 - k0 + 1];
     let binary = |mask: &BoxMask| {
         debug_assert_eq!(mask.bbox, nodule.bbox);
-        occupancy_from_mask(&BoxGrid { origin, dims, data: mask.data.clone() }, geometry.spacing_mm)
+        mask.data.iter().map(|&on| f32::from(u8::from(on))).collect()
     };
-    let occupancy = match extent {
+    let data = match extent {
         NoduleExtent::Union => binary(&nodule.union_mask),
         NoduleExtent::Consensus => binary(&nodule.consensus),
-        NoduleExtent::Readers => occupancy_from_fraction(
-            &BoxGrid { origin, dims, data: nodule.reader_fraction.clone() },
-            geometry.spacing_mm,
-        ),
+        NoduleExtent::Readers => nodule.reader_fraction.clone(),
     };
-    NoduleInsert { occupancy, hu: nodule_hu_for_texture(texture) }
+    textured_nodule(&BoxGrid { origin, dims, data }, texture, geometry.spacing_mm, seed)
 }
 
 /// The median of the readers' ratings (the lower middle one for an even count).
@@ -204,7 +207,7 @@ mod tests {
             direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         };
         let tissue = |extent| {
-            nodule_insert(&truth, Some(5), extent, &ct).occupancy.data.iter().map(|&v| f64::from(v)).sum::<f64>()
+            nodule_insert(&truth, Some(5), extent, &ct, 7).occupancy.data.iter().map(|&v| f64::from(v)).sum::<f64>()
         };
         // The blur keeps the sum, so each extent's tissue is its own shape's voxel count.
         let union = truth.union_mask.count() as f64;

@@ -11,7 +11,7 @@ use crate::phantom::patient;
 use crate::phantom::PhantomParams;
 use anyhow::anyhow;
 
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 
 pub struct Phantom {
     pub params: PhantomParams,

@@ -56,6 +56,18 @@ def test_each_figure_is_the_one_built_in(patient):
     assert s["bv5_10_pct_of_vessels"] == pytest.approx(100 * 9 / 13)
     assert s["bv10_pct_of_vessels"] == 0
     assert s["nodule_core_hu"] == 30 and s["nodule_texture_mean"] == 4.75
+    assert s["nodule_core_sd_hu"] == 0 and s["nodule_solid_pct"] == 100
+
+
+def test_a_part_solid_nodule_shows_its_core_and_its_spread(patient):
+    folder, _ = patient
+    hu, spacing = phantom_stats.read(str(folder / "ct_hu.mhd"))
+    hu[8:12, 75:81, 70:73] = -650  # half the nodule ground glass
+    write(folder / "ct_hu.mhd", hu.astype(np.int16), spacing)
+    s = phantom_stats.patient_stats(str(folder))
+    assert s["nodule_solid_pct"] == 50
+    # The eroded core is 2 × 4 × 4 voxels, half at each level.
+    assert s["nodule_core_hu"] == pytest.approx((30 - 650) / 2) and s["nodule_core_sd_hu"] == pytest.approx(340)
 
 
 def test_a_volume_without_lungs_says_so(tmp_path):

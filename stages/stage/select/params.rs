@@ -156,7 +156,7 @@ impl Default for BlobParams {
             rival_ratio: 0.7,
             tie_break: TieBreak::Roundness,
             blind_tie_break: TieBreak::Score,
-            score_roundness: 3.0,
+            score_roundness: 0.0,
             score_top: 5,
             guided_fallback: true,
             guided_faint_ratio: 0.5,

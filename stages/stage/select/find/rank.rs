@@ -19,10 +19,8 @@ impl BlobParams {
 /// roundness. The scale-normalised response over the region's peak local contrast is highest
 /// for a blob as wide as the scale it answered at, and low for a small dense speck (a vessel
 /// seen end-on, a junction) whose contrast is high but whose extent the scales overshoot;
-/// roundness then favours the compact blob over the drawn-out one. Over the nine sets of
-/// cached fits the blind search's centre lay on the nodule in 91 of 128 cases with it (93
-/// hits) against 75 with the roundest of near-ties, the weight chosen leave-one-patient-out
-/// (lab/log.md, "Ranking the blind search's blobs"). `None` without a region.
+/// a positive weight then favours the compact blob over the drawn-out one (the shipped weight
+/// is chosen by leaving one anatomy out: docs/results.md). `None` without a region.
 pub fn blob_score(centre: &Centre, roundness_weight: f64) -> Option<f64> {
     let (blob, region) = (centre.blob?, centre.region?);
     (region.peak_score > 0.0 && blob.response > 0.0)
