@@ -12,6 +12,7 @@ A small CT goes through `aret-pipe run … --until select` with a short training
 import csv
 import json
 import subprocess
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,9 @@ from scipy import ndimage
 from test_drr_numpy import phantom_hu, write_series
 from test_train_safetensors import BIN
 from test_vdb_openvdb import READER, SYSTEM_PYTHON, openvdb_module, require
+
+# The built-in `[select.half_max] fraction`, which pipeline.toml spells out.
+FRACTION = tomllib.loads((Path(__file__).parents[2] / "pipeline.toml").read_text())["select"]["half_max"]["fraction"]
 
 CONFIG = (
     '[pipeline]\nname = "grid"\n[dataset]\nkind = "dicom"\nroot = "data"\n'
@@ -152,8 +156,9 @@ def test_nodule_mesh_is_watertight_with_the_reported_volume(out):
 
 
 def test_half_max_sizing_equals_scipy(out):
-    """`[select] sizing = "half_max"` at the scene origin: the region of σ ≥ ½ of its peak beside
-    the centre that holds the peak, re-done with scipy.ndimage.label (26-connected)."""
+    """`[select] sizing = "half_max"` at the scene origin: the region of σ ≥ the default fraction
+    of its peak beside the centre that holds the peak, re-done with scipy.ndimage.label
+    (26-connected)."""
     tmp = out.parent.parent
     config = CONFIG.replace('localize = "none"\nsizing = "candidates"\n', 'localize = "origin"\nsizing = "half_max"\n')
     assert config != CONFIG
@@ -173,7 +178,7 @@ def test_half_max_sizing_equals_scipy(out):
     assert near.max() > 0, "the test CT should have density at the origin"
     dz, dy, dx = np.unravel_index(np.argmax(near), near.shape)
     seed = (max(z - 1, 0) + dz, max(y - 1, 0) + dy, max(x - 1, 0) + dx)
-    labels, _ = ndimage.label(density >= 0.5 * np.float64(near.max()), ndimage.generate_binary_structure(3, 3))
+    labels, _ = ndimage.label(density >= FRACTION * np.float64(near.max()), ndimage.generate_binary_structure(3, 3))
     expected = labels == labels[seed]
     mask = np.fromfile(half / "nodule_mask.raw", dtype=np.uint8).reshape(24, 24, 24).astype(bool)
     np.testing.assert_array_equal(mask, expected)
@@ -181,6 +186,6 @@ def test_half_max_sizing_equals_scipy(out):
     # Both blind rules size the blind centre alike.
     assert {**selection, "rule": None} == {**result["blind_persistent"], "rule": None}
     assert selection["candidate"]["voxels"] == expected.sum()
-    assert selection["candidate"]["threshold"] == pytest.approx(0.5 * float(near.max()), rel=1e-12)
+    assert selection["candidate"]["threshold"] == pytest.approx(FRACTION * float(near.max()), rel=1e-12)
     lo, hi = selection["volume_interval_mm3"]
     assert lo <= selection["candidate"]["volume_mm3"] <= hi
