@@ -2,6 +2,7 @@
 """Could a learned ranking of the searches' blobs find more nodules? Judged leaving one anatomy out.
 
     lab/scripts/learned_ranker.py OUT_HELDOUT --candidate NAME [--search guided|blind] [--pool blind]
+    lab/scripts/learned_ranker.py OUT --candidate NAME --test-seeds 9-12   # trained once on the rest
 
 Reads the `result.json` files `tools/heldout.py` left under OUT_HELDOUT/seedS/NAME/PATIENT/ (one
 candidate's runs, on several anatomies): every blob each search accepted among its strongest
@@ -15,7 +16,8 @@ the features from the other anatomies, and takes the held-out anatomy's highest-
 Beside it: the shipped rule's centre (`centres.guided` / `centres.blind`, the fallbacks
 included), the strongest blob, and the oracle (some accepted blob is on the nodule). With
 `--pool blind` the guided search ranks the blind search's blobs (found over its three scales)
-instead of its own, still told the annotated diameter. Counts are
+instead of its own, still told the annotated diameter. With `--test-seeds`, the weights are
+fitted once on every other anatomy and judged on those alone, which nothing was chosen on. Counts are
 centres on the nodule, per anatomy and in all. A lab instrument: it reads the ground truth only
 to label and to count.
 """
@@ -107,6 +109,15 @@ def pick(case, model):
     return bool(y[int(np.argmax(((x - mean) / sd) @ w))])
 
 
+def seeds(text):
+    """"1-4,9" → [1, 2, 3, 4, 9]."""
+    found = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        found += list(range(int(lo), int(hi or lo) + 1))
+    return found
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out")
@@ -114,6 +125,7 @@ def main():
     parser.add_argument("--search", choices=("guided", "blind"), default="guided")
     parser.add_argument("--pool", choices=("guided", "blind"), help="whose accepted blobs are ranked (default: the search's own)")
     parser.add_argument("--penalty", type=float, default=1.0)
+    parser.add_argument("--test-seeds", help="judge only these anatomies (e.g. 9-12), with weights fitted on the rest")
     args = parser.parse_args()
     data = cases(args.out, args.candidate, args.search, args.pool)
     if len(data) < 2:
@@ -122,9 +134,14 @@ def main():
           " nodule (learned: held-out anatomy)")
     print("| anatomy | cases | shipped rule | strongest blob | learned | oracle |")
     print("| --- | --- | --- | --- | --- | --- |")
+    tested = seeds(args.test_seeds) if args.test_seeds else sorted(data)
+    if not set(tested) <= set(data) or len(set(data) - set(tested)) == 0 and args.test_seeds:
+        raise SystemExit(f"{args.out}: --test-seeds {args.test_seeds} needs those anatomies and at least one other")
     totals = np.zeros(5, int)
-    for seed, held in sorted(data.items()):
-        model = fit([c for s, cs in data.items() if s != seed for c in cs], args.penalty)
+    for seed in tested:
+        held = data[seed]
+        train = [s for s in data if s != seed and s not in (tested if args.test_seeds else ())]
+        model = fit([c for s in train for c in data[s]], args.penalty)
         row = np.array([len(held), sum(c[3] for c in held), sum(bool(len(c[2]) and c[2][0]) for c in held),
                         sum(pick(c, model) for c in held), sum(bool(c[2].any()) for c in held)])
         totals += row

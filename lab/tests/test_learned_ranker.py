@@ -52,3 +52,23 @@ def test_the_learned_weights_take_the_round_weak_blob_on_held_out_anatomies(tmp_
     weights, _, _ = learned_ranker.fit([c for cs in data.values() for c in cs], 1.0)
     assert weights[learned_ranker.FEATURES.index("roundness")] > 0
     assert weights[learned_ranker.FEATURES.index("ln response")] < 0
+
+
+def test_seed_lists_read_ranges_and_single_anatomies():
+    assert learned_ranker.seeds("1-3,9") == [1, 2, 3, 9]
+    assert learned_ranker.seeds("12") == [12]
+
+
+def test_anatomies_judged_apart_are_never_trained_on(tmp_path, capsys, monkeypatch):
+    rng = np.random.default_rng(4)
+    for seed in (1, 2, 3):
+        write_anatomy(tmp_path, seed, rng)
+    import sys
+    sizes, fit = [], learned_ranker.fit
+    monkeypatch.setattr(learned_ranker, "fit", lambda train, penalty: sizes.append(len(train)) or fit(train, penalty))
+    monkeypatch.setattr(sys, "argv", ["learned_ranker.py", str(tmp_path), "--candidate", "cand", "--test-seeds", "2-3"])
+    learned_ranker.main()
+    # Each judged anatomy's weights come from anatomy 1's six cases alone; the last fit is on all.
+    assert sizes == [6, 6, 18]
+    table = capsys.readouterr().out
+    assert "| 2 | 6 | 0 | 0 | 6 | 6 |" in table and "| 3 | 6 | 0 | 0 | 6 | 6 |" in table and "| 1 |" not in table
