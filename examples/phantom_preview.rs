@@ -14,9 +14,7 @@
 use aret_pipe::formats::png::{
     axial_slice, coronal_projection, coronal_slice, image_png, Window, LUNG_WINDOW, MEDIASTINAL_WINDOW,
 };
-use aret_pipe::phantom::{
-    add_scanner_noise, ellipsoid_mask, insert_nodule, textured_nodule, BoxGrid, PhantomParams, Thorax,
-};
+use aret_pipe::phantom::{add_scanner_noise, ellipsoid_mask, insert_nodule, textured_nodule, PhantomParams, Thorax};
 use aret_pipe::volume::Geometry;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -59,12 +57,7 @@ fn main() -> anyhow::Result<()> {
     let t_layout = t0.elapsed();
     let mut ct = thorax.hu();
     let t_hu = t0.elapsed();
-    let mask = ellipsoid_mask(centre, semi_axes_mm, s);
-    let fraction = BoxGrid {
-        origin: mask.origin,
-        dims: mask.dims,
-        data: mask.data.iter().map(|&on| f32::from(u8::from(on))).collect(),
-    };
+    let fraction = ellipsoid_mask(centre, semi_axes_mm, s).as_fraction();
     let nodule = textured_nodule(&fraction, texture, s, params.seed);
     insert_nodule(&mut ct, &nodule);
     add_scanner_noise(&mut ct, &params);

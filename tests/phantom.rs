@@ -354,11 +354,7 @@ fn inserting_a_nodule_blends_its_hu_by_occupancy() {
 #[test]
 fn a_textured_nodule_is_a_solid_core_in_a_ground_glass_halo_with_its_ratings_mean() {
     let (spacing, mask) = ellipsoid_case([10.0, 9.0, 8.0]);
-    let fraction = BoxGrid {
-        origin: mask.origin,
-        dims: mask.dims,
-        data: mask.data.iter().map(|&m| f32::from(u8::from(m))).collect(),
-    };
+    let fraction = mask.as_fraction();
     let centre = |n: &NoduleInsert| {
         let at =
             [40 - n.occupancy.origin[0], 36 - n.occupancy.origin[1], 12 - n.occupancy.origin[2]].map(|v| v as usize);

@@ -37,7 +37,7 @@ from scipy import ndimage
 AIR_HU = -400.0
 VESSEL_HU = -500.0
 # A nodule's voxels at or above this are its solid component.
-SOLID_HU = -300.0
+SOLID_COMPONENT_HU = -300.0
 CROSS_SECTIONS_MM2 = (5.0, 10.0)
 # The parenchyma histogram's bin edges, HU (4 HU bins up to the vessel threshold).
 HISTOGRAM_HU = np.arange(-1024, VESSEL_HU + 4, 4)
@@ -114,13 +114,13 @@ def vessels(hu, lung, nodule, spacing):
 
 def nodule_stats(hu, nodule):
     """The mean and standard deviation of HU inside the mask eroded by one voxel in-plane (None
-    when nothing is left), and the share of the mask at or above SOLID_HU, %."""
+    when nothing is left), and the share of the mask at or above SOLID_COMPONENT_HU, %."""
     core = np.stack([ndimage.binary_erosion(s) for s in nodule])
     inside = hu[core] if core.any() else None
     return {
         "nodule_core_hu": None if inside is None else float(inside.mean()),
         "nodule_core_sd_hu": None if inside is None else float(inside.std()),
-        "nodule_solid_pct": float(100 * (hu[nodule] >= SOLID_HU).mean()),
+        "nodule_solid_pct": float(100 * (hu[nodule] >= SOLID_COMPONENT_HU).mean()),
     }
 
 

@@ -31,28 +31,37 @@ WEIGHTS = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0)
 TOPS = (1, 2, 3, 4, 5, 6, 8, 16)
 
 
+def nodules(folder, min_diameter_mm=10.0):
+    """[(results.csv row, its result.json path)] for every nodule ≥ min_diameter_mm of one run's
+    out dir; none where the dir has no results.csv."""
+    results = os.path.join(folder, "results.csv")
+    if not os.path.exists(results):
+        return []
+    with open(results) as f:
+        rows = [row for row in csv.DictReader(f) if float(row["gt_diameter_mm"]) >= min_diameter_mm]
+    return [(row, os.path.join(folder, row["patient"], "result.json")) for row in rows]
+
+
+def scored_region(blob, path, search):
+    """An accepted blob's half-maximum region, or exit saying the run sized none."""
+    region = blob.get("region")
+    if region is None or region["peak_score"] <= 0:
+        sys.exit(f"{path}: a {search} blob has no region to score: run the study with sizing = "
+                 "\"half_max\" or \"shadows\"")
+    return region
+
+
 def cases(study_dir, search, min_diameter_mm=10.0):
     """[(set, patient, [(score_terms, on_nodule), ...])] for every nodule ≥ min_diameter_mm:
     each accepted blob as (ln(response / peak score), roundness) with whether it is on the nodule."""
     found = []
     for set_name in sorted(os.listdir(study_dir)):
-        results = os.path.join(study_dir, set_name, "results.csv")
-        if not os.path.exists(results):
-            continue
-        with open(results) as f:
-            rows = list(csv.DictReader(f))
-        for row in rows:
-            if float(row["gt_diameter_mm"]) < min_diameter_mm:
-                continue
-            path = os.path.join(study_dir, set_name, row["patient"], "result.json")
+        for row, path in nodules(os.path.join(study_dir, set_name), min_diameter_mm):
             with open(path) as f:
                 centres = json.load(f).get("centres", {})
             blobs = []
             for c in centres.get(f"{search}_accepted", []):
-                region = c.get("region")
-                if region is None or region["peak_score"] <= 0:
-                    sys.exit(f"{path}: a {search} blob has no region to score: run the study with sizing = "
-                             "\"half_max\" or \"shadows\"")
+                region = scored_region(c, path, search)
                 blobs.append(((math.log(c["blob"]["response"] / region["peak_score"]), region["roundness"]),
                               bool(c.get("on_nodule"))))
             found.append((set_name, row["patient"], blobs))

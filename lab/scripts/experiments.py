@@ -143,8 +143,8 @@ COLUMNS = 14
 # that predate it get – there.
 UNAMBIGUOUS_COLUMN = 7
 # The phantom's nodule where a config does not name one (`[dataset.phantom] nodule_extent`):
-# the built-in default (rows kept in the log from before the graded phantom became it name
-# "consensus", and at lab-v1 the default was "union").
+# the built-in default. Rows the log kept from before it say "consensus", the default then;
+# at lab-v1 it was "union".
 DEFAULT_EXTENT = "readers"
 # Where the rows re-run.
 LAB_V1 = ("the experiment rows re-run at tag lab-v1, where every preset they name exists: "

@@ -22,7 +22,6 @@ centres on the nodule, per anatomy and in all. A lab instrument: it reads the gr
 to label and to count.
 """
 import argparse
-import csv
 import json
 import math
 import os
@@ -30,52 +29,46 @@ import os
 import numpy as np
 from scipy.optimize import minimize
 
+import blob_ranker
+
 # What the blind search's region diameters are measured against, mm.
 BLIND_DIAMETER_MM = 20.0
 FEATURES = ("ln response", "ln response / strongest", "ln peak contrast", "ln response / peak contrast",
             "roundness", "ln region diameter / annotated", "|ln region diameter / annotated|", "depth in the lung field / 10 mm", "rank / 16")
 
 
-def blob_features(blob, strongest, annotated_mm):
-    region = blob.get("region") or {}
-    response = max(blob["blob"]["response"], 1e-9)
-    peak = max(region.get("peak_score", 0.0), 1e-9)
-    diameter = max(region.get("diameter_mm", 0.0), 1e-3)
+def blob_features(blob, region, strongest, annotated_mm):
+    response, peak = blob["blob"]["response"], region["peak_score"]
+    diameter_ratio = math.log(max(region["diameter_mm"], 1e-3) / annotated_mm)
     return [math.log(response), math.log(response / strongest), math.log(peak), math.log(response / peak),
-            region.get("roundness", 0.0), math.log(diameter / annotated_mm), abs(math.log(diameter / annotated_mm)), min(blob.get("depth_mm", 0.0), 60.0) / 10,
-            blob.get("rank", 16) / 16]
+            region["roundness"], diameter_ratio, abs(diameter_ratio), min(blob.get("depth_mm", 0.0), 60.0) / 10,
+            blob["rank"] / 16]
 
 
 def cases(out, candidate, search, pool=None):
-    """{seed: [(patient, features [n, f], on_nodule [n], shipped_on)]} for nodules ≥ 10 mm."""
+    """{seed: [(patient, features [n, f], on_nodule [n], shipped_on)]} for nodules ≥ 10 mm, for
+    every anatomy OUT/seedS/CANDIDATE whose runs kept their result.json files."""
     found = {}
     for entry in sorted(os.listdir(out)):
-        if not entry.startswith("seed"):
+        records = blob_ranker.nodules(os.path.join(out, entry, candidate)) if entry.startswith("seed") else []
+        if not records or not all(os.path.exists(path) for _, path in records):
             continue
-        folder = os.path.join(out, entry, candidate)
-        results = os.path.join(folder, "results.csv")
-        if not os.path.exists(results):
-            continue
-        rows = [r for r in csv.DictReader(open(results)) if float(r["gt_diameter_mm"]) >= 10]
         per_seed = []
-        for row in rows:
-            path = os.path.join(folder, row["patient"], "result.json")
-            if not os.path.exists(path):
-                break
+        for row, path in records:
             centres = json.load(open(path)).get("centres", {})
             blobs = centres.get(f"{pool or search}_accepted") or []
-            chosen = centres.get(search) or {}
+            shipped_on = bool((centres.get(search) or {}).get("on_nodule"))
             if not blobs:
-                per_seed.append((row["patient"], np.zeros((0, len(FEATURES))), np.zeros(0, bool), bool(chosen.get("on_nodule"))))
+                per_seed.append((row["patient"], np.zeros((0, len(FEATURES))), np.zeros(0, bool), shipped_on))
                 continue
             strongest = max(b["blob"]["response"] for b in blobs)
             # The blind search is not told the annotated diameter.
             annotated = float(row["gt_diameter_mm"]) if search == "guided" else BLIND_DIAMETER_MM
-            x = np.array([blob_features(b, strongest, annotated) for b in blobs])
+            x = np.array([blob_features(b, blob_ranker.scored_region(b, path, pool or search), strongest, annotated)
+                          for b in blobs])
             y = np.array([bool(b.get("on_nodule")) for b in blobs])
-            per_seed.append((row["patient"], x, y, bool(chosen.get("on_nodule"))))
-        else:
-            found[int(entry[4:])] = per_seed
+            per_seed.append((row["patient"], x, y, shipped_on))
+        found[int(entry[4:])] = per_seed
     return found
 
 
@@ -135,7 +128,7 @@ def main():
     print("| anatomy | cases | shipped rule | strongest blob | learned | oracle |")
     print("| --- | --- | --- | --- | --- | --- |")
     tested = seeds(args.test_seeds) if args.test_seeds else sorted(data)
-    if not set(tested) <= set(data) or len(set(data) - set(tested)) == 0 and args.test_seeds:
+    if not set(tested) <= set(data) or (args.test_seeds and set(data) <= set(tested)):
         raise SystemExit(f"{args.out}: --test-seeds {args.test_seeds} needs those anatomies and at least one other")
     totals = np.zeros(5, int)
     for seed in tested:

@@ -33,6 +33,14 @@ impl<T> BoxGrid<T> {
     }
 }
 
+impl BoxGrid<bool> {
+    /// The mask as fractions of nodule tissue: 1 where set, 0 elsewhere.
+    pub fn as_fraction(&self) -> BoxGrid<f32> {
+        let data = self.data.iter().map(|&on| f32::from(u8::from(on))).collect();
+        BoxGrid { origin: self.origin, dims: self.dims, data }
+    }
+}
+
 /// A nodule ready to blend into a CT: where it covers each voxel, and its tissue's attenuation
 /// there.
 #[derive(Debug, Clone, PartialEq)]
@@ -64,12 +72,7 @@ pub const PARTIAL_VOLUME_SIGMA_PIXELS: f64 = 0.5;
 /// box grows by the kernel radius, so the occupancy sums to the mask's voxel count: the
 /// inserted nodule keeps the reference volume exactly.
 pub fn occupancy_from_mask(mask: &BoxGrid<bool>, spacing_mm: [f64; 3]) -> BoxGrid<f32> {
-    let fraction = BoxGrid {
-        origin: mask.origin,
-        dims: mask.dims,
-        data: mask.data.iter().map(|&on| if on { 1.0 } else { 0.0 }).collect(),
-    };
-    occupancy_from_fraction(&fraction, spacing_mm)
+    occupancy_from_fraction(&mask.as_fraction(), spacing_mm)
 }
 
 /// Soft occupancy of a graded shape, each voxel's `fraction` in [0, 1] filled with nodule

@@ -1,8 +1,8 @@
 //! One cohort patient's phantom: the real scan geometry (`<patient>.scan.json`), a synthetic
-//! thorax, and the real nodules drawn where the radiologists drew them — graded by their readers,
-//! or their union or consensus (pylidc-exact masks), with partial-volume edges and the solid core
-//! and ground-glass halo of their texture rating — written as a CT DICOM series to be read back through the real ingest path beside
-//! the original LIDC XML. The ground truth is *not* taken from here: ingest recomputes it from
+//! thorax, and the real nodules drawn where the radiologists drew them — graded by their
+//! readers, or their union or consensus (pylidc-exact masks), with partial-volume edges and the
+//! solid core and ground-glass halo of their texture rating — written as a CT DICOM series to be
+//! read back through the real ingest path beside the original LIDC XML. The ground truth is *not* taken from here: ingest recomputes it from
 //! the XML, exactly as for a real LIDC scan.
 
 use super::{noise, phantom_ct, textured_nodule, BoxGrid, NoduleExtent, NoduleInsert, PhantomParams};
@@ -149,14 +149,14 @@ fn nodule_insert(
     let dims = [j1 - j0 + 1, i1 - i0 + 1, k1 - k0 + 1];
     let binary = |mask: &BoxMask| {
         debug_assert_eq!(mask.bbox, nodule.bbox);
-        mask.data.iter().map(|&on| f32::from(u8::from(on))).collect()
+        BoxGrid { origin, dims, data: mask.data.clone() }.as_fraction()
     };
-    let data = match extent {
+    let fraction = match extent {
         NoduleExtent::Union => binary(&nodule.union_mask),
         NoduleExtent::Consensus => binary(&nodule.consensus),
-        NoduleExtent::Readers => nodule.reader_fraction.clone(),
+        NoduleExtent::Readers => BoxGrid { origin, dims, data: nodule.reader_fraction.clone() },
     };
-    textured_nodule(&BoxGrid { origin, dims, data }, texture, geometry.spacing_mm, seed)
+    textured_nodule(&fraction, texture, geometry.spacing_mm, seed)
 }
 
 /// The median of the readers' ratings (the lower middle one for an even count).
