@@ -356,6 +356,53 @@ fn the_score_tie_break_ranks_the_strongest_few_by_response_over_peak_and_roundne
 }
 
 #[test]
+fn the_learned_tie_break_takes_the_blob_the_built_in_ranking_scores_highest() {
+    use aret_pipe::stage::select::{BlobRanker, RegionShape};
+    let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
+    let (density, strong, weak) = two_balls(0.5);
+    // A nodule-like region (round, 20 mm, faint peak) and a vessel-like one (drawn out, 60 mm,
+    // a dense peak), given to one ball and then the other.
+    let nodule_like = RegionShape { roundness: 0.9, diameter_mm: 20.0, peak_score: 0.2 };
+    let vessel_like = RegionShape { roundness: 0.1, diameter_mm: 60.0, peak_score: 1.0 };
+    let params = blob_search(BlobParams { blind_tie_break: TieBreak::Learned, ..strongest() });
+    let ranker = BlobRanker::built_in();
+    let blind_on_weak = |weak_is_nodule_like: bool| {
+        let judge = |_: Search, c: &Centre| {
+            let on_weak = near(c.position_mm, weak);
+            let region = if on_weak == weak_is_nodule_like { nodule_like } else { vessel_like };
+            Weighed::Accepted { region: Some(region) }
+        };
+        let found = centres_in(&params, &density, &judge);
+        let blind = found.blind.expect("a blind centre");
+        // Every accepted blob carries the ranking's score, and the taken one has the highest.
+        let strongest = found.blind_accepted.iter().map(|c| c.blob.unwrap().response).fold(0.0, f32::max);
+        for c in &found.blind_accepted {
+            assert_eq!(c.ranking_score, ranker.score(c, strongest), "{c:?}");
+        }
+        let best = found.blind_accepted.iter().filter_map(|c| c.ranking_score).fold(f64::MIN, f64::max);
+        assert_eq!(blind.ranking_score, Some(best), "{blind:?}");
+        // The guided search (tie_break "response") keeps the strongest blob.
+        assert!(near(found.guided.expect("a guided centre").position_mm, strong));
+        near(blind.position_mm, weak)
+    };
+    // The ranking follows the regions, not the response alone: the nodule-like ball is taken.
+    assert!(blind_on_weak(true) && !blind_on_weak(false));
+}
+
+#[test]
+fn the_learned_ranking_is_the_blind_searchs_only_and_its_weights_key_the_stage() {
+    let learned = BlobParams { blind_tie_break: TieBreak::Learned, ..BlobParams::default() };
+    assert!(blob_search(learned.clone()).check().is_ok());
+    assert!(blob_search(learned.clone()).key()["blob_ranker"]["weights"].is_array());
+    assert!(blob_search(BlobParams { blind_tie_break: TieBreak::Score, ..learned.clone() })
+        .key()
+        .get("blob_ranker")
+        .is_none());
+    let e = blob_search(BlobParams { tie_break: TieBreak::Learned, ..learned }).check().unwrap_err().to_string();
+    assert!(e.contains("tie_break = \"learned\"") && e.contains("blind_tie_break"), "{e}");
+}
+
+#[test]
 fn with_no_guided_centre_the_guided_rule_may_fall_back_to_the_blind_one() {
     let (density, strong, _) = two_balls(0.3);
     let params = blob_search(strongest());

@@ -11,7 +11,7 @@ measured (response, scale, rank, the half-maximum region's roundness, diameter a
 contrast, depth in the lung field) and, diagnostic only, whether its centre lies on the nodule.
 
 For every nodule ≥ 10 mm the question is which accepted blob to take. A conditional logit (a
-softmax over the case's blobs, L2-penalised, fitted by L-BFGS: deterministic) learns weights on
+softmax over the case's blobs, L2-penalised: `tools/train_blob_ranker.py`'s fit) learns weights on
 the features from the other anatomies, and takes the held-out anatomy's highest-scored blob.
 Beside it: the shipped rule's centre (`centres.guided` / `centres.blind`, the fallbacks
 included), the strongest blob, and the oracle (some accepted blob is on the nodule). With
@@ -23,26 +23,24 @@ to label and to count.
 """
 import argparse
 import json
-import math
 import os
+import sys
 
 import numpy as np
-from scipy.optimize import minimize
 
 import blob_ranker
 
-# What the blind search's region diameters are measured against, mm.
-BLIND_DIAMETER_MM = 20.0
-FEATURES = ("ln response", "ln response / strongest", "ln peak contrast", "ln response / peak contrast",
-            "roundness", "ln region diameter / annotated", "|ln region diameter / annotated|", "depth in the lung field / 10 mm", "rank / 16")
+sys.path.insert(0, os.path.join(blob_ranker.ROOT, "tools"))
+import train_blob_ranker  # noqa: E402  (the product's features)
+
+FEATURES = train_blob_ranker.FEATURES
 
 
-def blob_features(blob, region, strongest, annotated_mm):
-    response, peak = blob["blob"]["response"], region["peak_score"]
-    diameter_ratio = math.log(max(region["diameter_mm"], 1e-3) / annotated_mm)
-    return [math.log(response), math.log(response / strongest), math.log(peak), math.log(response / peak),
-            region["roundness"], diameter_ratio, abs(diameter_ratio), min(blob.get("depth_mm", 0.0), 60.0) / 10,
-            blob["rank"] / 16]
+def blob_features(blob, region, strongest, reference_mm):
+    """The product's features of an accepted blob, its region measured against reference_mm."""
+    row = {"response": blob["blob"]["response"], "peak_score": region["peak_score"], "roundness": region["roundness"],
+           "diameter_mm": region["diameter_mm"], "depth_mm": blob.get("depth_mm", 0.0), "rank": blob["rank"]}
+    return train_blob_ranker.features(row, strongest, reference_mm)
 
 
 def cases(out, candidate, search, pool=None):
@@ -63,7 +61,7 @@ def cases(out, candidate, search, pool=None):
                 continue
             strongest = max(b["blob"]["response"] for b in blobs)
             # The blind search is not told the annotated diameter.
-            annotated = float(row["gt_diameter_mm"]) if search == "guided" else BLIND_DIAMETER_MM
+            annotated = float(row["gt_diameter_mm"]) if search == "guided" else train_blob_ranker.REFERENCE_DIAMETER_MM
             x = np.array([blob_features(b, blob_ranker.scored_region(b, path, pool or search), strongest, annotated)
                           for b in blobs])
             y = np.array([bool(b.get("on_nodule")) for b in blobs])
@@ -73,25 +71,10 @@ def cases(out, candidate, search, pool=None):
 
 
 def fit(train, penalty):
-    """Weights of the conditional logit on the cases where some blob is on the nodule."""
-    usable = [(x, y) for _, x, y, _ in train if y.any()]
-    stacked = np.vstack([x for x, _ in usable])
-    mean, sd = stacked.mean(0), stacked.std(0) + 1e-9
-
-    def loss(w):
-        total, grad = 0.0, np.zeros_like(w)
-        for x, y in usable:
-            z = (x - mean) / sd
-            s = z @ w
-            s -= s.max()
-            p = np.exp(s) / np.exp(s).sum()
-            total -= math.log(p[y].sum())
-            q = p * y / p[y].sum()
-            grad -= z.T @ (q - p)
-        return total + penalty * w @ w, grad + 2 * penalty * w
-
-    w = minimize(loss, np.zeros(stacked.shape[1]), jac=True, method="L-BFGS-B").x
-    return w, mean, sd
+    """Weights of the conditional logit (the product's fit) on the cases where some blob is on the nodule."""
+    w, mean, sd, _ = train_blob_ranker.fit([(0, patient, x.tolist(), list(y)) for patient, x, y, _ in train if len(y)],
+                                           penalty)
+    return np.array(w), np.array(mean), np.array(sd)
 
 
 def pick(case, model):

@@ -53,13 +53,15 @@ mod size;
 mod tiles;
 mod verdict;
 
-pub use find::{blob_score, centres, Centre, Centres, RegionShape, RunnerUp, Search, Weighed};
+pub use find::{
+    blob_score, centres, BlobRanker, Centre, Centres, RegionShape, RunnerUp, Search, Weighed, BLOB_RANKER_FEATURES,
+};
 pub use params::{BlobParams, HalfMaxParams, Localize, Params, Rule, Sizing, TieBreak};
 pub use result::{Oracle, SelectResult, Selection, ShadowFit, TileScore};
 pub use size::candidates::Analysis;
 pub use verdict::verdict;
 
-pub const VERSION: u32 = 19;
+pub const VERSION: u32 = 20;
 
 pub struct Select {
     pub params: Params,

@@ -37,6 +37,10 @@ pub enum TieBreak {
     /// ln(response / peak score) + `score_roundness` × roundness ([`super::find::blob_score`]). Needs a
     /// sizing that cuts regions.
     Score,
+    /// The accepted blob that the ranking learned on phantom anatomies scores highest
+    /// ([`super::find::BlobRanker`], `models/blob_ranker.json`): the blind search's only.
+    /// Needs a sizing that cuts regions.
+    Learned,
 }
 
 /// `[select]`: which rule is the result, how each finds the nodule's centre (`localize`, with
@@ -155,7 +159,7 @@ impl Default for BlobParams {
             inside_mm: 8.0,
             rival_ratio: 0.7,
             tie_break: TieBreak::Roundness,
-            blind_tie_break: TieBreak::Score,
+            blind_tie_break: TieBreak::Learned,
             score_roundness: 0.0,
             score_top: 5,
             guided_fallback: true,
@@ -185,6 +189,7 @@ impl BlobParams {
             let name = match tie_break {
                 TieBreak::Roundness => "roundness",
                 TieBreak::Score => "score",
+                TieBreak::Learned => "learned",
                 TieBreak::Response => continue,
             };
             if !sizing.cuts_half_max() {
@@ -194,6 +199,13 @@ impl BlobParams {
                     sizing.name()
                 );
             }
+        }
+        if self.tie_break == TieBreak::Learned {
+            bail!(
+                "[select.blob] tie_break = \"learned\": the learned ranking is trained on the blind search's blobs, \
+                 which is told no diameter; set blind_tie_break = \"learned\" and tie_break to \"roundness\", \
+                 \"score\" or \"response\""
+            );
         }
         if !(self.guided_faint_ratio.is_finite() && (0.0..=1.0).contains(&self.guided_faint_ratio)) {
             bail!("[select.blob] guided_faint_ratio must be a number from 0 to 1 (got {})", self.guided_faint_ratio);
@@ -259,6 +271,11 @@ impl Params {
         let table = key.as_object_mut().expect("a table");
         if self.localize == Localize::Blob {
             table.insert("blob".into(), serde_json::to_value(&self.blob).expect("parameters serialise"));
+            if self.blob.blind_tie_break == TieBreak::Learned {
+                // The ranking's weights are a parameter of the stage like any key.
+                let ranker = serde_json::from_str(super::find::BLOB_RANKER_JSON).expect("the built-in ranking is JSON");
+                table.insert("blob_ranker".into(), ranker);
+            }
         }
         if self.sizing.cuts_half_max() {
             table.insert("half_max".into(), serde_json::to_value(&self.half_max).expect("parameters serialise"));

@@ -1,7 +1,7 @@
 //! The blob search: the strongest bright blobs of σ inside the lung field (the `blobs` stage's),
 //! weighed by the sizing and ranked ([`super::rank`]).
 
-use super::rank::pick;
+use super::rank::{pick, with_ranking_scores};
 use super::{Centre, Centres, Localize, Search, Weighed, MAX_WEIGHED};
 use crate::stage::blobs::{BlobSearch, BlobSearches};
 use crate::stage::select::params::Params;
@@ -54,7 +54,9 @@ pub fn centres(
                         }
                     })
                     .collect();
-                (found.found, accepted.clone(), pick(accepted, blob, blob.tie_break_of(which)))
+                let tie_break = blob.tie_break_of(which);
+                let accepted = with_ranking_scores(accepted, blob, tie_break);
+                (found.found, accepted.clone(), pick(accepted, blob, tie_break))
             };
             let none = || (0, Vec::new(), None);
             // Independent searches: on two cores, side by side beats each one's own parallelism.

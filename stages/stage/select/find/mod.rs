@@ -15,7 +15,8 @@
 //! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
 //! left, among the [`MAX_WEIGHED`] strongest; with `tie_break = "roundness"`, the roundest of
 //! those that answer about as strongly as it; with `"score"` (the blind search's, shipped), the
-//! best of the few strongest by [`blob_score`] ([`TieBreak`]). Every blob a search accepted is
+//! best of the few strongest by [`blob_score`]; with `"learned"` (the blind search's, shipped), the
+//! best by the ranking learned on phantom anatomies ([`BlobRanker`]) ([`TieBreak`]). Every blob a search accepted is
 //! recorded ([`Centres`]). Where the guided search finds nothing, its rule may take the blind
 //! centre ([`Centres::fall_back_to_blind`]).
 //!
@@ -30,9 +31,11 @@ use serde::{Deserialize, Serialize};
 
 mod blob;
 mod fallback;
+mod learned;
 mod rank;
 
 pub use blob::centres;
+pub use learned::{BlobRanker, BLOB_RANKER_JSON, FEATURES as BLOB_RANKER_FEATURES};
 pub use rank::blob_score;
 
 pub use crate::stage::blobs::MAX_WEIGHED;
@@ -85,6 +88,10 @@ pub struct Centre {
     /// a ball; its size; its peak), when the search cut one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub region: Option<RegionShape>,
+    /// The score the search's tie-break ranked the blob by, with `"score"` (the strongest few)
+    /// and `"learned"` (every accepted blob): the highest is taken.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ranking_score: Option<f64>,
     /// How far inside the lung field the centre lies, for `blob`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_mm: Option<f64>,
@@ -124,6 +131,7 @@ impl Centre {
             runner_up: None,
             ambiguous: false,
             region: None,
+            ranking_score: None,
             depth_mm: None,
             from_blind: false,
             replaced_guided_peak: None,

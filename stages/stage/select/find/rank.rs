@@ -1,7 +1,7 @@
 //! How a search ranks the blobs it accepted: which it takes among those that answer alike
 //! (`tie_break`), and its runner-up.
 
-use super::{Centre, RunnerUp, Search};
+use super::{BlobRanker, Centre, RunnerUp, Search};
 use crate::stage::select::params::{BlobParams, TieBreak};
 use glam::DVec3;
 
@@ -25,6 +25,28 @@ pub fn blob_score(centre: &Centre, roundness_weight: f64) -> Option<f64> {
     let (blob, region) = (centre.blob?, centre.region?);
     (region.peak_score > 0.0 && blob.response > 0.0)
         .then(|| (f64::from(blob.response) / f64::from(region.peak_score)).ln() + roundness_weight * region.roundness)
+}
+
+/// The accepted blobs (strongest first) with the score `tie_break` ranks them by: for
+/// `"score"`, [`blob_score`] of the `score_top` strongest; for `"learned"`, the learned
+/// ranking's ([`BlobRanker`]) of every one. Other tie-breaks score none.
+pub(super) fn with_ranking_scores(mut accepted: Vec<Centre>, params: &BlobParams, tie_break: TieBreak) -> Vec<Centre> {
+    match tie_break {
+        TieBreak::Response | TieBreak::Roundness => {}
+        TieBreak::Score => {
+            for c in accepted.iter_mut().take(params.score_top) {
+                c.ranking_score = blob_score(c, params.score_roundness);
+            }
+        }
+        TieBreak::Learned => {
+            let ranker = BlobRanker::built_in();
+            let strongest = accepted.iter().filter_map(|c| c.blob).map(|b| b.response).fold(0.0, f32::max);
+            for c in &mut accepted {
+                c.ranking_score = ranker.score(c, strongest);
+            }
+        }
+    }
+    accepted
 }
 
 /// How far `other` lies from `taken`, if outside the ball `taken`'s scale is matched to (a ball
@@ -51,7 +73,8 @@ fn runner_up(taken: &Centre, rival: &Centre) -> Option<RunnerUp> {
 
 /// The blob a search takes among those it `accepted` (strongest first), with its runner-up:
 /// the strongest by default, the roundest contender with `tie_break = "roundness"`, the best
-/// scored of the strongest few with `"score"`.
+/// scored of the strongest few with `"score"`, the best ranked by the learned ranking with
+/// `"learned"`.
 pub(super) fn pick(mut accepted: Vec<Centre>, params: &BlobParams, tie_break: TieBreak) -> Option<Centre> {
     let strongest = accepted.first()?.clone();
     let taken_at = match tie_break {
@@ -74,12 +97,11 @@ pub(super) fn pick(mut accepted: Vec<Centre>, params: &BlobParams, tie_break: Ti
                 })
                 .map_or(0, |(i, _)| i)
         }
-        TieBreak::Score => {
-            let score = |c: &Centre| blob_score(c, params.score_roundness).unwrap_or(f64::NEG_INFINITY);
+        TieBreak::Score | TieBreak::Learned => {
             // The best scored; the stronger of two alike.
+            let score = |c: &Centre| c.ranking_score.unwrap_or(f64::NEG_INFINITY);
             accepted
                 .iter()
-                .take(params.score_top)
                 .enumerate()
                 .fold((0, f64::NEG_INFINITY), |best, (i, c)| if score(c) > best.1 { (i, score(c)) } else { best })
                 .0
