@@ -170,7 +170,7 @@ impl Default for BlobParams {
 
 impl Default for HalfMaxParams {
     fn default() -> Self {
-        HalfMaxParams { fraction: 0.4, guided_diameter_ratio: [0.5, 2.0], guided_reach_diameters: 1.0 }
+        HalfMaxParams { fraction: 0.3, guided_diameter_ratio: [0.5, 2.0], guided_reach_diameters: 1.0 }
     }
 }
 

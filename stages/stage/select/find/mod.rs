@@ -14,10 +14,10 @@
 //! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
 //! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
 //! left, among the [`MAX_WEIGHED`] strongest; with `tie_break = "roundness"`, the roundest of
-//! those that answer about as strongly as it; with `"score"` (the blind search's, shipped), the
-//! best of the few strongest by [`blob_score`]; with `"learned"` (the blind search's, shipped), the
-//! best by the ranking learned on phantom anatomies ([`BlobRanker`]) ([`TieBreak`]). Every blob a search accepted is
-//! recorded ([`Centres`]). Where the guided search finds nothing, its rule may take the blind
+//! those that answer about as strongly as it; with `"score"`, the best of the few strongest by
+//! [`blob_score`]; with `"learned"` (the blind search's, shipped), the best by the ranking
+//! learned on phantom anatomies ([`BlobRanker`]) ([`TieBreak`]). Every blob a search accepted
+//! is recorded ([`Centres`]). Where the guided search finds nothing, its rule may take the blind
 //! centre ([`Centres::fall_back_to_blind`]).
 //!
 //! A search also reports its runner-up: the strongest other blob it would have accepted, away
