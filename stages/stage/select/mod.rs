@@ -53,9 +53,7 @@ mod size;
 mod tiles;
 mod verdict;
 
-pub use find::{
-    blob_score, centres, BlobRanker, Centre, Centres, RegionShape, RunnerUp, Search, Weighed, BLOB_RANKER_FEATURES,
-};
+pub use find::{blob_score, centres, BlobRanker, Centre, Centres, RegionShape, RunnerUp, Search, Weighed};
 pub use params::{BlobParams, HalfMaxParams, Localize, Params, Rule, Sizing, TieBreak};
 pub use result::{Oracle, SelectResult, Selection, ShadowFit, TileScore};
 pub use size::candidates::Analysis;
@@ -332,7 +330,7 @@ mod tests {
         let paper = Params { localize: Localize::None, sizing: Sizing::Candidates, ..Params::default() };
         assert_eq!(paper.key().as_object().unwrap().len(), 4, "{}", paper.key());
         // A key of an unused variant changes nothing.
-        let other = Params { half_max: HalfMaxParams { fraction: 0.3, ..HalfMaxParams::default() }, ..paper.clone() };
+        let other = Params { half_max: HalfMaxParams { fraction: 0.45, ..HalfMaxParams::default() }, ..paper.clone() };
         assert_eq!(paper.key(), other.key());
         assert_ne!(Params { half_max: other.half_max.clone(), ..Params::default() }.key(), shipped);
     }

@@ -4,6 +4,10 @@
 use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
+/// The blind search's learned ranking (`blind_tie_break = "learned"`,
+/// [`super::find::BlobRanker`]) as the repository holds it: a parameter of the stage like any key.
+pub const BLOB_RANKER_JSON: &str = include_str!("../../../models/blob_ranker.json");
+
 /// Which rule a selection is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -272,8 +276,7 @@ impl Params {
         if self.localize == Localize::Blob {
             table.insert("blob".into(), serde_json::to_value(&self.blob).expect("parameters serialise"));
             if self.blob.blind_tie_break == TieBreak::Learned {
-                // The ranking's weights are a parameter of the stage like any key.
-                let ranker = serde_json::from_str(super::find::BLOB_RANKER_JSON).expect("the built-in ranking is JSON");
+                let ranker = serde_json::from_str(BLOB_RANKER_JSON).expect("the built-in ranking is JSON");
                 table.insert("blob_ranker".into(), ranker);
             }
         }

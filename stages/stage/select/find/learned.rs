@@ -5,11 +5,9 @@
 //! here and in that script, and a model whose feature names differ from these is refused.
 
 use super::Centre;
+use crate::stage::select::params::BLOB_RANKER_JSON;
 use serde::Deserialize;
 use std::sync::OnceLock;
-
-/// The ranking's weights as the repository holds them.
-pub const BLOB_RANKER_JSON: &str = include_str!("../../../../models/blob_ranker.json");
 
 /// The features, in the order of the model's weights, named as the training script names them.
 pub const FEATURES: [&str; 9] = [

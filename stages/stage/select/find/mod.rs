@@ -35,7 +35,7 @@ mod learned;
 mod rank;
 
 pub use blob::centres;
-pub use learned::{BlobRanker, BLOB_RANKER_JSON, FEATURES as BLOB_RANKER_FEATURES};
+pub use learned::BlobRanker;
 pub use rank::blob_score;
 
 pub use crate::stage::blobs::MAX_WEIGHED;
