@@ -30,6 +30,8 @@ CONFIG = (
     "[train.vm]\nrank = 4\niterations = 300\nbatch_rays = 1024\nseed = 3\n"
     '[sweep]\nmin_voxels = 4\ndiameter_mm = [5.0, 400.0]\nscore = "local_contrast"\nregion = "box"\n'
     '[select]\nprimary = "blind_largest"\nlocalize = "origin"\nsizing = "SIZING"\n'
+    # The region at half the peak, as the comparison below states it, whatever the default cut.
+    "[select.half_max]\nfraction = 0.5\n"
 )
 WINDOW_RADII, MARGIN_PX, CLEARED_MM, SHELL_MM, LOSS_SCALE = 2.0, 3.0, 4.0, 4.0, 0.01
 
@@ -157,8 +159,8 @@ def test_shadow_fit_equals_scipy_least_squares_and_finds_the_sphere(runs):
     np.testing.assert_allclose(ours["centre_mm"], fit.x[:3] * mpu + np.array(frame["roi_center_mm"]), atol=1.0)
     assert ours["contrast"] == pytest.approx(fit.x[6], rel=0.1)
     assert fitted["candidate"]["volume_mm3"] == pytest.approx(4 / 3 * np.pi * scipy_axes_mm.prod(), rel=0.05)
-    # The shadows size the sphere better than the region they were fitted around: its
-    # equivalent diameter lies nearer the sphere's 24 mm.
+    # The shadows size the sphere better than the half-maximum region they were fitted around:
+    # its equivalent diameter lies nearer the sphere's 24 mm.
     true_diameter = 2 * NODULE_RADIUS_MM
     assert abs(fitted["candidate"]["diameter_mm"] - true_diameter) < abs(region["diameter_mm"] - true_diameter) / 2
     np.testing.assert_allclose(ours["centre_mm"], NODULE_MM, atol=2.0)
