@@ -2,8 +2,8 @@
 //! thorax, and the real nodules drawn where the radiologists drew them — graded by their
 //! readers, or their union or consensus (pylidc-exact masks), with partial-volume edges and the
 //! solid core and ground-glass halo of their texture rating — written as a CT DICOM series to be
-//! read back through the real ingest path beside the original LIDC XML. The ground truth is *not* taken from here: ingest recomputes it from
-//! the XML, exactly as for a real LIDC scan.
+//! read back through the real ingest path beside the original LIDC XML. The ground truth is
+//! *not* taken from here: ingest recomputes it from the XML, exactly as for a real LIDC scan.
 
 use super::{noise, phantom_ct, textured_nodule, BoxGrid, NoduleExtent, NoduleInsert, PhantomParams};
 use crate::formats::dicom_writer::{write_ct_series, SeriesMeta};
