@@ -318,44 +318,6 @@ fn the_roundness_tie_break_takes_the_roundest_of_the_blobs_that_answer_alike() {
 }
 
 #[test]
-fn the_score_tie_break_ranks_the_strongest_few_by_response_over_peak_and_roundness() {
-    use aret_pipe::stage::select::{blob_score, RegionShape, TieBreak};
-    let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
-    // The caller cuts the strong ball's region with a high peak (a dense speck: 1.0) and the
-    // weak one's with a low one (0.2); both alike round.
-    let (density, strong, weak) = two_balls(0.3);
-    let judge = |_: Search, c: &Centre| Weighed::Accepted {
-        region: Some(RegionShape {
-            roundness: 0.5,
-            diameter_mm: 12.0,
-            peak_score: if near(c.position_mm, strong) { 1.0 } else { 0.2 },
-        }),
-    };
-    let search = |params: SelectParams| {
-        let found = centres_in(&params, &density, &judge);
-        let [guided, blind] = [found.guided, found.blind].map(|c| c.expect("a centre"));
-        // Every accepted blob is recorded, strongest first, the taken one among them.
-        let ranks: Vec<usize> = found.blind_accepted.iter().map(|c| c.rank).collect();
-        assert!(ranks.windows(2).all(|w| w[0] < w[1]) && ranks.contains(&blind.rank), "{ranks:?}");
-        (near(guided.position_mm, strong), near(blind.position_mm, weak), blind)
-    };
-    let base = blob_search(BlobParams { blind_tie_break: TieBreak::Score, ..strongest() });
-    // The weak ball answers at well under 0.7 of the strong one (no roundness contest), but its
-    // response per unit of peak contrast is higher: the blind search takes it, while the guided
-    // one (tie_break "response") keeps the strongest.
-    let (guided_on_strong, blind_on_weak, blind) = search(base.clone());
-    assert!(guided_on_strong && blind_on_weak, "{blind:?}");
-    let score = blob_score(&blind, 3.0).expect("a score");
-    let expected = (f64::from(blind.blob.unwrap().response) / f64::from(0.2f32)).ln() + 3.0 * 0.5;
-    assert!((score - expected).abs() < 1e-9, "{score} vs {expected}");
-    // Only the `score_top` strongest contend: with one, the strongest is taken.
-    let (_, blind_on_weak, _) = search(blob_search(BlobParams { score_top: 1, ..base.blob.clone() }));
-    assert!(!blind_on_weak);
-    // Without a region there is no score.
-    assert_eq!(blob_score(&Centre { region: None, ..blind }, 3.0), None);
-}
-
-#[test]
 fn the_learned_tie_break_takes_the_blob_the_built_in_ranking_scores_highest() {
     use aret_pipe::stage::select::{BlobRanker, RegionShape};
     let near = |v: [f64; 3], c: [usize; 3]| (0..3).all(|a| (v[a] / 2.0 - c[a] as f64).abs() <= 1.0);
@@ -374,6 +336,9 @@ fn the_learned_tie_break_takes_the_blob_the_built_in_ranking_scores_highest() {
         };
         let found = centres_in(&params, &density, &judge);
         let blind = found.blind.expect("a blind centre");
+        // Every accepted blob is recorded, strongest first, the taken one among them.
+        let ranks: Vec<usize> = found.blind_accepted.iter().map(|c| c.rank).collect();
+        assert!(ranks.windows(2).all(|w| w[0] < w[1]) && ranks.contains(&blind.rank), "{ranks:?}");
         // Every accepted blob carries the ranking's score, and the taken one has the highest.
         let strongest = found.blind_accepted.iter().map(|c| c.blob.unwrap().response).fold(0.0, f32::max);
         for c in &found.blind_accepted {
@@ -394,7 +359,7 @@ fn the_learned_ranking_is_the_blind_searchs_only_and_its_weights_key_the_stage()
     let learned = BlobParams { blind_tie_break: TieBreak::Learned, ..BlobParams::default() };
     assert!(blob_search(learned.clone()).check().is_ok());
     assert!(blob_search(learned.clone()).key()["blob_ranker"]["weights"].is_array());
-    assert!(blob_search(BlobParams { blind_tie_break: TieBreak::Score, ..learned.clone() })
+    assert!(blob_search(BlobParams { blind_tie_break: TieBreak::Roundness, ..learned.clone() })
         .key()
         .get("blob_ranker")
         .is_none());

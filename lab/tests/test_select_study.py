@@ -98,6 +98,8 @@ def test_a_key_spelt_before_the_variant_tables_is_refused_with_its_new_spelling(
             study.parse_variant(old)
     with pytest.raises(SystemExit, match="lab-v1"):
         study.parse_variant("guided_scale_ratios = [0.71, 1.0]")
+    with pytest.raises(SystemExit, match=r"blob\.score_top has left the code: it runs only at tag lab-v2"):
+        study.parse_variant("blob.score_top = 3")
     assert study.parse_variant("") == {}
 
 

@@ -53,7 +53,7 @@ mod size;
 mod tiles;
 mod verdict;
 
-pub use find::{blob_score, centres, BlobRanker, Centre, Centres, RegionShape, RunnerUp, Search, Weighed};
+pub use find::{centres, BlobRanker, Centre, Centres, RegionShape, RunnerUp, Search, Weighed};
 pub use params::{BlobParams, HalfMaxParams, Localize, Params, Rule, Sizing, TieBreak};
 pub use result::{Oracle, SelectResult, Selection, ShadowFit, TileScore};
 pub use size::candidates::Analysis;
@@ -299,24 +299,15 @@ mod tests {
         assert!(Params { sizing: Sizing::Shadows, ..p }.check().is_ok());
         let p = Params {
             sizing: Sizing::Candidates,
-            ..blob(BlobParams { blind_tie_break: TieBreak::Score, ..response.clone() })
+            ..blob(BlobParams { blind_tie_break: TieBreak::Learned, ..response.clone() })
         };
-        assert!(p.check().unwrap_err().to_string().contains("blind_tie_break = \"score\""));
+        assert!(p.check().unwrap_err().to_string().contains("blind_tie_break = \"learned\""));
         let p = Params { sizing: Sizing::HalfMax, ..p };
         assert!(p.check().is_ok());
         assert_eq!(
             (p.blob.tie_break_of(Search::Guided), p.blob.tie_break_of(Search::Blind)),
-            (TieBreak::Response, TieBreak::Score)
+            (TieBreak::Response, TieBreak::Learned)
         );
-        assert!(blob(BlobParams { score_top: 0, ..BlobParams::default() })
-            .check()
-            .unwrap_err()
-            .to_string()
-            .contains("score_top"));
-        for bad in [-1.0, f64::NAN] {
-            let p = blob(BlobParams { score_roundness: bad, ..BlobParams::default() });
-            assert!(p.check().unwrap_err().to_string().contains("score_roundness"));
-        }
         for bad in [0.0, -1.0, f64::NAN] {
             let p = blob(BlobParams { rival_ratio: bad, ..BlobParams::default() });
             assert!(p.check().unwrap_err().to_string().contains("[select.blob] rival_ratio"));

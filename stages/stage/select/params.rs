@@ -37,10 +37,6 @@ pub enum TieBreak {
     /// it or more, the one whose region is roundest: a nodule is compact, the blobs that rival it
     /// (vessel junctions, the hilum) are drawn out. Needs a sizing that cuts regions.
     Roundness,
-    /// Among the `score_top` strongest accepted blobs, the one with the highest
-    /// ln(response / peak score) + `score_roundness` × roundness ([`super::find::blob_score`]). Needs a
-    /// sizing that cuts regions.
-    Score,
     /// The accepted blob that the ranking learned on phantom anatomies scores highest
     /// ([`super::find::BlobRanker`], `models/blob_ranker.json`): the blind search's only.
     /// Needs a sizing that cuts regions.
@@ -83,10 +79,6 @@ pub struct BlobParams {
     pub tie_break: TieBreak,
     /// The blind search's own tie-break.
     pub blind_tie_break: TieBreak,
-    /// `tie_break = "score"`: the weight of roundness beside ln(response / peak score).
-    pub score_roundness: f64,
-    /// `tie_break = "score"`: how many of the strongest accepted blobs it ranks.
-    pub score_top: usize,
     /// With an annotated diameter: where the guided search finds no blob it can size, the
     /// guided rule takes the blind centre if it passes the guided size check
     /// ([`Centres::fall_back_to_blind`]).
@@ -164,8 +156,6 @@ impl Default for BlobParams {
             rival_ratio: 0.7,
             tie_break: TieBreak::Roundness,
             blind_tie_break: TieBreak::Learned,
-            score_roundness: 0.0,
-            score_top: 5,
             guided_fallback: true,
             guided_faint_ratio: 0.5,
         }
@@ -192,7 +182,6 @@ impl BlobParams {
         for (key, tie_break) in [("tie_break", self.tie_break), ("blind_tie_break", self.blind_tie_break)] {
             let name = match tie_break {
                 TieBreak::Roundness => "roundness",
-                TieBreak::Score => "score",
                 TieBreak::Learned => "learned",
                 TieBreak::Response => continue,
             };
@@ -207,18 +196,12 @@ impl BlobParams {
         if self.tie_break == TieBreak::Learned {
             bail!(
                 "[select.blob] tie_break = \"learned\": the learned ranking is trained on the blind search's blobs, \
-                 which is told no diameter; set blind_tie_break = \"learned\" and tie_break to \"roundness\", \
-                 \"score\" or \"response\""
+                 which is told no diameter; set blind_tie_break = \"learned\" and tie_break to \"roundness\" \
+                 or \"response\""
             );
         }
         if !(self.guided_faint_ratio.is_finite() && (0.0..=1.0).contains(&self.guided_faint_ratio)) {
             bail!("[select.blob] guided_faint_ratio must be a number from 0 to 1 (got {})", self.guided_faint_ratio);
-        }
-        if !(self.score_roundness.is_finite() && self.score_roundness >= 0.0) {
-            bail!("[select.blob] score_roundness must be a number ≥ 0 (got {})", self.score_roundness);
-        }
-        if self.score_top == 0 {
-            bail!("[select.blob] score_top must be at least 1");
         }
         Ok(())
     }

@@ -55,7 +55,7 @@ pub fn centres(
                     })
                     .collect();
                 let tie_break = blob.tie_break_of(which);
-                let accepted = with_ranking_scores(accepted, blob, tie_break);
+                let accepted = with_ranking_scores(accepted, tie_break);
                 (found.found, accepted.clone(), pick(accepted, blob, tie_break))
             };
             let none = || (0, Vec::new(), None);

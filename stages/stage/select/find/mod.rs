@@ -14,9 +14,8 @@
 //! A search may pass over blobs its caller cannot size (`accept`: with `sizing = "half_max"`,
 //! a blob whose half-maximum region is not of the nodule's size) and take the strongest one
 //! left, among the [`MAX_WEIGHED`] strongest; with `tie_break = "roundness"`, the roundest of
-//! those that answer about as strongly as it; with `"score"`, the best of the few strongest by
-//! [`blob_score`]; with `"learned"` (the blind search's, shipped), the best by the ranking
-//! learned on phantom anatomies ([`BlobRanker`]) ([`TieBreak`]). Every blob a search accepted
+//! those that answer about as strongly as it; with `"learned"` (the blind search's, shipped),
+//! the best by the ranking learned on phantom anatomies ([`BlobRanker`]) ([`TieBreak`]). Every blob a search accepted
 //! is recorded ([`Centres`]). Where the guided search finds nothing, its rule may take the blind
 //! centre ([`Centres::fall_back_to_blind`]).
 //!
@@ -36,7 +35,6 @@ mod rank;
 
 pub use blob::centres;
 pub use learned::BlobRanker;
-pub use rank::blob_score;
 
 pub use crate::stage::blobs::MAX_WEIGHED;
 
@@ -88,8 +86,8 @@ pub struct Centre {
     /// a ball; its size; its peak), when the search cut one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub region: Option<RegionShape>,
-    /// The score the search's tie-break ranked the blob by, with `"score"` (the strongest few)
-    /// and `"learned"` (every accepted blob): the highest is taken.
+    /// The score the search's tie-break ranked the blob by, with `"learned"` (every accepted
+    /// blob): the highest is taken.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ranking_score: Option<f64>,
     /// How far inside the lung field the centre lies, for `blob`.

@@ -15,29 +15,11 @@ impl BlobParams {
     }
 }
 
-/// What `tie_break = "score"` ranks a blob by: ln(response / peak score) + `roundness_weight` ×
-/// roundness. The scale-normalised response over the region's peak local contrast is highest
-/// for a blob as wide as the scale it answered at, and low for a small dense speck (a vessel
-/// seen end-on, a junction) whose contrast is high but whose extent the scales overshoot;
-/// a positive weight then favours the compact blob over the drawn-out one (the shipped weight
-/// is chosen by leaving one anatomy out: docs/results.md). `None` without a region.
-pub fn blob_score(centre: &Centre, roundness_weight: f64) -> Option<f64> {
-    let (blob, region) = (centre.blob?, centre.region?);
-    (region.peak_score > 0.0 && blob.response > 0.0)
-        .then(|| (f64::from(blob.response) / f64::from(region.peak_score)).ln() + roundness_weight * region.roundness)
-}
-
 /// The accepted blobs (strongest first) with the score `tie_break` ranks them by: for
-/// `"score"`, [`blob_score`] of the `score_top` strongest; for `"learned"`, the learned
-/// ranking's ([`BlobRanker`]) of every one. Other tie-breaks score none.
-pub(super) fn with_ranking_scores(mut accepted: Vec<Centre>, params: &BlobParams, tie_break: TieBreak) -> Vec<Centre> {
+/// `"learned"`, the learned ranking's ([`BlobRanker`]) of every one. Other tie-breaks score none.
+pub(super) fn with_ranking_scores(mut accepted: Vec<Centre>, tie_break: TieBreak) -> Vec<Centre> {
     match tie_break {
         TieBreak::Response | TieBreak::Roundness => {}
-        TieBreak::Score => {
-            for c in accepted.iter_mut().take(params.score_top) {
-                c.ranking_score = blob_score(c, params.score_roundness);
-            }
-        }
         TieBreak::Learned => {
             let ranker = BlobRanker::built_in();
             let strongest = accepted.iter().filter_map(|c| c.blob).map(|b| b.response).fold(0.0, f32::max);
@@ -73,8 +55,7 @@ fn runner_up(taken: &Centre, rival: &Centre) -> Option<RunnerUp> {
 
 /// The blob a search takes among those it `accepted` (strongest first), with its runner-up:
 /// the strongest by default, the roundest contender with `tie_break = "roundness"`, the best
-/// scored of the strongest few with `"score"`, the best ranked by the learned ranking with
-/// `"learned"`.
+/// ranked by the learned ranking with `"learned"`.
 pub(super) fn pick(mut accepted: Vec<Centre>, params: &BlobParams, tie_break: TieBreak) -> Option<Centre> {
     let strongest = accepted.first()?.clone();
     let taken_at = match tie_break {
@@ -97,7 +78,7 @@ pub(super) fn pick(mut accepted: Vec<Centre>, params: &BlobParams, tie_break: Ti
                 })
                 .map_or(0, |(i, _)| i)
         }
-        TieBreak::Score | TieBreak::Learned => {
+        TieBreak::Learned => {
             // The best scored; the stronger of two alike.
             let score = |c: &Centre| c.ranking_score.unwrap_or(f64::NEG_INFINITY);
             accepted
