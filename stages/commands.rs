@@ -79,6 +79,7 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         );
     }
     let p = prepare(config_path, &args.sets, args.patients.as_deref(), args.until.as_deref())?;
+    crate::resources::check_memory(&p.config)?;
     let force = forced_stages(&p.graph, &args.force)?;
     let _shared = FileLock::shared(&p.store.global_lock_path())?;
     if args.dry_run {

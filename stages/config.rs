@@ -6,6 +6,7 @@
 //! Relative paths are taken relative to the folder of the file that gives them.
 
 mod layers;
+mod ranges;
 
 use crate::stage::{drr, grid, hu, ingest, metrics, select, sweep, train};
 use anyhow::bail;
@@ -280,5 +281,96 @@ mod tests {
         let text = MINIMAL.replace("name = \"t\"\n", "name = \"t\"\nstage_workers = { trian = 1 }\n");
         let e = Config::parse(&text).unwrap_err().to_string();
         assert!(e.contains("trian"), "{e}");
+    }
+
+    #[test]
+    fn a_number_outside_its_range_names_the_key_its_line_and_the_range() {
+        let cases = [
+            ("[drr]\nwidth_px = 100000\n", "[drr] width_px: 100000 is out of range: it takes [8, 8192] (pixels)"),
+            ("[train]\nthreads = 100000\n", "[train] threads: 100000 is out of range: it takes [0, 1024]"),
+            (
+                "[metrics]\nbootstrap_resamples = 0\n",
+                "[metrics] bootstrap_resamples: 0 is out of range: it takes [100, 10000000]",
+            ),
+            ("[select.half_max]\nfraction = 1.0\n", "[select.half_max] fraction: 1 is out of range: it takes (0, 1)"),
+            ("[sweep]\npercentiles = [50.0, 101.0]\n", "[sweep] percentiles: 101 is out of range"),
+            ("[sweep]\nconnectivity = 8\n", "[sweep] connectivity: 8 is out of range: it takes one of 6, 18, 26"),
+            ("[drr]\npose_error_deg = nan\n", "[drr] pose_error_deg: NaN is out of range"),
+        ];
+        for (table, expected) in cases {
+            let e = Config::parse(&format!("{MINIMAL}{table}")).unwrap_err().to_string();
+            assert!(e.contains("line 7") && e.contains(expected), "{e}");
+        }
+        let workers = MINIMAL.replace("name = \"t\"\n", "name = \"t\"\nstage_workers = { train = 5000 }\n");
+        let e = Config::parse(&workers).unwrap_err().to_string();
+        assert!(e.contains("line 3") && e.contains("[pipeline.stage_workers] train: 5000"), "{e}");
+        // The ends of a closed range are valid.
+        assert!(Config::parse(&format!("{MINIMAL}[drr]\nwidth_px = 8192\nheight_px = 8\n")).is_ok());
+    }
+
+    #[test]
+    fn every_numeric_key_has_a_range_that_its_default_lies_in() {
+        let c = Config::parse(MINIMAL).unwrap();
+        let mut defaults = toml::Table::new();
+        let mut put = |name: &str, value: toml::Value| {
+            let (table, sub) = name.split_once('.').map_or((name, None), |(t, s)| (t, Some(s)));
+            let slot = defaults.entry(table).or_insert_with(|| toml::Value::Table(toml::Table::new()));
+            let slot = slot.as_table_mut().unwrap();
+            match sub {
+                Some(sub) => {
+                    slot.insert(sub.to_string(), value);
+                }
+                None => slot.extend(value.as_table().unwrap().clone()),
+            }
+        };
+        put("pipeline", toml::Value::try_from(toml::toml! { workers = 2 }).unwrap());
+        put("dataset.phantom", toml::Value::try_from(crate::phantom::PhantomParams::default()).unwrap());
+        put("ingest", toml::Value::try_from(&c.ingest).unwrap());
+        put("hu", toml::Value::try_from(&c.hu).unwrap());
+        put("drr", toml::Value::try_from(&c.drr).unwrap());
+        put("train", toml::Value::try_from(&c.train).unwrap());
+        put("grid", toml::Value::try_from(&c.grid).unwrap());
+        put("sweep", toml::Value::try_from(&c.sweep).unwrap());
+        put("select", toml::Value::try_from(&c.select).unwrap());
+        put("metrics", toml::Value::try_from(&c.metrics).unwrap());
+        fn numeric_keys(prefix: &str, table: &toml::Table, out: &mut Vec<(String, String)>) {
+            for (key, value) in table {
+                match value {
+                    toml::Value::Table(t) => numeric_keys(&format!("{prefix}.{key}"), t, out),
+                    toml::Value::Integer(_) | toml::Value::Float(_) => out.push((prefix.to_string(), key.clone())),
+                    toml::Value::Array(a) if a.iter().any(|v| v.is_integer() || v.is_float()) => {
+                        out.push((prefix.to_string(), key.clone()))
+                    }
+                    _ => {}
+                }
+            }
+        }
+        let mut keys = Vec::new();
+        for (table, value) in &defaults {
+            numeric_keys(table, value.as_table().unwrap(), &mut keys);
+        }
+        // Keys that take a word or a number, whose defaults are words.
+        keys.extend([("drr".to_string(), "focal_px".to_string()), ("drr".to_string(), "roi_center".to_string())]);
+        assert!(keys.len() > 60, "{keys:?}");
+        for (table, key) in &keys {
+            assert!(
+                ranges::KEY_RANGES.iter().any(|r| r.table == table && r.key == key),
+                "[{table}] {key} has no range in stages/config/ranges.rs"
+            );
+        }
+        ranges::check(&defaults, |_| None).expect("the defaults lie in their ranges");
+        // The connectivity serialises as a word; its number must be in range too.
+        assert!(ranges::check(&toml::from_str("[sweep]\nconnectivity = 26").unwrap(), |_| None).is_ok());
+    }
+
+    #[test]
+    fn the_ranges_document_is_written_from_the_table() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/config_ranges.md");
+        let expected = ranges::markdown();
+        if std::env::var_os("UPDATE_DOCS").is_some() {
+            std::fs::write(&path, &expected).unwrap();
+        }
+        let on_disk = std::fs::read_to_string(&path).unwrap_or_default();
+        assert!(on_disk == expected, "docs/config_ranges.md is stale: UPDATE_DOCS=1 cargo test --lib config");
     }
 }

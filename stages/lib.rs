@@ -20,6 +20,7 @@ pub mod kernel_command;
 pub mod kernels;
 pub mod phantom;
 pub mod pipeline;
+pub mod resources;
 pub mod stage;
 pub mod train;
 pub mod volume;

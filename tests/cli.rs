@@ -554,7 +554,7 @@ fn gc_prune_and_forget_drop_only_what_they_name_and_a_dry_run_deletes_nothing() 
     let p = Project::new(&["P1"], 2);
     p.run(&[]);
     // Another configuration on the same cache: a different bootstrap, so its own metrics.
-    p.write_config("other.toml", "cache", "out-other", "[metrics]\nbootstrap_resamples = 50\n");
+    p.write_config("other.toml", "cache", "out-other", "[metrics]\nbootstrap_resamples = 200\n");
     assert!(p.aret(&["run", "other.toml"]).status.success());
     let manifests = || walkdir::WalkDir::new(p.path("cache/manifests")).min_depth(2).into_iter().count();
     let before = manifests();

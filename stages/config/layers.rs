@@ -188,6 +188,7 @@ impl Stack {
             merge(&mut merged, &layer.table);
         }
         self.check_variants(&merged)?;
+        super::ranges::check(&merged, |keys| self.where_is(keys))?;
         let config: Config = Value::Table(merged).try_into().map_err(|e: toml::de::Error| self.located(&e))?;
         config.check()?;
         Ok(config)

@@ -11,6 +11,14 @@ use serde::{Deserialize, Serialize};
 pub use crate::backend::Backend;
 
 /// What `train` fits.
+/// A fit's arrays a lattice node: the dense model's σ, look-ahead, back-projection, gradient,
+/// curvature and TV directions (about twelve f32s); the VM model's field, gradient and masks hold
+/// fewer.
+pub const PEAK_BYTES_A_NODE: u64 = 48;
+/// A fit's bytes a ray: its origin and direction, the measured and rendered depth and the
+/// residual (f64s), and the projector's weights.
+pub const PEAK_BYTES_A_RAY: u64 = 96;
+
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FieldModel {
@@ -164,6 +172,13 @@ impl TrainParams {
         }
         self.dense_tv.check()?;
         self.vm.check()
+    }
+
+    /// About how many bytes one patient's fit holds at its peak, with `rays` pixels in its three
+    /// views: σ and the solver's arrays a lattice node ([`PEAK_BYTES_A_NODE`]), each ray's geometry,
+    /// measurement and residuals ([`PEAK_BYTES_A_RAY`]).
+    pub fn peak_bytes_estimate(&self, rays: u64) -> u64 {
+        (self.grid as u64).pow(3) * PEAK_BYTES_A_NODE + rays * PEAK_BYTES_A_RAY
     }
 
     /// The canonical form of what the model in use reads: the stage's cache key. `threads` is

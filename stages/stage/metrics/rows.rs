@@ -3,7 +3,6 @@
 
 use crate::stage::select::{SelectResult, Selection};
 use serde::Serialize;
-use std::fmt::Write as _;
 
 /// SPEC §3 metrics: S < 10 mm ≤ M ≤ 20 mm < L, by the annotated diameter.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -209,18 +208,20 @@ hit,dice,centroid_dist_mm,mesh_volume_mm3,percentile,blind_volume_mm3,blind_ape_
 sphere_volume_mm3,sphere_ape_pct,oracle_hit,train_seconds";
 
 /// `results.csv`: the SPEC's columns in order; an empty field where there is no value (no
-/// candidate survived), a non-finite distance as empty too.
+/// candidate survived), a non-finite distance as empty too. Fields are quoted where they must be
+/// (RFC 4180), and a patient ID that a spreadsheet would run as a formula is written as text
+/// ([`spreadsheet_text`]).
 pub fn results_csv(rows: &[PatientRow]) -> String {
-    let mut s = format!("{RESULTS_HEADER}\n");
     let num = |v: Option<f64>| v.filter(|v| v.is_finite()).map(|v| format!("{v:.4}")).unwrap_or_default();
     let flag = |v: Option<bool>| v.map(|b| u8::from(b).to_string()).unwrap_or_default();
+    let mut csv = csv::WriterBuilder::new().terminator(csv::Terminator::Any(b'\n')).from_writer(Vec::new());
+    let header: Vec<&str> = RESULTS_HEADER.split(',').collect();
+    csv.write_record(&header).expect("writes to memory");
     for r in rows {
         let (o, b) = (r.ours.as_ref(), r.blind.as_ref());
-        let _ = writeln!(
-            s,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
-            r.patient,
-            r.size_class.name(),
+        csv.write_record([
+            spreadsheet_text(&r.patient),
+            r.size_class.name().to_string(),
             num(Some(r.gt_volume_mm3)),
             num(Some(r.gt_diameter_mm)),
             num(o.map(|m| m.volume_mm3)),
@@ -238,9 +239,20 @@ pub fn results_csv(rows: &[PatientRow]) -> String {
             num(Some(r.sphere_ape_pct)),
             flag(Some(r.oracle_hit)),
             num(Some(r.train_seconds)),
-        );
+        ])
+        .expect("writes to memory");
     }
-    s
+    String::from_utf8(csv.into_inner().expect("writes to memory")).expect("the fields are UTF-8")
+}
+
+/// `text` as a spreadsheet shows it rather than runs it: a leading `=`, `+`, `-`, `@`, tab or
+/// carriage return starts a formula in Excel, LibreOffice and Google Sheets, so such text gets
+/// a leading apostrophe (OWASP's advice on CSV injection).
+pub fn spreadsheet_text(text: &str) -> String {
+    match text.chars().next() {
+        Some('=' | '+' | '-' | '@' | '\t' | '\r') => format!("'{text}"),
+        _ => text.to_string(),
+    }
 }
 
 /// The `seconds` of the last row of a `train_log.csv`.
@@ -284,6 +296,48 @@ mod tests {
         let log = "iteration,loss,lr,seconds\n0,1,0.02,0.1\n100,0.5,0.01,12.5\n";
         assert_eq!(train_seconds(log), Some(12.5));
         assert_eq!(train_seconds("iteration\n1\n"), None);
+    }
+
+    #[test]
+    fn an_id_with_a_comma_quote_or_newline_stays_one_field_of_one_row() {
+        let row = |patient: &str| PatientRow {
+            patient: patient.to_string(),
+            size_class: SizeClass::Medium,
+            texture: None,
+            site: None,
+            gt_volume_mm3: 1000.0,
+            gt_diameter_mm: 12.0,
+            ours: None,
+            mesh_volume_mm3: None,
+            percentile: None,
+            blind: None,
+            sphere_volume_mm3: 900.0,
+            sphere_ape_pct: 10.0,
+            reader_ape_pct: None,
+            oracle_hit: false,
+            centre_on_nodule: CentreOnNodule::default(),
+            train_seconds: 1.5,
+        };
+        let ids = ["a,b", "say \"hi\"", "two\nlines", "=HYPERLINK(\"http://x\")", "LIDC-IDRI-0001"];
+        let text = results_csv(&ids.map(row));
+        let mut reader = csv::Reader::from_reader(text.as_bytes());
+        let read: Vec<csv::StringRecord> = reader.records().map(Result::unwrap).collect();
+        assert_eq!(read.len(), ids.len());
+        for (record, id) in read.iter().zip(ids) {
+            assert_eq!(record.len(), 19);
+            assert_eq!(&record[0], spreadsheet_text(id));
+            assert_eq!(&record[1], "medium");
+            assert_eq!(&record[18], "1.5000");
+        }
+    }
+
+    #[test]
+    fn text_a_spreadsheet_would_run_is_written_as_text() {
+        for formula in ["=1+2", "+SUM(A1)", "-2+3", "@cmd", "\tx", "\rx"] {
+            assert_eq!(spreadsheet_text(formula), format!("'{formula}"));
+        }
+        assert_eq!(spreadsheet_text("LIDC-IDRI-0001"), "LIDC-IDRI-0001");
+        assert_eq!(spreadsheet_text(""), "");
     }
 
     #[test]
