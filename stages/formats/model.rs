@@ -7,7 +7,8 @@
 //! (`"model": "dense_tv"` or `"truth"` in the metadata) holds one tensor instead, `density` (float32
 //! `[N, N, N]`, index `[z, y, x]`): σ at the lattice nodes. The metadata has
 //! one key, `aret_pipe`, whose value is the JSON of [`ModelMeta`] (one key keeps the bytes
-//! deterministic).
+//! deterministic); its `patient_space` places the lattice's nodes in the patient's coordinates
+//! ([`PatientSpace`]), as `density.mhd` does, without `cameras.json`.
 
 use crate::geometry::Aabb;
 use crate::train::field::VmField;
@@ -33,6 +34,36 @@ pub struct ModelMeta {
     pub iterations: usize,
     pub backend: String,
     pub parameters: usize,
+    /// Where the nodes lie in the patient; absent in files written before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub patient_space: Option<PatientSpace>,
+}
+
+/// Where a model's lattice nodes lie, in the DICOM patient coordinates (LPS, mm) of its CT: the
+/// node of tensor index `[z, y, x]` (`density`, `alpha_mask`; the factors' `u`, `v` likewise)
+/// lies at `origin_mm + Σ_a index_a · spacing_mm[a] · direction[a]`, with index_0 = x.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PatientSpace {
+    /// The node `[0, 0, 0]`, mm.
+    pub origin_mm: [f64; 3],
+    /// The distance between neighbouring nodes along x, y and z, mm.
+    pub spacing_mm: [f64; 3],
+    /// The patient-space direction of the x, y and z index axes.
+    pub direction: [[f64; 3]; 3],
+    /// The tensors' index order, slowest first.
+    pub index_order: [String; 3],
+}
+
+impl PatientSpace {
+    /// The lattice at `origin_mm` with `spacing_mm` along the patient axes, indexed `[z, y, x]`.
+    pub fn axis_aligned(origin_mm: [f64; 3], spacing_mm: [f64; 3]) -> PatientSpace {
+        PatientSpace {
+            origin_mm,
+            spacing_mm,
+            direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            index_order: ["z", "y", "x"].map(String::from),
+        }
+    }
 }
 
 impl ModelMeta {
@@ -144,6 +175,7 @@ mod tests {
             iterations: 10,
             backend: "cpu".into(),
             parameters: 0,
+            patient_space: Some(PatientSpace::axis_aligned([-10.0, 20.0, -300.0], [1.5, 1.5, 2.0])),
         }
     }
 

@@ -8,11 +8,13 @@
 
 use crate::artifacts::{is_drr_image, CAMERAS, CT_UNIT, LOSS_PLOT, MODEL, TRAIN_LOG};
 use crate::engine::{Context, Output, Stage};
-use crate::formats::model::{self, ModelMeta};
+use crate::formats::model::{self, ModelMeta, PatientSpace};
 use crate::formats::svg;
+use crate::geometry::{Aabb, SceneFrame};
 use crate::gpu;
 use crate::kernels::raymarch::VolumeField;
 use crate::stage::drr::CameraSet;
+use crate::stage::grid::lattice_geometry;
 use crate::train::dense_tv::{self, DenseFitted};
 use crate::train::fit::{fit, renderer, Fitted, LogRow, Views};
 use crate::train::params::FieldModel;
@@ -21,7 +23,7 @@ use crate::train::truth;
 use crate::volume::Volume;
 use std::fmt::Write as _;
 
-pub const VERSION: u32 = 7;
+pub const VERSION: u32 = 8;
 
 /// `[train]` is the fit's own parameter table.
 pub use crate::train::params::{Backend, TrainParams as Params};
@@ -79,19 +81,20 @@ impl Stage for Train {
         let images: Vec<Vec<f32>> =
             set.read_images(|name| ctx.read(CAMERAS.stage, name))?.into_iter().map(|image| image.pixels).collect();
         let views = Views { cameras: &set.cameras, images: &images, aabb: set.aabb };
+        let placed = Placed { frame: &set.frame, aabb: &set.aabb };
         let (model_bytes, log) = match (self.params.model, device) {
             (FieldModel::Truth, _) => self.truth(ctx, &set, &views)?,
-            (FieldModel::DenseTv, Some(device)) => self.fit_dense(&views, |params, views, renderer| {
+            (FieldModel::DenseTv, Some(device)) => self.fit_dense(&views, placed, |params, views, renderer| {
                 gpu::dense_fit::fit(&device, params, views, renderer, |_| {})
             })?,
-            (FieldModel::DenseTv, None) => {
-                self.fit_dense(&views, |params, views, renderer| Ok(dense_tv::fit(params, views, renderer, |_| {})))?
-            }
+            (FieldModel::DenseTv, None) => self.fit_dense(&views, placed, |params, views, renderer| {
+                Ok(dense_tv::fit(params, views, renderer, |_| {}))
+            })?,
             (FieldModel::Vm, Some(device)) => {
-                self.fit_vm(&views, |params, views| gpu::fit::fit(&device, params, views, |_| {}))?
+                self.fit_vm(&views, placed, |params, views| gpu::fit::fit(&device, params, views, |_| {}))?
             }
             (FieldModel::Vm, None) => {
-                self.fit_vm(&views, |params, views| self.in_pool(|| fit(params, views, |_| {})))?
+                self.fit_vm(&views, placed, |params, views| self.in_pool(|| fit(params, views, |_| {})))?
             }
         };
         let views_named: Vec<&str> = set.cameras.iter().map(|c| c.view.name()).collect();
@@ -108,6 +111,7 @@ impl Train {
     fn fit_vm(
         &self,
         views: &Views,
+        placed: Placed,
         fit_on: impl FnOnce(&Params, &Views) -> anyhow::Result<Fitted>,
     ) -> anyhow::Result<(Vec<u8>, Vec<LogRow>)> {
         let params = &self.params;
@@ -124,6 +128,7 @@ impl Train {
             iterations: params.vm.iterations,
             backend: self.backend().name().into(),
             parameters: fitted.field.len(),
+            patient_space: Some(placed.patient_space(params.grid)),
         };
         let mask = fitted.mask.as_ref().map(|m| m.nodes.as_slice());
         Ok((model::encode(&fitted.field, mask, &meta)?, fitted.log))
@@ -134,17 +139,26 @@ impl Train {
     fn fit_dense(
         &self,
         views: &Views,
+        placed: Placed,
         fit_on: impl FnOnce(&Params, &Views, &Renderer) -> anyhow::Result<DenseFitted> + Send,
     ) -> anyhow::Result<(Vec<u8>, Vec<LogRow>)> {
         let params = &self.params;
         let renderer = renderer(params, views.aabb);
         let fitted = self.in_pool(|| fit_on(params, views, &renderer))??;
-        let meta = self.lattice_meta(FieldModel::DenseTv, &renderer, params.dense_tv.iterations, self.backend());
+        let meta =
+            self.lattice_meta(FieldModel::DenseTv, &renderer, params.dense_tv.iterations, self.backend(), placed);
         Ok((model::encode_dense(&fitted.sigma, &meta)?, fitted.log))
     }
 
     /// The metadata of σ held at the lattice's nodes (a dense fit or the ceiling).
-    fn lattice_meta(&self, model: FieldModel, renderer: &Renderer, iterations: usize, backend: Backend) -> ModelMeta {
+    fn lattice_meta(
+        &self,
+        model: FieldModel,
+        renderer: &Renderer,
+        iterations: usize,
+        backend: Backend,
+        placed: Placed,
+    ) -> ModelMeta {
         let n = self.params.grid;
         ModelMeta {
             model,
@@ -158,6 +172,7 @@ impl Train {
             iterations,
             backend: backend.name().into(),
             parameters: n * n * n,
+            patient_space: Some(placed.patient_space(n)),
         }
     }
 
@@ -173,8 +188,24 @@ impl Train {
         let sigma_per_value = set.attenuation_scale / params.scale;
         let sigma = self.in_pool(|| truth::cell_means(&ct, ct_voxel, &renderer.lattice, sigma_per_value))?;
         let row = self.in_pool(|| dense_tv::evaluate_views(params, views, &renderer, &sigma))?;
-        let meta = self.lattice_meta(FieldModel::Truth, &renderer, 0, Backend::Cpu);
+        let placed = Placed { frame: &set.frame, aabb: &set.aabb };
+        let meta = self.lattice_meta(FieldModel::Truth, &renderer, 0, Backend::Cpu, placed);
         Ok((model::encode_dense(&sigma, &meta)?, vec![row]))
+    }
+}
+
+/// The scene a fit's lattice spans: its box and how the box sits in the patient.
+#[derive(Clone, Copy)]
+struct Placed<'a> {
+    frame: &'a SceneFrame,
+    aabb: &'a Aabb,
+}
+
+impl Placed<'_> {
+    /// Where an `n³` lattice's nodes lie in the patient, as the grid stage places them.
+    fn patient_space(self, n: usize) -> PatientSpace {
+        let g = lattice_geometry(n, self.aabb, self.frame);
+        PatientSpace::axis_aligned(g.origin_mm, g.spacing_mm)
     }
 }
 

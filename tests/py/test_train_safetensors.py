@@ -58,6 +58,16 @@ def test_model_loads_with_safetensors_and_numpy(runs):
     assert meta["parameters"] == 3 * 4 * 16 * 17
     cams = json.loads((out / "cameras.json").read_text())
     assert meta["aabb"] == cams["aabb"]
+    # The nodes in patient space without cameras.json: cell centres of the box, scaled and
+    # shifted by the scene frame.
+    space, frame = meta["patient_space"], cams["frame"]
+    lo, hi = np.array(cams["aabb"]["min"]), np.array(cams["aabb"]["max"])
+    cell = (hi - lo) / 16
+    origin = np.array(frame["roi_center_mm"]) + (lo + cell / 2) * frame["mm_per_unit"]
+    np.testing.assert_allclose(space["origin_mm"], origin, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(space["spacing_mm"], cell * frame["mm_per_unit"], rtol=1e-12)
+    assert space["direction"] == [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    assert space["index_order"] == ["z", "y", "x"]
     # The composed field: F[z, y, x] = Σ_r Pxy[r, y, x] Lz[r, z] + Pxz[r, z, x] Ly[r, y] + Pyz[r, z, y] Lx[r, x].
     f = (
         np.einsum("ryx,rz->zyx", tensors["plane_xy"], tensors["line_z"])
