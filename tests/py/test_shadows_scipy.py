@@ -13,6 +13,7 @@ import json
 import subprocess
 
 import numpy as np
+import trimesh
 import OpenEXR
 import pytest
 import SimpleITK as sitk
@@ -87,6 +88,23 @@ def ellipsoid_chords(eye, dirs, centre, axes, t_near, t_far):
     root = np.sqrt(np.maximum(b * b - 4 * a * c, 0.0))
     enter, leave = (-b - root) / (2 * a), (-b + root) / (2 * a)
     return np.where(b * b - 4 * a * c > 0, np.maximum(np.minimum(leave, t_far) - np.maximum(enter, t_near), 0), 0)
+
+
+def test_the_mask_and_mesh_hold_the_volumes_result_json_names(runs):
+    """`voxel_volume_mm3` is what `nodule_mask` holds and `mesh_volume_mm3` what `nodule.obj`
+    encloses (read with SimpleITK and trimesh); the measurement is the selection's own volume,
+    the shadows' ellipsoid, which the mask approaches."""
+    _, shadows = runs
+    result = json.loads((shadows / "result.json").read_text())
+    image = sitk.ReadImage(str(shadows / "nodule_mask.mhd"))
+    mask = sitk.GetArrayFromImage(image).astype(bool)
+    held = mask.sum() * np.prod(image.GetSpacing())
+    assert held == pytest.approx(result["voxel_volume_mm3"], rel=1e-9)
+    mesh = trimesh.load(shadows / "nodule.obj", force="mesh", process=False)
+    assert mesh.volume == pytest.approx(result["mesh_volume_mm3"], rel=1e-6)
+    measured = result[result["primary"]]["candidate"]["volume_mm3"]
+    assert result[result["primary"]]["shadows"] is not None
+    assert held == pytest.approx(measured, rel=0.25), "the mask is cut to approach the measured volume"
 
 
 def test_shadow_fit_equals_scipy_least_squares_and_finds_the_sphere(runs):

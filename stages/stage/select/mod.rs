@@ -59,7 +59,7 @@ pub use result::{Oracle, SelectResult, Selection, ShadowFit, TileScore};
 pub use size::candidates::Analysis;
 pub use verdict::verdict;
 
-pub const VERSION: u32 = 20;
+pub const VERSION: u32 = 21;
 
 pub struct Select {
     pub params: Params,
@@ -193,7 +193,6 @@ impl Select {
         };
         let primary_mask = chosen[primary_index].as_mut().map(|(_, mask)| std::mem::take(mask));
         let [guided, blind_largest, blind_persistent] = chosen.map(|c| c.map(|(selection, _)| selection));
-        let primary_sel = [&guided, &blind_largest, &blind_persistent][primary_index].clone();
         let result = SelectResult {
             patient: ctx.patient().to_string(),
             verdict: String::new(),
@@ -206,7 +205,7 @@ impl Select {
             guided,
             blind_largest,
             blind_persistent,
-            voxel_volume_mm3: primary_sel.as_ref().map(|s| s.candidate.volume_mm3),
+            voxel_volume_mm3: None,
             mesh_volume_mm3: None,
             mesh_triangles: 0,
             candidates: found.len(),
@@ -221,6 +220,8 @@ impl Select {
     /// `result.json`, the primary selection's mask, mesh and previews.
     fn write(&self, patient: &str, chosen: Chosen) -> anyhow::Result<Vec<Output>> {
         let Chosen { mut result, primary_mask, density, gt, views, .. } = chosen;
+        let voxel_mm3: f64 = density.geometry.spacing_mm.iter().product();
+        result.voxel_volume_mm3 = primary_mask.as_ref().map(|m| m.iter().filter(|&&b| b).count() as f64 * voxel_mm3);
         let mesh = primary_mask.as_ref().map(|m| mesh_mask(m, &density.geometry));
         result.mesh_volume_mm3 = mesh.as_ref().map(enclosed_volume_mm3);
         result.mesh_triangles = mesh.as_ref().map_or(0, |m| m.triangles.len());

@@ -52,7 +52,10 @@ pub struct SelectResult {
     pub blind_largest: Option<Selection>,
     pub blind_persistent: Option<Selection>,
     pub oracle: Option<Oracle>,
-    /// The primary selection's voxel volume and its mesh's enclosed volume (mm³).
+    /// The volume `nodule_mask` holds (its voxels × a voxel's volume) and its mesh's enclosed
+    /// volume (mm³). The measured volume is the selection's `candidate.volume_mm3` (with
+    /// `sizing = "shadows"`, the fitted ellipsoid's), which the mask is cut to approach: where
+    /// the region cannot grow or shrink to it, the two differ, and both are reported.
     pub voxel_volume_mm3: Option<f64>,
     pub mesh_volume_mm3: Option<f64>,
     pub mesh_triangles: usize,

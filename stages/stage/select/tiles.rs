@@ -68,7 +68,6 @@ pub(super) fn combine(mut boxes: Vec<Chosen>, primary: Rule) -> Chosen {
     (r.guided, r.blind_largest, r.blind_persistent) = (guided, blind_largest, blind_persistent);
     (r.centres.guided, r.centres.guided_accepted) = (guided_centre, guided_accepted);
     (r.centres.blind, r.centres.blind_accepted) = (blind_centre, blind_accepted);
-    r.voxel_volume_mm3 = r.selection(primary).map(|s| s.candidate.volume_mm3);
     (r.oracle, r.candidates, r.tiles) = (oracle, candidates, table);
     // The primary's mask was cut in the box it is shown from; without a selection it has none.
     if r.selection(primary).is_none() {
