@@ -461,6 +461,19 @@ pub fn phantom(
     Ok(report)
 }
 
+/// The cohort and generator parameters of `config_path`'s phantom dataset: what `run` ingests.
+pub fn phantom_source(config_path: &Path) -> anyhow::Result<(PathBuf, crate::phantom::PhantomParams)> {
+    let config = Config::load(config_path)?;
+    if config.dataset.kind != crate::config::DatasetKind::Phantom {
+        bail!(
+            "{}: [dataset] kind is not \"phantom\": only a phantom dataset is generated (its CT series is \
+             already on disk under [dataset] root)",
+            config_path.display()
+        );
+    }
+    Ok((config.dataset_root(), config.dataset.phantom.clone().unwrap_or_default()))
+}
+
 /// `aret-pipe convert`: MetaImage volumes (`.mhd` + their raw data; uchar, short or float) to
 /// one OpenVDB file, one float grid per input, in patient millimetres. Zero voxels become
 /// inactive background. `grids` and `classes` pair with `inputs` in order (each given once per

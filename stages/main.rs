@@ -97,6 +97,10 @@ enum Command {
         /// The cohort folder: <patient>.scan.json + <patient>.xml per patient.
         #[arg(long, default_value = "tools/cohorts/paper19")]
         cohort: PathBuf,
+        /// Export what this configuration's pipeline ingests: its [dataset] cohort and
+        /// [dataset.phantom] table (seed, noise, nodule extent), instead of --cohort and --seed.
+        #[arg(long, conflicts_with_all = ["seed", "cohort"])]
+        config: Option<PathBuf>,
         /// Where to write <patient>/series/*.dcm, <patient>/<patient>.xml and previews.
         #[arg(long)]
         out: PathBuf,
@@ -204,13 +208,20 @@ fn main() -> ExitCode {
             let script = commands::completions(shell, &mut Cli::command());
             std::io::stdout().write_all(&script).map(|()| 0).map_err(anyhow::Error::from)
         }
-        Command::Phantom { cohort, out, patients, seed } => {
-            let defaults = aret_pipe::phantom::PhantomParams::default();
-            let params = aret_pipe::phantom::PhantomParams { seed: seed.unwrap_or(defaults.seed), ..defaults };
-            commands::phantom(&cohort, &out, patients.as_deref(), &params).map(|report| {
-                print!("{report}");
-                0
-            })
+        Command::Phantom { cohort, config, out, patients, seed } => {
+            let source = match config {
+                Some(path) => commands::phantom_source(&path),
+                None => {
+                    let defaults = aret_pipe::phantom::PhantomParams::default();
+                    Ok((cohort, aret_pipe::phantom::PhantomParams { seed: seed.unwrap_or(defaults.seed), ..defaults }))
+                }
+            };
+            source.and_then(|(cohort, params)| commands::phantom(&cohort, &out, patients.as_deref(), &params)).map(
+                |report| {
+                    print!("{report}");
+                    0
+                },
+            )
         }
         Command::Convert { inputs, output, grid, class } => {
             let classes: Vec<_> = class

@@ -128,6 +128,8 @@ pub fn write_ct_series<T: Copy + Into<f64>>(
             text(tags::PATIENT_BIRTH_DATE, VR::DA, ""),
             text(tags::PATIENT_SEX, VR::CS, ""),
             text(tags::SLICE_THICKNESS, VR::DS, &ds(&[thickness])),
+            // The series are of a supine patient entering head first, as the phantom's anatomy is.
+            text(tags::PATIENT_POSITION, VR::CS, "HFS"),
             text(tags::STUDY_INSTANCE_UID, VR::UI, &meta.study_instance_uid),
             text(tags::SERIES_INSTANCE_UID, VR::UI, &meta.series_instance_uid),
             text(tags::STUDY_ID, VR::SH, ""),

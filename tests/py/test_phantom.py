@@ -31,12 +31,15 @@ def aret(*args, cwd):
 
 @pytest.fixture(scope="module")
 def generated(tmp_path_factory):
-    """One patient written by `aret-pipe phantom`, and the pipeline run on the same cohort."""
+    """One patient written by `aret-pipe phantom --config`, and that configuration's pipeline run
+    on it: another anatomy and nodule extent than the built-in ones, so an export that ignored
+    the configuration would differ."""
     tmp = tmp_path_factory.mktemp("phantom")
-    aret("phantom", "--cohort", str(COHORT), "--out", str(tmp / "export"), "--patients", PATIENT, cwd=tmp)
     (tmp / "pipeline.toml").write_text(
         f'[pipeline]\nname = "phantom-check"\n[dataset]\nkind = "phantom"\ncohort = "{COHORT}"\n'
+        '[dataset.phantom]\nseed = 3\nnodule_extent = "union"\n'
     )
+    aret("phantom", "--config", "pipeline.toml", "--out", str(tmp / "export"), "--patients", PATIENT, cwd=tmp)
     aret("run", "pipeline.toml", "--until", "ingest", "--patients", PATIENT, cwd=tmp)
     return tmp
 
@@ -56,6 +59,7 @@ def test_pydicom_reads_a_ct_series_with_the_real_geometry(generated):
         assert d.Modality == "CT" and d.PhotometricInterpretation == "MONOCHROME2"
         assert (d.Rows, d.Columns) == (scan["rows"], scan["cols"]) == (512, 512)
         assert d.BitsAllocated == 16 and d.PixelRepresentation == 1
+        assert d.PatientPosition == "HFS"
         assert float(d.ImagePositionPatient[2]) == pytest.approx(z, abs=1e-6)
         assert [float(v) for v in d.PixelSpacing] == pytest.approx([scan["pixel_spacing_mm"]] * 2)
         assert d.SOPInstanceUID == uid
