@@ -1,4 +1,5 @@
 //! File formats, one module each. No pipeline knowledge lives here.
+pub mod canvas;
 pub mod dicom;
 pub mod dicom_writer;
 pub mod exr_image;

@@ -246,23 +246,29 @@ impl Select {
         // The preview cuts through the selection, then through the nodule, then through an
         // ambiguous search's rival.
         let rival = result.centres.of(self.params.primary).filter(|c| c.ambiguous).and_then(|c| c.runner_up.as_ref());
-        let cut_points: Vec<[usize; 3]> = [
-            primary_sel.as_ref().map(|s| s.candidate.centroid_mm),
-            gt.as_ref().map(|gt| gt.centroid_mm),
-            rival.map(|r| r.position_mm),
+        let rule = self.params.primary.name();
+        let cuts: Vec<preview::Cut> = [
+            primary_sel.as_ref().map(|s| (format!("through the {rule} selection"), s.candidate.centroid_mm)),
+            gt.as_ref().map(|gt| ("through the ground truth's centroid".to_string(), gt.centroid_mm)),
+            rival.map(|r| ("through the rival blob".to_string(), r.position_mm)),
         ]
         .into_iter()
         .flatten()
-        .map(|c| density.geometry.nearest_voxel(c))
+        .map(|(label, c)| preview::Cut { label, center: density.geometry.nearest_voxel(c) })
         .collect();
-        let middle = density.geometry.dims.map(|d| d / 2);
-        let centers = if cut_points.is_empty() { vec![middle] } else { cut_points };
+        let cuts = if cuts.is_empty() {
+            let center = density.geometry.dims.map(|d| d / 2);
+            vec![preview::Cut { label: "through the box's middle (nothing selected)".into(), center }]
+        } else {
+            cuts
+        };
         let truth_cells: Option<Vec<bool>> = gt.as_ref().map(|gt| gt.coverage.iter().map(|&c| c >= 0.5).collect());
         let selected: Vec<bool> = mask_volume.data.iter().map(|&b| b != 0).collect();
         let rival_ball = rival.map(|r| density.geometry.ball_mask(r.position_mm, 3f64.sqrt() * r.scale_mm));
         let outlines =
             preview::Outlines { selected: &selected, truth: truth_cells.as_deref(), rival: rival_ball.as_deref() };
-        let preview = preview::nodule_png(&density, &outlines, &centers);
+        let title = format!("{patient}: {rule} selection");
+        let preview = preview::nodule_png(&density, &outlines, &cuts, &title, &result.verdict);
         let mut outputs = vec![
             Output::new(RESULT.file, serde_json::to_vec_pretty(&result)?),
             Output::new(NODULE_PREVIEW.file, preview),
@@ -270,7 +276,8 @@ impl Select {
         ];
         outputs.extend(super::volume_outputs(NODULE_MASK, &mask_volume));
         if let (Some(views), Some(fit)) = (&views, primary_sel.as_ref().and_then(|s| s.shadows)) {
-            outputs.push(Output::new(SHADOWS_PREVIEW.file, shadows::shadows_png(views, &fit)));
+            let title = format!("{patient}: the {rule} selection's shadows");
+            outputs.push(Output::new(SHADOWS_PREVIEW.file, shadows::shadows_png(views, &fit, &title)));
         }
         Ok(outputs)
     }

@@ -17,6 +17,17 @@ pub enum Rule {
     BlindPersistent,
 }
 
+impl Rule {
+    /// The name in `[select] primary` and `blind`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Rule::Guided => "guided",
+            Rule::BlindLargest => "blind_largest",
+            Rule::BlindPersistent => "blind_persistent",
+        }
+    }
+}
+
 /// How each rule finds the nodule's centre before it sizes it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]

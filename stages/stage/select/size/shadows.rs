@@ -22,6 +22,7 @@
 //! hangs on where the background is read.
 
 use super::{half_max, Inputs, Sized};
+use crate::formats::canvas::Canvas;
 use crate::formats::exr_image::DrrImage;
 use crate::geometry::{Aabb, Camera, SceneFrame};
 use crate::kernels::filters::distance_inside_mm;
@@ -30,7 +31,7 @@ use crate::kernels::raymarch::{march_ray, VolumeField};
 use crate::kernels::robust_fit::{fit_soft_l1, Problem};
 use crate::kernels::stats::{median, percentile};
 use crate::stage::select::find::Centres;
-use crate::stage::select::preview::{on_edge, tile, Panel};
+use crate::stage::select::preview::{on_edge, Sheet, RED};
 use crate::stage::select::result::{Selection, ShadowFit};
 use crate::stage::sweep::equivalent_diameter_mm;
 use crate::volume::Volume;
@@ -318,15 +319,16 @@ const PREVIEW_ZOOM: usize = 4;
 
 /// `shadows.png`: each view's optical depth around the fitted ellipsoid (coronal, sagittal,
 /// axial, left to right; DRR pixels enlarged `PREVIEW_ZOOM`×, grey from the crop's 1st to 99th
-/// percentile), the ellipsoid's shadow outlined in red: what the volume was read from.
-pub fn shadows_png(views: &Views, fit: &ShadowFit) -> Vec<u8> {
+/// percentile), the ellipsoid's shadow outlined in red: what the volume was read from. `title`
+/// heads the sheet; each view is named, with the ellipsoid's semi-axes and volume below.
+pub fn shadows_png(views: &Views, fit: &ShadowFit, title: &str) -> Vec<u8> {
     let frame = &views.frame;
     let ellipsoid = Ellipsoid {
         centre: frame.to_scene(DVec3::from(fit.centre_mm)),
         semi_axes: DVec3::from(fit.semi_axes_mm) / frame.mm_per_unit,
     };
     let reach = ellipsoid.semi_axes.max_element() * WINDOW_RADII;
-    let panels: Vec<Panel> = views
+    let (panels, names): (Vec<Canvas>, Vec<&str>) = views
         .views
         .iter()
         .filter_map(|(camera, depths)| {
@@ -354,15 +356,19 @@ pub fn shadows_png(views: &Views, fit: &ShadowFit) -> Vec<u8> {
             for (k, px) in rgb.chunks_exact_mut(3).enumerate() {
                 let (c, r) = ((k % zoomed) / PREVIEW_ZOOM, (k / zoomed) / PREVIEW_ZOOM);
                 px.copy_from_slice(&match depth(c, r) {
-                    _ if edge(c, r) => [230, 40, 40],
+                    _ if edge(c, r) => RED,
                     Some(t) => [((t - lo) / (hi - lo).max(1e-9) * 255.0).clamp(0.0, 255.0) as u8; 3],
                     None => [0, 0, 64],
                 });
             }
-            Some(Panel { width: zoomed, height: zoomed, rgb })
+            Some((Canvas { width: zoomed, height: zoomed, rgb }, camera.view.name()))
         })
-        .collect();
-    tile(&[panels])
+        .unzip();
+    let [a, b, c] = fit.semi_axes_mm;
+    let volume_mm3 = 4.0 / 3.0 * PI * a * b * c;
+    let row = format!("semi-axes {a:.1} x {b:.1} x {c:.1} mm, {volume_mm3:.0} mm3; each DRR pixel {PREVIEW_ZOOM}x");
+    let legend = [(RED, "the fitted ellipsoid's shadow"), ([0, 0, 64], "outside the view")];
+    Sheet { title, badge: None, legend: &legend, columns: &names, rows: vec![(row, panels)] }.png()
 }
 
 #[cfg(test)]
