@@ -323,7 +323,6 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
         _lock.describe_holder("aret-pipe gc");
     }
     let keep = if prune { Some(results_in_use(config_paths, sets, &cache_dir)?) } else { None };
-    let garbage = store.garbage(keep.as_ref(), forget)?;
     let mut out_dirs = vec![config.out_dir()];
     for path in config_paths.iter().skip(1) {
         let out_dir = Config::load_with(path, sets)?.out_dir();
@@ -336,6 +335,8 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
     for dir in out_dirs.iter().filter(|d| d.is_dir()) {
         temps.extend(leftovers::stale_temps(&store, dir, 3)?);
     }
+    // Listed after the temporary files: telling them stale creates lock files, which go too.
+    let garbage = store.garbage(keep.as_ref(), forget)?;
     if !dry_run {
         garbage.delete()?;
         leftovers::delete(&temps)?;

@@ -401,8 +401,10 @@ fn temporary_files_of_ended_processes_go_and_a_live_process_keeps_its_own() {
     assert_eq!(paths, stale.iter().rev().collect::<Vec<_>>(), "what gc would remove");
     assert!(listed.iter().all(|d| d.bytes == 5 && d.linked), "links to a blob that stays free nothing");
 
-    w.run(Publish::Links, false);
+    let s = w.run(Publish::Links, false);
     assert!(stale.iter().all(|p| !p.exists()), "a run removes them from the folders it publishes into");
+    assert_eq!(s.notices.len(), 2, "one line per folder: {:?}", s.notices);
+    assert!(s.notices.iter().all(|l| l.contains("removed 1 stale .tmp-* file(s)")), "{:?}", s.notices);
     assert!(kept.exists() && mine.exists(), "a live process's temporary files stay, this one's too");
     drop(alive);
     let listed = leftovers::stale_temps(&store, &w.path("out"), 3).unwrap();

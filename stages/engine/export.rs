@@ -22,10 +22,21 @@ pub enum Publish {
     Copies,
 }
 
-/// Makes `dir/<output name>` show each output's bytes.
-pub fn publish(store: &Store, dir: &Path, outputs: &[OutputRef], how: Publish) -> anyhow::Result<()> {
+/// Makes `dir/<output name>` show each output's bytes. Stale temporary files it removes from
+/// `dir` are told to `say` in one line.
+pub fn publish(
+    store: &Store,
+    dir: &Path,
+    outputs: &[OutputRef],
+    how: Publish,
+    say: &dyn Fn(String),
+) -> anyhow::Result<()> {
     fs::create_dir_all(dir).with_context(|| format!("creating output folder {}", dir.display()))?;
-    remove_stale_temps(store, dir)?;
+    let (count, bytes) = remove_stale_temps(store, dir)?;
+    if count > 0 {
+        let mib = bytes as f64 / (1024.0 * 1024.0);
+        say(format!("removed {count} stale .tmp-* file(s) ({mib:.1} MiB) a killed run left in {}", dir.display()));
+    }
     for output in outputs {
         let blob = store.blob_path(&output.hash);
         let target = dir.join(&output.name);
@@ -38,19 +49,22 @@ pub fn publish(store: &Store, dir: &Path, outputs: &[OutputRef], how: Publish) -
             continue;
         }
         let tmp = dir.join(temp_name());
-        let placed = (|| -> std::io::Result<()> {
-            match how {
-                Publish::Links if fs::hard_link(&blob, &tmp).is_ok() => set_read_only(&tmp),
-                Publish::Links => fs::copy(&blob, &tmp).and_then(|_| set_read_only(&tmp)),
-                Publish::Copies => fs::copy(&blob, &tmp).and_then(|_| set_writable(&tmp)),
-            }
-        })();
+        let placed = place(how, &blob, &tmp);
         if let Err(e) = placed.and_then(|()| fs::rename(&tmp, &target)) {
             let _ = fs::remove_file(&tmp);
             return Err(e).with_context(|| format!("publishing {} as {}", blob.display(), target.display()));
         }
     }
     Ok(())
+}
+
+/// Writes `blob`'s bytes at `tmp` as `how` publishes them.
+fn place(how: Publish, blob: &Path, tmp: &Path) -> std::io::Result<()> {
+    match how {
+        Publish::Links if fs::hard_link(blob, tmp).is_ok() => set_read_only(tmp),
+        Publish::Links => fs::copy(blob, tmp).and_then(|_| set_read_only(tmp)),
+        Publish::Copies => fs::copy(blob, tmp).and_then(|_| set_writable(tmp)),
+    }
 }
 
 /// Makes `path` read-only for everyone if it is not (a hard link shares its blob's mode).

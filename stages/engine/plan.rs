@@ -81,7 +81,7 @@ pub fn key(stage: &dyn Stage, unit: &str, inputs: Vec<(String, String, Hash)>) -
 
 /// Cached (with its manifest), or to be computed (with the reasons).
 pub enum Decision {
-    Cached(Manifest),
+    Cached(Box<Manifest>),
     Compute(Vec<String>),
     /// To be computed because its cache entry failed a check (a corrupt or missing blob, a
     /// manifest that does not match its key or digest): the reason names the stage, the unit

@@ -399,10 +399,9 @@ fn run_stage(
     let store = shared.store;
     let forced = shared.options.force.iter().any(|f| f == stage.name());
     let keyed = plan::key(stage, unit, inputs);
-    let how = shared.options.publish;
-    let served = |manifest: Manifest| {
+    let served = |manifest: Box<Manifest>| {
         let outcome = Outcome::Cached { seconds: manifest.wall_seconds };
-        finish(store, stage, &manifest, publish_dir, how).map(|()| (outcome, Some(manifest.outputs)))
+        finish(shared, stage, &manifest, publish_dir).map(|()| (outcome, Some(manifest.outputs)))
     };
     let result = (|| -> anyhow::Result<(Outcome, Option<Vec<OutputRef>>)> {
         if let Decision::Cached(m) = plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
@@ -457,7 +456,7 @@ fn run_stage(
         }
         .sealed();
         store.put_manifest(&manifest)?;
-        finish(store, stage, &manifest, publish_dir, how)?;
+        finish(shared, stage, &manifest, publish_dir)?;
         Ok((Outcome::Computed { seconds }, Some(refs)))
     })();
     result.unwrap_or_else(|e| (Outcome::Failed { cause: format!("{e:#}") }, None))
@@ -465,15 +464,14 @@ fn run_stage(
 
 /// Remembers the manifest as the unit's latest and publishes the outputs the stage shows.
 fn finish(
-    store: &Store,
+    shared: &Shared,
     stage: &dyn Stage,
     manifest: &Manifest,
     publish_dir: &std::path::Path,
-    how: Publish,
 ) -> anyhow::Result<()> {
-    store.set_latest(manifest)?;
+    shared.store.set_latest(manifest)?;
     let shown: Vec<OutputRef> = manifest.outputs.iter().filter(|o| stage.publishes(&o.name)).cloned().collect();
-    publish(store, publish_dir, &shown, how)
+    publish(shared.store, publish_dir, &shown, shared.options.publish, &|line| shared.notice(line))
 }
 
 fn panic_text(panic: &Box<dyn std::any::Any + Send>) -> String {

@@ -102,7 +102,7 @@ pub struct InputRef {
 
 /// Whether a (stage, key) can be served from the cache.
 pub enum Lookup {
-    Hit(Manifest),
+    Hit(Box<Manifest>),
     Miss,
     /// A manifest exists but cannot be trusted; the reason says why, naming the stage, the
     /// patient and the file.
@@ -218,7 +218,7 @@ impl Store {
                 return broken(why);
             }
         }
-        Lookup::Hit(manifest)
+        Lookup::Hit(Box::new(manifest))
     }
 
     /// Records a computed stage: manifest last, after its blobs are in place.
