@@ -463,3 +463,58 @@ fn waiting_for_the_cache_lock_says_so_after_a_second_and_returns_the_wait() {
     holder.join().unwrap();
     assert!(waited >= Duration::from_millis(250) && said.is_empty(), "{waited:?} {said:?}");
 }
+
+/// Rewrites `concat/all.txt` in the cache after the run checked it, then reads it.
+struct Tamper;
+impl Stage for Tamper {
+    fn name(&self) -> &'static str {
+        "tamper"
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn inputs(&self) -> &'static [&'static str] {
+        &["concat"]
+    }
+    fn params(&self) -> serde_json::Value {
+        serde_json::json!({})
+    }
+    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
+        let path = ctx.path("concat", "all.txt")?;
+        flip_byte(&path, 0);
+        Ok(vec![Output::new("read.txt", ctx.read("concat", "all.txt")?)])
+    }
+}
+
+#[test]
+fn bytes_that_change_after_their_check_are_refused_when_a_stage_reads_them() {
+    let w = World::cached();
+    let graph = StageGraph::new(vec![Box::new(Concat(w.runs[0].clone())), Box::new(Tamper)]).unwrap();
+    let options = RunOptions {
+        verify: false,
+        force: vec![],
+        workers: Default::default(),
+        default_workers: 1,
+        out_dir: w.path("out"),
+        publish: Publish::Links,
+        stop: StopRequest::default(),
+    };
+    let s = run::run(&graph, &w.store(), &w.units(), &options, &Progress::hidden(&[]));
+    let causes: Vec<String> = s
+        .failures()
+        .filter_map(|r| match &r.outcome {
+            run::Outcome::Failed { cause } => Some(format!("{} · {}: {cause}", r.unit, r.stage)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(causes.len(), 2, "{causes:?}");
+    assert!(causes
+        .iter()
+        .all(|c| c.contains("concat/all.txt in the cache") && c.contains("changed after it was checked")));
+    assert!(!w.path("out/P1/read.txt").exists());
+    // The next run finds the blobs corrupt and computes concat again.
+    w.take();
+    w.run(Publish::Links, false);
+    assert_eq!(w.take(), [2, 0, 0]);
+    w.assert_published_right();
+}
