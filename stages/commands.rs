@@ -373,18 +373,9 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
         line.push_str(&format!(" ({:.1} MiB more stays on disk until the out dirs linking it go)", mib(linked)));
     }
     if !temps.is_empty() {
-        let (remove, removed) = if dry_run { ("would remove", "would free") } else { ("removed", "freed") };
-        let bytes = |linked: bool| temps.iter().filter(|t| t.linked == linked).map(|t| t.bytes).sum::<u64>();
         let dirs: Vec<String> = out_dirs.iter().map(|d| d.display().to_string()).collect();
-        line.push_str(&format!(
-            "; {remove} {} stale .tmp-* file(s) killed runs left in {}, {removed} {:.1} MiB",
-            temps.len(),
-            dirs.join(", "),
-            mib(bytes(false))
-        ));
-        if bytes(true) > 0 {
-            line.push_str(&format!(" ({:.1} MiB more were links to blobs that stay)", mib(bytes(true))));
-        }
+        let verb = if dry_run { "would remove" } else { "removed" };
+        line.push_str(&format!("; {}", leftovers::describe(&temps, verb, &dirs.join(", "))));
     }
     Ok(line)
 }

@@ -81,10 +81,10 @@ fn gc_removes_the_temporary_files_killed_runs_left_in_the_out_dir() {
 
     let (stdout, _) = aret(dir.path(), &["gc", "pipeline.toml", "--dry-run"]);
     assert!(stdout.contains("would remove 2 stale .tmp-* file(s)"), "{stdout}");
-    assert!(stdout.contains("would free 3.0 MiB"), "{stdout}");
+    assert!(stdout.contains("freeing 3.0 MiB"), "{stdout}");
     assert!(link.exists() && lone.exists());
     let (stdout, _) = aret(dir.path(), &["gc", "pipeline.toml"]);
-    assert!(stdout.contains("removed 2 stale .tmp-* file(s)") && stdout.contains("freed 3.0 MiB"), "{stdout}");
+    assert!(stdout.contains("removed 2 stale .tmp-* file(s)") && stdout.contains("freeing 3.0 MiB"), "{stdout}");
     assert!(stdout.contains("more were links to blobs that stay"), "{stdout}");
     assert!(!link.exists() && !lone.exists());
     let (stdout, _) = run_until_hu(dir.path(), &[]);

@@ -6,7 +6,7 @@
 //! copies instead. Stale `.tmp-*` entries a killed process left in a folder are removed before
 //! publishing into it (see [`crate::leftovers`]).
 
-use super::leftovers::remove_stale_temps;
+use super::leftovers::{describe, remove_stale_temps};
 use super::store::{hash_file, set_read_only, temp_name, OutputRef, Store};
 use anyhow::Context as _;
 use std::fs;
@@ -32,10 +32,9 @@ pub fn publish(
     say: &dyn Fn(String),
 ) -> anyhow::Result<()> {
     fs::create_dir_all(dir).with_context(|| format!("creating output folder {}", dir.display()))?;
-    let (count, bytes) = remove_stale_temps(store, dir)?;
-    if count > 0 {
-        let mib = bytes as f64 / (1024.0 * 1024.0);
-        say(format!("removed {count} stale .tmp-* file(s) ({mib:.1} MiB) a killed run left in {}", dir.display()));
+    let removed = remove_stale_temps(store, dir)?;
+    if !removed.is_empty() {
+        say(describe(&removed, "removed", &dir.display().to_string()));
     }
     for output in outputs {
         let blob = store.blob_path(&output.hash);

@@ -44,11 +44,28 @@ pub fn stale_temps(store: &Store, dir: &Path, depth: usize) -> anyhow::Result<Ve
     Ok(stale)
 }
 
-/// Deletes the stale `.tmp-*` entries of `dir` itself; returns how many and their bytes.
-pub fn remove_stale_temps(store: &Store, dir: &Path) -> anyhow::Result<(usize, u64)> {
+/// Deletes the stale `.tmp-*` entries of `dir` itself; returns what it deleted.
+pub fn remove_stale_temps(store: &Store, dir: &Path) -> anyhow::Result<Vec<Doomed>> {
     let stale = stale_temps(store, dir, 1)?;
     delete(&stale)?;
-    Ok((stale.len(), stale.iter().map(|d| d.bytes).sum()))
+    Ok(stale)
+}
+
+/// "N stale .tmp-* file(s) …, freeing X MiB" with the bytes that were links to blobs that stay
+/// said apart: `verb` is "removed" or "would remove", `where_` where they were.
+pub fn describe(stale: &[Doomed], verb: &str, where_: &str) -> String {
+    let mib = |linked: bool| {
+        stale.iter().filter(|d| d.linked == linked).map(|d| d.bytes).sum::<u64>() as f64 / (1024.0 * 1024.0)
+    };
+    let mut line = format!(
+        "{verb} {} stale .tmp-* file(s) killed runs left in {where_}, freeing {:.1} MiB",
+        stale.len(),
+        mib(false)
+    );
+    if mib(true) > 0.0 {
+        line.push_str(&format!(" ({:.1} MiB more were links to blobs that stay)", mib(true)));
+    }
+    line
 }
 
 /// Deletes what [`stale_temps`] found (one already gone is no error).
