@@ -308,7 +308,7 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
     let cache_dir = config.cache_dir();
     let store = Store::open(&cache_dir)?;
     // A dry run deletes nothing, so it may run beside a run; a real one must not.
-    let _lock = if dry_run {
+    let cache_lock = if dry_run {
         FileLock::shared(&store.global_lock_path())?
     } else {
         match FileLock::try_exclusive(&store.global_lock_path())? {
@@ -320,7 +320,7 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
         }
     };
     if !dry_run {
-        _lock.describe_holder("aret-pipe gc");
+        cache_lock.describe_holder("aret-pipe gc");
     }
     let keep = if prune { Some(results_in_use(config_paths, sets, &cache_dir)?) } else { None };
     let mut out_dirs = vec![config.out_dir()];

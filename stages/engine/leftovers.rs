@@ -52,13 +52,13 @@ pub fn remove_stale_temps(store: &Store, dir: &Path) -> anyhow::Result<Vec<Doome
 }
 
 /// "N stale .tmp-* file(s) …, freeing X MiB" with the bytes that were links to blobs that stay
-/// said apart: `verb` is "removed" or "would remove", `where_` where they were.
-pub fn describe(stale: &[Doomed], verb: &str, where_: &str) -> String {
+/// said apart: `verb` is "removed" or "would remove", `folders` where they were.
+pub fn describe(stale: &[Doomed], verb: &str, folders: &str) -> String {
     let mib = |linked: bool| {
         stale.iter().filter(|d| d.linked == linked).map(|d| d.bytes).sum::<u64>() as f64 / (1024.0 * 1024.0)
     };
     let mut line = format!(
-        "{verb} {} stale .tmp-* file(s) killed runs left in {where_}, freeing {:.1} MiB",
+        "{verb} {} stale .tmp-* file(s) killed runs left in {folders}, freeing {:.1} MiB",
         stale.len(),
         mib(false)
     );
