@@ -111,8 +111,8 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     summary.wall_seconds += cache_wait.as_secs_f64();
     summary.cache_lock_wait_seconds = cache_wait.as_secs_f64();
     summary.notices.splice(0..0, waited_for);
+    write_report(&p.store, &options.out_dir, &mut summary)?;
     print!("{}", progress::table(&summary, &p.graph.names()));
-    write_report(&options.out_dir, &summary)?;
     let metrics_done = summary.records.iter().any(|r| {
         r.stage == crate::artifacts::SUMMARY.stage
             && matches!(r.outcome, run::Outcome::Cached { .. } | run::Outcome::Computed { .. })
@@ -184,8 +184,17 @@ fn stop_on_signals(stop: &StopRequest) {
     }
 }
 
-/// Writes `out_dir/run_report.json`: every (patient, stage) outcome with its time.
-fn write_report(out_dir: &Path, summary: &RunSummary) -> anyhow::Result<()> {
+/// Writes `out_dir/run_report.json`: every (patient, stage) outcome with its time. Stale
+/// `.tmp-*` files of out_dir itself go first (a run without cohort stages publishes nothing
+/// else there), and the line saying so joins the report.
+fn write_report(store: &Store, out_dir: &Path, summary: &mut RunSummary) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
+    let removed = leftovers::remove_stale_temps(store, out_dir)?;
+    if !removed.is_empty() {
+        let line = leftovers::describe(&removed, "removed", &out_dir.display().to_string());
+        eprintln!("aret-pipe: {line}");
+        summary.notices.push(line);
+    }
     write_atomic(&out_dir.join("run_report.json"), &serde_json::to_vec_pretty(summary)?, false)
 }
 

@@ -69,7 +69,7 @@ fn ended_pid() -> u32 {
 }
 
 #[test]
-fn gc_removes_the_temporary_files_killed_runs_left_in_the_out_dir() {
+fn gc_and_a_run_remove_the_temporary_files_killed_runs_left_in_the_out_dir() {
     let dir = project();
     run_until_hu(dir.path(), &[]);
     let dead = ended_pid();
@@ -89,6 +89,14 @@ fn gc_removes_the_temporary_files_killed_runs_left_in_the_out_dir() {
     assert!(!link.exists() && !lone.exists());
     let (stdout, _) = run_until_hu(dir.path(), &[]);
     assert!(stdout.contains("0 computed"), "gc removed nothing a run needs: {stdout}");
+
+    // A run removes them too: from the patient's folder it publishes into, and from out_dir
+    // itself, where it writes run_report.json (a run up to hu publishes nothing else there).
+    std::fs::hard_link(dir.path().join("out/P1/ct_unit.raw"), &link).unwrap();
+    std::fs::write(&lone, "x").unwrap();
+    let (stdout, stderr) = run_until_hu(dir.path(), &[]);
+    assert!(!link.exists() && !lone.exists(), "{stdout}");
+    assert_eq!(stderr.matches("removed 1 stale .tmp-* file(s)").count(), 2, "{stderr}");
 }
 
 #[test]
