@@ -3,11 +3,12 @@
 //! convert.
 
 use crate::config::Config;
-use crate::engine::lock::FileLock;
+use crate::engine::leftovers;
+use crate::engine::lock::{Access, FileLock};
 use crate::engine::preview::{self, Row, State};
 use crate::engine::progress::{self, Progress};
-use crate::engine::run::{self, RunOptions, RunSummary, StopRequest, Unit};
-use crate::engine::store::{write_atomic, Store};
+use crate::engine::run::{self, Publish, RunOptions, RunSummary, StopRequest, Unit};
+use crate::engine::store::{write_atomic, Doomed, Store};
 use crate::engine::{Hash, StageGraph};
 use crate::formats::vdb::{self, FloatGrid, GridClass};
 use crate::volume::Volume;
@@ -29,6 +30,8 @@ pub struct RunArgs {
     /// With `dry_run`: print the plan as JSON ([`plan_json`]) instead of the text lines.
     pub json: bool,
     pub verify: bool,
+    /// Publish independent copies instead of read-only hard links into the cache.
+    pub copy: bool,
 }
 
 /// What `aret-pipe status` shows.
@@ -81,7 +84,8 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     let p = prepare(config_path, &args.sets, args.patients.as_deref(), args.until.as_deref())?;
     crate::resources::check_memory(&p.config)?;
     let force = forced_stages(&p.graph, &args.force)?;
-    let _shared = FileLock::shared(&p.store.global_lock_path())?;
+    let mut waited_for = Vec::new();
+    let (_shared, cache_wait) = wait_for_cache(&p.store, &mut waited_for)?;
     if args.dry_run {
         let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &force);
         if args.json {
@@ -97,13 +101,19 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         workers: p.config.pipeline.stage_workers.clone().into_iter().collect(),
         default_workers: p.config.pipeline.workers,
         out_dir: p.config.out_dir(),
+        publish: if args.copy { Publish::Copies } else { Publish::Links },
         stop,
     };
+    // Held until run_report.json is written: its temporary file is this process's too.
+    let _alive = leftovers::hold_alive_lock(&p.store)?;
     let progress = Progress::auto(&p.graph.runs_per_stage(p.units.len()));
-    let summary = run::run(&p.graph, &p.store, &p.units, &options, &progress);
+    let mut summary = run::run(&p.graph, &p.store, &p.units, &options, &progress);
     drop(progress);
+    summary.wall_seconds += cache_wait.as_secs_f64();
+    summary.cache_lock_wait_seconds = cache_wait.as_secs_f64();
+    summary.notices.splice(0..0, waited_for);
+    write_report(&p.store, &options.out_dir, &mut summary)?;
     print!("{}", progress::table(&summary, &p.graph.names()));
-    write_report(&options.out_dir, &summary)?;
     let metrics_done = summary.records.iter().any(|r| {
         r.stage == crate::artifacts::SUMMARY.stage
             && matches!(r.outcome, run::Outcome::Cached { .. } | run::Outcome::Computed { .. })
@@ -119,6 +129,15 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         INTERRUPTED_EXIT
     } else {
         0
+    })
+}
+
+/// The cache's lock, shared, and how long it took: a process holding it exclusively (`gc`) makes
+/// the caller wait, and a wait over a second is said on stderr and kept in `said`.
+fn wait_for_cache(store: &Store, said: &mut Vec<String>) -> anyhow::Result<(FileLock, std::time::Duration)> {
+    FileLock::wait(&store.global_lock_path(), Access::Shared, "the cache lock", &mut |line| {
+        eprintln!("aret-pipe: {line}");
+        said.push(line);
     })
 }
 
@@ -166,8 +185,17 @@ fn stop_on_signals(stop: &StopRequest) {
     }
 }
 
-/// Writes `out_dir/run_report.json`: every (patient, stage) outcome with its time.
-fn write_report(out_dir: &Path, summary: &RunSummary) -> anyhow::Result<()> {
+/// Writes `out_dir/run_report.json`: every (patient, stage) outcome with its time. Stale
+/// `.tmp-*` files of out_dir itself go first (a run without cohort stages publishes nothing
+/// else there), and the line saying so joins the report.
+fn write_report(store: &Store, out_dir: &Path, summary: &mut RunSummary) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
+    let removed = leftovers::remove_stale_temps(store, out_dir)?;
+    if !removed.is_empty() {
+        let line = leftovers::describe(&removed, "removed", &out_dir.display().to_string());
+        eprintln!("aret-pipe: {line}");
+        summary.notices.push(line);
+    }
     write_atomic(&out_dir.join("run_report.json"), &serde_json::to_vec_pretty(summary)?, false)
 }
 
@@ -175,7 +203,7 @@ fn write_report(out_dir: &Path, summary: &RunSummary) -> anyhow::Result<()> {
 /// the same as one JSON document ([`plan_json`]).
 pub fn status(config_path: &Path, args: &StatusArgs) -> anyhow::Result<String> {
     let p = prepare(config_path, &args.sets, args.patients.as_deref(), None)?;
-    let _shared = FileLock::shared(&p.store.global_lock_path())?;
+    let (_shared, _) = wait_for_cache(&p.store, &mut Vec::new())?;
     let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &[]);
     if args.json {
         return plan_json("status", config_path, &p.graph, &rows);
@@ -272,10 +300,10 @@ pub struct GcArgs {
     pub dry_run: bool,
 }
 
-/// `aret-pipe gc`: deletes blobs no manifest references; with `prune`, first forgets every
-/// stage result that none of `config_paths` uses now (all must share one cache), and every
-/// result of the stages in `forget`. With `dry_run` it only reports what it would delete.
-/// Returns a one-line report.
+/// `aret-pipe gc`: deletes blobs no manifest references, and the `.tmp-*` files killed runs left
+/// in the configurations' out dirs; with `prune`, first forgets every stage result that none of
+/// `config_paths` uses now (all must share one cache), and every result of the stages in
+/// `forget`. With `dry_run` it only reports what it would delete. Returns a one-line report.
 pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
     let GcArgs { ref sets, prune, ref forget, dry_run } = *args;
     let Some(first) = config_paths.first() else { bail!("gc needs a configuration file") };
@@ -290,7 +318,7 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
     let cache_dir = config.cache_dir();
     let store = Store::open(&cache_dir)?;
     // A dry run deletes nothing, so it may run beside a run; a real one must not.
-    let _lock = if dry_run {
+    let cache_lock = if dry_run {
         FileLock::shared(&store.global_lock_path())?
     } else {
         match FileLock::try_exclusive(&store.global_lock_path())? {
@@ -301,10 +329,27 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
             ),
         }
     };
+    if !dry_run {
+        cache_lock.describe_holder("aret-pipe gc");
+    }
     let keep = if prune { Some(results_in_use(config_paths, sets, &cache_dir)?) } else { None };
+    let mut out_dirs = vec![config.out_dir()];
+    for path in config_paths.iter().skip(1) {
+        let out_dir = Config::load_with(path, sets)?.out_dir();
+        if !out_dirs.iter().any(|d| same_dir(d, &out_dir)) {
+            out_dirs.push(out_dir);
+        }
+    }
+    // out_dir/<patient>/<replica>/ is the deepest folder a run publishes into.
+    let mut temps: Vec<Doomed> = Vec::new();
+    for dir in out_dirs.iter().filter(|d| d.is_dir()) {
+        temps.extend(leftovers::stale_temps(&store, dir, 3)?);
+    }
+    // Listed after the temporary files: telling them stale creates lock files, which go too.
     let garbage = store.garbage(keep.as_ref(), forget)?;
     if !dry_run {
         garbage.delete()?;
+        leftovers::delete(&temps)?;
     }
     let mib = |bytes: u64| bytes as f64 / (1024.0 * 1024.0);
     let (freed, linked) = garbage.bytes();
@@ -336,6 +381,11 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
     line.push_str(&format!(", {frees} {:.1} MiB in {}", mib(freed), store.root().display()));
     if linked > 0 {
         line.push_str(&format!(" ({:.1} MiB more stays on disk until the out dirs linking it go)", mib(linked)));
+    }
+    if !temps.is_empty() {
+        let dirs: Vec<String> = out_dirs.iter().map(|d| d.display().to_string()).collect();
+        let verb = if dry_run { "would remove" } else { "removed" };
+        line.push_str(&format!("; {}", leftovers::describe(&temps, verb, &dirs.join(", "))));
     }
     Ok(line)
 }

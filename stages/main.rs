@@ -36,9 +36,16 @@ enum Command {
         dry_run: bool,
         #[command(flatten)]
         json: JsonPlan,
-        /// Re-hash cached blobs and input files instead of trusting sizes and timestamps.
+        /// Re-hash the input files instead of trusting their sizes and timestamps, and compute
+        /// again every result whose manifest records no digest. (Every cached blob is re-hashed
+        /// before use, and every manifest checked against its key, on every run.)
         #[arg(long)]
         verify: bool,
+        /// Publish independent, writable copies of the results instead of read-only hard links
+        /// into the cache: editing one then leaves the cache alone, at the cost of a second copy
+        /// of every byte, and each run re-hashes the copies to see they still hold the results.
+        #[arg(long)]
+        copy: bool,
     },
     /// Show what is cached and what is stale, and why.
     Status {
@@ -49,7 +56,7 @@ enum Command {
         patients: Option<Vec<String>>,
         #[command(flatten)]
         json: JsonPlan,
-        /// Re-hash cached blobs and input files.
+        /// Re-hash the input files, and call stale every result whose manifest records no digest.
         #[arg(long)]
         verify: bool,
     },
@@ -187,7 +194,8 @@ fn main() -> ExitCode {
             dry_run,
             json: JsonPlan { json },
             verify,
-        } => commands::run(&config, &RunArgs { sets, patients, until, force, dry_run, json, verify }),
+            copy,
+        } => commands::run(&config, &RunArgs { sets, patients, until, force, dry_run, json, verify, copy }),
         Command::Status { config, sets: Sets { sets }, patients, json: JsonPlan { json }, verify } => {
             commands::status(&config, &StatusArgs { sets, patients, verify, json }).map(|table| {
                 print!("{table}");

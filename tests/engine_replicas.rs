@@ -3,7 +3,7 @@
 
 use aret_pipe::engine::preview::{self, State};
 use aret_pipe::engine::progress::Progress;
-use aret_pipe::engine::run::{self, Outcome, RunOptions, RunSummary, Unit};
+use aret_pipe::engine::run::{self, Outcome, Publish, RunOptions, RunSummary, Unit};
 use aret_pipe::engine::store::Store;
 use aret_pipe::engine::{Context, Output, Stage, StageGraph, SOURCE};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -197,6 +197,7 @@ impl World {
             workers: [("shout".to_string(), 3)].into_iter().collect(),
             default_workers: 2,
             out_dir: self.dir.path().join("out"),
+            publish: Publish::Links,
             stop: Default::default(),
         };
         run::run(graph, &self.store(), &self.units(), &options, &Progress::hidden(&[]))

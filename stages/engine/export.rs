@@ -1,27 +1,107 @@
-//! Publishing results: `out_dir/<patient>/<name>` entries are hard links to cache blobs where
-//! the filesystem allows, else copies. Each entry is replaced atomically.
+//! Publishing results: `out_dir/<patient>/<name>` entries show the cache blobs' bytes, each
+//! replaced atomically. By default an entry is a hard link to its blob, read-only (mode 0444)
+//! like the blob, so that editing it in place takes a deliberate `chmod` (and the next run's
+//! digest check then finds the blob changed and computes it again); where the filesystem
+//! refuses links it is a read-only copy. [`Publish::Copies`] writes independent, writable
+//! copies instead. Stale `.tmp-*` entries a killed process left in a folder are removed before
+//! publishing into it (see [`crate::leftovers`]).
 
-use super::store::{temp_name, OutputRef, Store};
+use super::leftovers::{describe, remove_stale_temps};
+use super::store::{hash_file, set_read_only, temp_name, OutputRef, Store};
 use anyhow::Context as _;
 use std::fs;
 use std::path::Path;
 
-/// Makes `dir/<output name>` show each output's bytes.
-pub fn publish(store: &Store, dir: &Path, outputs: &[OutputRef]) -> anyhow::Result<()> {
+/// How results reach `out_dir`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Publish {
+    /// Read-only hard links to the cache blobs (read-only copies where links fail).
+    #[default]
+    Links,
+    /// Independent copies, writable by their owner: editing one leaves the cache as it is.
+    Copies,
+}
+
+/// Makes `dir/<output name>` show each output's bytes. Stale temporary files it removes from
+/// `dir` are told to `say` in one line.
+pub fn publish(
+    store: &Store,
+    dir: &Path,
+    outputs: &[OutputRef],
+    how: Publish,
+    say: &dyn Fn(String),
+) -> anyhow::Result<()> {
     fs::create_dir_all(dir).with_context(|| format!("creating output folder {}", dir.display()))?;
+    let removed = remove_stale_temps(store, dir)?;
+    if !removed.is_empty() {
+        say(describe(&removed, "removed", &dir.display().to_string()));
+    }
     for output in outputs {
         let blob = store.blob_path(&output.hash);
         let target = dir.join(&output.name);
-        if same_file(&blob, &target) {
+        let linked = same_file(&blob, &target);
+        if how == Publish::Links && linked {
+            ensure_read_only(&target)?;
+            continue;
+        }
+        if how == Publish::Copies && !linked && holds(&target, output) {
             continue;
         }
         let tmp = dir.join(temp_name());
-        if fs::hard_link(&blob, &tmp).is_err() {
-            fs::copy(&blob, &tmp).with_context(|| format!("copying {} to {}", blob.display(), tmp.display()))?;
+        let placed = place(how, &blob, &tmp);
+        if let Err(e) = placed.and_then(|()| fs::rename(&tmp, &target)) {
+            let _ = fs::remove_file(&tmp);
+            return Err(e).with_context(|| format!("publishing {} as {}", blob.display(), target.display()));
         }
-        fs::rename(&tmp, &target).with_context(|| format!("writing {}", target.display()))?;
     }
     Ok(())
+}
+
+/// Writes `blob`'s bytes at `tmp` as `how` publishes them.
+fn place(how: Publish, blob: &Path, tmp: &Path) -> std::io::Result<()> {
+    match how {
+        Publish::Links if fs::hard_link(blob, tmp).is_ok() => set_read_only(tmp),
+        Publish::Links => fs::copy(blob, tmp).and_then(|_| set_read_only(tmp)),
+        Publish::Copies => fs::copy(blob, tmp).and_then(|_| set_writable(tmp)),
+    }
+}
+
+/// Makes `path` read-only for everyone if it is not (a hard link shares its blob's mode).
+fn ensure_read_only(path: &Path) -> anyhow::Result<()> {
+    if fs::metadata(path).is_ok_and(|m| is_writable(&m)) {
+        set_read_only(path).with_context(|| format!("making {} read-only", path.display()))?;
+    }
+    Ok(())
+}
+
+/// Whether `path` holds exactly `output`'s bytes (size, then content hash).
+fn holds(path: &Path, output: &OutputRef) -> bool {
+    fs::metadata(path).is_ok_and(|m| m.is_file() && m.len() == output.size)
+        && hash_file(path).is_ok_and(|h| h == output.hash)
+}
+
+#[cfg(unix)]
+fn is_writable(meta: &fs::Metadata) -> bool {
+    std::os::unix::fs::PermissionsExt::mode(&meta.permissions()) & 0o222 != 0
+}
+
+#[cfg(not(unix))]
+fn is_writable(meta: &fs::Metadata) -> bool {
+    !meta.permissions().readonly()
+}
+
+/// An independent copy's mode: 0644 on Unix.
+fn set_writable(path: &Path) -> std::io::Result<()> {
+    #[cfg(unix)]
+    let perms = std::os::unix::fs::PermissionsExt::from_mode(0o644);
+    #[cfg(not(unix))]
+    let perms = {
+        let mut perms = fs::metadata(path)?.permissions();
+        #[allow(clippy::permissions_set_readonly_false)]
+        perms.set_readonly(false);
+        perms
+    };
+    fs::set_permissions(path, perms)
 }
 
 #[cfg(unix)]

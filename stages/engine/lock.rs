@@ -2,17 +2,37 @@
 //!
 //! `run` holds the cache's lock shared, `gc` exclusive, so garbage collection never deletes a
 //! blob a running pipeline is about to use. While computing a (stage, key), a process holds that
-//! key's lock: a second process wanting the same key waits, then finds it cached. The kernel
-//! drops every lock when a process dies, even by SIGKILL.
+//! key's lock: a second process wanting the same key waits, then finds it cached. A process
+//! holds its own lock (`locks/pid-<pid>.lock`, see [`crate::leftovers`]) shared while it may be
+//! writing temporary files. The kernel drops every lock when a process dies, even by SIGKILL.
+//!
+//! A process that must wait for a lock says so once the wait passes [`SAY_AFTER`], naming the
+//! lock and, when the holder wrote it into the lock file ([`FileLock::describe_holder`]), who
+//! holds it.
 
 use anyhow::Context as _;
-use std::fs::{File, OpenOptions};
+use std::fs::{File, OpenOptions, TryLockError};
+use std::io::{Seek, SeekFrom, Write};
 use std::path::Path;
+use std::time::{Duration, Instant};
 
 /// A held lock; released on drop.
 pub struct FileLock {
-    _file: File,
+    file: File,
 }
+
+/// How a lock is held: by many at once, or by one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Access {
+    Shared,
+    Exclusive,
+}
+
+/// How long a process waits for a lock before it says what it waits for.
+pub const SAY_AFTER: Duration = Duration::from_secs(1);
+
+/// How often a waiting process tries the lock again.
+const RETRY_EVERY: Duration = Duration::from_millis(20);
 
 fn open(path: &Path) -> anyhow::Result<File> {
     OpenOptions::new()
@@ -23,26 +43,73 @@ fn open(path: &Path) -> anyhow::Result<File> {
         .with_context(|| format!("opening lock file {}", path.display()))
 }
 
+fn try_take(file: &File, access: Access) -> Result<(), TryLockError> {
+    match access {
+        Access::Shared => file.try_lock_shared(),
+        Access::Exclusive => file.try_lock(),
+    }
+}
+
 impl FileLock {
     pub fn shared(path: &Path) -> anyhow::Result<FileLock> {
         let file = open(path)?;
         file.lock_shared().with_context(|| format!("locking {}", path.display()))?;
-        Ok(FileLock { _file: file })
+        Ok(FileLock { file })
     }
 
     pub fn exclusive(path: &Path) -> anyhow::Result<FileLock> {
         let file = open(path)?;
         file.lock().with_context(|| format!("locking {}", path.display()))?;
-        Ok(FileLock { _file: file })
+        Ok(FileLock { file })
     }
 
     /// The exclusive lock if nobody holds the file, else `None`.
     pub fn try_exclusive(path: &Path) -> anyhow::Result<Option<FileLock>> {
         let file = open(path)?;
         match file.try_lock() {
-            Ok(()) => Ok(Some(FileLock { _file: file })),
-            Err(std::fs::TryLockError::WouldBlock) => Ok(None),
-            Err(std::fs::TryLockError::Error(e)) => Err(e).with_context(|| format!("locking {}", path.display())),
+            Ok(()) => Ok(Some(FileLock { file })),
+            Err(TryLockError::WouldBlock) => Ok(None),
+            Err(TryLockError::Error(e)) => Err(e).with_context(|| format!("locking {}", path.display())),
         }
+    }
+
+    /// The lock at `path` with `access`, waiting as long as it takes. A wait longer than
+    /// [`SAY_AFTER`] calls `say` once with one line: "waiting for another aret-pipe process to
+    /// release `what` (the path; held by: its holder's description, when known) …". Returns
+    /// the lock and how long the wait was.
+    pub fn wait(
+        path: &Path,
+        access: Access,
+        what: &str,
+        say: &mut dyn FnMut(String),
+    ) -> anyhow::Result<(FileLock, Duration)> {
+        let file = open(path)?;
+        let started = Instant::now();
+        let mut said = false;
+        loop {
+            match try_take(&file, access) {
+                Ok(()) => return Ok((FileLock { file }, started.elapsed())),
+                Err(TryLockError::WouldBlock) => {}
+                Err(TryLockError::Error(e)) => return Err(e).with_context(|| format!("locking {}", path.display())),
+            }
+            if !said && started.elapsed() >= SAY_AFTER {
+                said = true;
+                let holder = std::fs::read_to_string(path).unwrap_or_default();
+                let holder = holder.trim();
+                let held_by = if holder.is_empty() { String::new() } else { format!("; held by {holder}") };
+                say(format!("waiting for another aret-pipe process to release {what} ({}{held_by}) …", path.display()));
+            }
+            std::thread::sleep(RETRY_EVERY);
+        }
+    }
+
+    /// Writes who holds this exclusive lock into its file, for the processes that wait on it
+    /// ([`FileLock::wait`]). Best effort: a lock works without it.
+    pub fn describe_holder(&self, holder: &str) {
+        let mut file = &self.file;
+        let _ = file
+            .set_len(0)
+            .and_then(|()| file.seek(SeekFrom::Start(0)))
+            .and_then(|_| file.write_all(format!("{holder} (pid {})\n", std::process::id()).as_bytes()));
     }
 }

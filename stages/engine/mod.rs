@@ -7,6 +7,7 @@
 
 pub mod export;
 pub mod key;
+pub mod leftovers;
 pub mod lock;
 pub mod plan;
 pub mod preview;

@@ -5,7 +5,7 @@
 use super::key::{Hash, KeyParts};
 use super::source::SourceFile;
 use super::stage::{Finished, Stage, SOURCE};
-use super::store::{Lookup, Manifest, Store};
+use super::store::{Expected, Lookup, Manifest, Store};
 use std::collections::BTreeMap;
 
 /// The key of a stage for a unit, with what it was computed from.
@@ -81,8 +81,12 @@ pub fn key(stage: &dyn Stage, unit: &str, inputs: Vec<(String, String, Hash)>) -
 
 /// Cached (with its manifest), or to be computed (with the reasons).
 pub enum Decision {
-    Cached(Manifest),
+    Cached(Box<Manifest>),
     Compute(Vec<String>),
+    /// To be computed because its cache entry failed a check (a corrupt or missing blob, a
+    /// manifest that does not match its key or digest): the reason names the stage, the unit
+    /// and the file. A run warns of it.
+    Distrusted(String),
 }
 
 /// The reason a forced stage computes.
@@ -92,9 +96,10 @@ pub fn decide(store: &Store, stage: &dyn Stage, unit: &str, keyed: &Keyed, verif
     if forced {
         return Decision::Compute(vec![FORCED.into()]);
     }
-    match store.lookup(stage.name(), &keyed.key, verify) {
+    let expected = Expected { unit, inputs: &keyed.inputs };
+    match store.lookup(stage.name(), &keyed.key, &expected, verify) {
         Lookup::Hit(m) => Decision::Cached(m),
-        Lookup::Broken(why) => Decision::Compute(vec![why]),
+        Lookup::Broken(why) => Decision::Distrusted(why),
         Lookup::Miss => Decision::Compute(why_stale(store, stage, unit, keyed)),
     }
 }

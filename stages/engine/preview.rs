@@ -84,6 +84,7 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
                                 State::Cached { key: keyed.key }
                             }
                             Decision::Compute(reasons) => State::Compute(reasons),
+                            Decision::Distrusted(why) => State::Compute(vec![why]),
                         };
                         (state, Some(keyed.key))
                     }
@@ -119,6 +120,10 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
                 Decision::Compute(reasons) => {
                     cohort_blocker = Some(stage.name().to_string());
                     State::Compute(reasons)
+                }
+                Decision::Distrusted(why) => {
+                    cohort_blocker = Some(stage.name().to_string());
+                    State::Compute(vec![why])
                 }
             };
             (state, Some(keyed.key))

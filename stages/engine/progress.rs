@@ -17,7 +17,7 @@ struct Counts {
 }
 
 enum Mode {
-    Bars { _multi: MultiProgress, bars: BTreeMap<String, ProgressBar> },
+    Bars { multi: MultiProgress, bars: BTreeMap<String, ProgressBar> },
     Lines,
     Quiet,
 }
@@ -45,7 +45,7 @@ impl Progress {
                     (name.to_string(), bar)
                 })
                 .collect();
-            Progress::with_mode(Mode::Bars { _multi: multi, bars }, stages)
+            Progress::with_mode(Mode::Bars { multi, bars }, stages)
         } else {
             Progress::with_mode(Mode::Lines, stages)
         }
@@ -99,6 +99,19 @@ impl Progress {
                 Outcome::Failed { cause } => eprintln!("{stage:>8} {unit}: FAILED: {cause}"),
                 _ => {}
             },
+        }
+    }
+
+    /// A line that must be seen (a warning, a wait): above the bars on a terminal, else on
+    /// stderr, in CI too.
+    pub fn notice(&self, line: &str) {
+        match &self.mode {
+            Mode::Bars { multi, .. } => {
+                if multi.println(format!("aret-pipe: {line}")).is_err() {
+                    eprintln!("aret-pipe: {line}");
+                }
+            }
+            Mode::Lines | Mode::Quiet => eprintln!("aret-pipe: {line}"),
         }
     }
 
@@ -156,13 +169,17 @@ pub fn table(summary: &RunSummary, stages: &[&str]) -> String {
     let mut out = grid(&cells, stages);
     let n = |f: fn(&Outcome) -> bool| summary.records.iter().filter(|r| f(&r.outcome)).count();
     out.push_str(&format!(
-        "{} computed, {} cached, {} failed, {} skipped in {:.2} s\n",
+        "{} computed, {} cached, {} failed, {} skipped in {:.2} s{}\n",
         n(|o| matches!(o, Outcome::Computed { .. })),
         n(|o| matches!(o, Outcome::Cached { .. })),
         n(|o| matches!(o, Outcome::Failed { .. })),
         n(|o| matches!(o, Outcome::Skipped { .. })),
-        summary.wall_seconds
+        summary.wall_seconds,
+        waits(summary)
     ));
+    for line in &summary.notices {
+        out.push_str(&format!("note: {line}\n"));
+    }
     for r in summary.failures() {
         if let Outcome::Failed { cause } = &r.outcome {
             out.push_str(&format!("failed: {} · {}: {cause}\n", r.unit, r.stage));
@@ -175,4 +192,20 @@ pub fn table(summary: &RunSummary, stages: &[&str]) -> String {
         ));
     }
     out
+}
+
+/// What the run's time includes of waiting for other processes (empty when it waited for none).
+fn waits(summary: &RunSummary) -> String {
+    let mut parts = Vec::new();
+    if summary.cache_lock_wait_seconds >= 0.01 {
+        parts.push(format!("{:.2} s of it waiting for the cache lock", summary.cache_lock_wait_seconds));
+    }
+    if summary.key_lock_wait_seconds >= 0.01 {
+        parts.push(format!("stages waited {:.2} s for keys other processes computed", summary.key_lock_wait_seconds));
+    }
+    if parts.is_empty() {
+        String::new()
+    } else {
+        format!(" ({})", parts.join("; "))
+    }
 }

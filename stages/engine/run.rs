@@ -9,12 +9,20 @@
 //! further stage: the ones in progress finish and are cached, the rest are recorded as
 //! [`Outcome::Interrupted`], so that running the same command again goes on where it stopped.
 //!
+//! A cache entry that fails a check (a blob that does not re-hash to its name, a manifest that
+//! does not match its key or digest) is computed again, with a one-line warning naming the
+//! stage, the patient and the file ([`RunSummary::notices`]). A stage that waits more than a
+//! second for another process's lock on its key says so, and the wait is counted
+//! ([`RunSummary::key_lock_wait_seconds`]).
+//!
 //! A stage may fan a patient out into replicas ([`Stage::replica_names`]): a splitter hands
 //! each replica on as its own job, and a collector in front of the gathering stage waits for
 //! all of a patient's replicas and merges them back into one job.
 
 use super::export::publish;
-use super::lock::FileLock;
+pub use super::export::Publish;
+use super::leftovers::hold_alive_lock;
+use super::lock::{Access, FileLock};
 use super::plan::{self, Decision};
 use super::progress::Progress;
 pub use super::source::Unit;
@@ -27,14 +35,15 @@ use std::collections::{BTreeMap, HashMap};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
-use std::time::Instant;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 /// The unit a cohort stage runs for, and its folder name under `out_dir` (none: `out_dir` itself).
 pub const COHORT: &str = "cohort";
 
 pub struct RunOptions {
-    /// Re-hash every cached blob and source file instead of trusting sizes and fingerprints.
+    /// Re-hash every source file instead of trusting its fingerprint, and distrust manifests
+    /// that record no digest. (Every cached blob is re-hashed before use either way.)
     pub verify: bool,
     /// Stages recomputed even when cached.
     pub force: Vec<String>,
@@ -43,6 +52,8 @@ pub struct RunOptions {
     pub default_workers: usize,
     /// Where results are published (`out_dir/<patient>/<output>`).
     pub out_dir: PathBuf,
+    /// As read-only hard links to the cache (the default) or as independent copies.
+    pub publish: Publish,
     /// Set while the run works to have it start no further stage.
     pub stop: StopRequest,
 }
@@ -103,18 +114,45 @@ impl Job {
     }
 }
 
-/// Shared, read-only state of a run.
+/// Shared state of a run.
 struct Shared<'a> {
     store: &'a Store,
     options: &'a RunOptions,
     progress: &'a Progress,
     span: Option<ReplicaSpan>,
+    /// Warnings and waits, in the order they happened.
+    notices: Mutex<Vec<String>>,
+    /// Time stages spent waiting for other processes' key locks, summed over workers.
+    key_lock_wait: Mutex<Duration>,
+}
+
+impl Shared<'_> {
+    /// Shows `line` now (above any progress bars) and keeps it for the summary.
+    fn notice(&self, line: String) {
+        self.progress.notice(&line);
+        self.notices.lock().expect("notices").push(line);
+    }
 }
 
 /// Runs `graph` for every unit, then its cohort stages. Never stops early for a failure.
 pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptions, progress: &Progress) -> RunSummary {
     let started = Instant::now();
-    let shared = Shared { store, options, progress, span: graph.replica_span() };
+    let shared = Shared {
+        store,
+        options,
+        progress,
+        span: graph.replica_span(),
+        notices: Mutex::new(Vec::new()),
+        key_lock_wait: Mutex::new(Duration::ZERO),
+    };
+    // Marks this process's temporary files in out dirs as in use (see `leftovers`).
+    let _alive = match hold_alive_lock(store) {
+        Ok(lock) => Some(lock),
+        Err(e) => {
+            shared.notice(format!("warning: {e:#}; another process may take this run's temporary files for litter"));
+            None
+        }
+    };
     let mut jobs = stream_patients(&shared, &graph.per_patient(), units);
     jobs.sort_by(|a, b| a.unit.id.cmp(&b.unit.id));
 
@@ -160,7 +198,13 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
         progress.finished(stage.name(), COHORT, &outcome);
         records.push(Record { unit: COHORT.into(), stage: stage.name().into(), outcome });
     }
-    RunSummary { records, wall_seconds: started.elapsed().as_secs_f64() }
+    RunSummary {
+        records,
+        wall_seconds: started.elapsed().as_secs_f64(),
+        notices: shared.notices.into_inner().expect("notices"),
+        cache_lock_wait_seconds: 0.0,
+        key_lock_wait_seconds: shared.key_lock_wait.into_inner().expect("lock wait").as_secs_f64(),
+    }
 }
 
 /// Pushes every unit through the per-patient stages, each stage with its own worker pool.
@@ -355,18 +399,24 @@ fn run_stage(
     let store = shared.store;
     let forced = shared.options.force.iter().any(|f| f == stage.name());
     let keyed = plan::key(stage, unit, inputs);
-    let served = |manifest: Manifest| {
+    let served = |manifest: Box<Manifest>| {
         let outcome = Outcome::Cached { seconds: manifest.wall_seconds };
-        finish(store, stage, &manifest, publish_dir).map(|()| (outcome, Some(manifest.outputs)))
+        finish(shared, stage, &manifest, publish_dir).map(|()| (outcome, Some(manifest.outputs)))
     };
     let result = (|| -> anyhow::Result<(Outcome, Option<Vec<OutputRef>>)> {
         if let Decision::Cached(m) = plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
             return served(m);
         }
-        let _lock = FileLock::exclusive(&store.lock_path(&format!("{}-{}", stage.name(), keyed.key.hex())))?;
+        let what = format!("the lock on {} · {unit}", stage.name());
+        let lock_path = store.lock_path(&format!("{}-{}", stage.name(), keyed.key.hex()));
+        let (lock, waited) = FileLock::wait(&lock_path, Access::Exclusive, &what, &mut |line| shared.notice(line))?;
+        *shared.key_lock_wait.lock().expect("lock wait") += waited;
+        lock.describe_holder(&format!("aret-pipe computing {} for {unit}", stage.name()));
         // Another process may have computed it while we waited for the lock.
-        if let Decision::Cached(m) = plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
-            return served(m);
+        match plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
+            Decision::Cached(m) => return served(m),
+            Decision::Distrusted(why) => shared.notice(format!("warning: {why}; computing it again")),
+            Decision::Compute(_) => {}
         }
         let started = Instant::now();
         let outputs = match catch_unwind(AssertUnwindSafe(|| stage.run(ctx))) {
@@ -402,19 +452,26 @@ fn run_stage(
                 .duration_since(std::time::UNIX_EPOCH)
                 .map(|d| d.as_secs())
                 .unwrap_or(0),
-        };
+            digest: None,
+        }
+        .sealed();
         store.put_manifest(&manifest)?;
-        finish(store, stage, &manifest, publish_dir)?;
+        finish(shared, stage, &manifest, publish_dir)?;
         Ok((Outcome::Computed { seconds }, Some(refs)))
     })();
     result.unwrap_or_else(|e| (Outcome::Failed { cause: format!("{e:#}") }, None))
 }
 
 /// Remembers the manifest as the unit's latest and publishes the outputs the stage shows.
-fn finish(store: &Store, stage: &dyn Stage, manifest: &Manifest, publish_dir: &std::path::Path) -> anyhow::Result<()> {
-    store.set_latest(manifest)?;
+fn finish(
+    shared: &Shared,
+    stage: &dyn Stage,
+    manifest: &Manifest,
+    publish_dir: &std::path::Path,
+) -> anyhow::Result<()> {
+    shared.store.set_latest(manifest)?;
     let shown: Vec<OutputRef> = manifest.outputs.iter().filter(|o| stage.publishes(&o.name)).cloned().collect();
-    publish(store, publish_dir, &shown)
+    publish(shared.store, publish_dir, &shown, shared.options.publish, &|line| shared.notice(line))
 }
 
 fn panic_text(panic: &Box<dyn std::any::Any + Send>) -> String {

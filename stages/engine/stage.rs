@@ -1,5 +1,6 @@
 //! The one trait through which the engine calls stages, and the graph they form.
 
+use super::key::Hash;
 use super::source::SourceFile;
 pub use super::store::OutputRef;
 use super::store::Store;
@@ -293,7 +294,8 @@ impl<'a> Context<'a> {
     }
 
     /// The files of input `stage` as named paths: the patient's own files for [`SOURCE`], else
-    /// that stage's stored outputs. Lets a stage read a file set wherever it came from.
+    /// that stage's stored outputs. Lets a stage read a file set wherever it came from. The
+    /// stored ones were re-hashed by the lookup that served them this run, as for [`Context::path`].
     pub fn input_files(&self, stage: &str) -> anyhow::Result<Vec<InputFile>> {
         if stage == SOURCE {
             let files = self.sources.iter();
@@ -305,7 +307,8 @@ impl<'a> Context<'a> {
         Ok(read.map(|o| InputFile { name: o.name.clone(), path: store.blob_path(&o.hash) }).collect())
     }
 
-    /// Path of a stored upstream output, for stages that stream a large file.
+    /// Path of a stored upstream output, for stages that stream a large file. The lookup that
+    /// served it this run re-hashed the file; what the stage then reads is not checked again.
     pub fn path(&self, stage: &str, name: &str) -> anyhow::Result<PathBuf> {
         Ok(self.store.blob_path(&self.find(self.inputs, stage, name)?.hash))
     }
@@ -322,9 +325,19 @@ impl<'a> Context<'a> {
             .ok_or_else(|| anyhow!("stage `{stage}` has no output `{name}`"))
     }
 
+    /// The bytes of a stored output, checked against its hash once more (the lookup that served
+    /// it checked the file; this checks the very bytes the stage gets).
     fn read_from(&self, finished: &Finished, stage: &str, name: &str) -> anyhow::Result<Vec<u8>> {
         let output = self.find(finished, stage, name)?;
         let path = self.store.blob_path(&output.hash);
-        std::fs::read(&path).with_context(|| format!("reading {stage}/{name} from the cache ({})", path.display()))
+        let bytes = std::fs::read(&path)
+            .with_context(|| format!("reading {stage}/{name} from the cache ({})", path.display()))?;
+        if Hash::of(&bytes) != output.hash {
+            return Err(anyhow!(
+                "{stage}/{name} in the cache ({}) changed after it was checked; run again to compute it anew",
+                path.display()
+            ));
+        }
+        Ok(bytes)
     }
 }

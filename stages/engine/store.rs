@@ -8,8 +8,9 @@
 //! ```
 //! Every file is written to a temporary name in its own directory and renamed into place, and
 //! a manifest is written only after all its blobs: a run killed at any moment leaves either
-//! nothing or temporary files no reader trusts. A manifest is trusted only when each blob it
-//! names exists with its recorded size (and, with `verify`, re-hashes to its name).
+//! nothing or temporary files no reader trusts. A manifest is trusted only when it describes
+//! the (stage, key, patient, inputs) it is looked up for, its digest binds its outputs to that
+//! key, and each blob it names re-hashes to its name (see [`Store::lookup`]).
 
 use super::key::Hash;
 use anyhow::Context as _;
@@ -42,6 +43,53 @@ pub struct Manifest {
     pub wall_seconds: f64,
     pub tool_version: String,
     pub created_unix: u64,
+    /// [`Manifest::digest_of`] its stage, version, key, unit, inputs and outputs when written;
+    /// `None` in manifests written before digests were recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub digest: Option<Hash>,
+}
+
+impl Manifest {
+    /// blake3 over the fields that say what this result is and where its bytes are: stage,
+    /// version, key, unit, inputs and outputs, each length-prefixed. It leaves out the floats
+    /// (parameters, wall time), whose text need not parse back to the same bits; the key
+    /// covers the parameters.
+    pub fn digest_of(&self) -> Hash {
+        let mut h = blake3::Hasher::new();
+        let mut field = |bytes: &[u8]| {
+            h.update(&(bytes.len() as u64).to_le_bytes());
+            h.update(bytes);
+        };
+        field(b"aret-pipe manifest v1");
+        field(self.stage.as_bytes());
+        field(&self.version.to_le_bytes());
+        field(&self.key.0);
+        field(self.unit.as_bytes());
+        for input in &self.inputs {
+            field(input.stage.as_bytes());
+            field(input.name.as_bytes());
+            field(&input.hash.0);
+        }
+        for output in &self.outputs {
+            field(output.name.as_bytes());
+            field(&output.hash.0);
+            field(&output.size.to_le_bytes());
+        }
+        Hash(*h.finalize().as_bytes())
+    }
+
+    /// The manifest with its digest recorded.
+    pub fn sealed(mut self) -> Manifest {
+        self.digest = Some(self.digest_of());
+        self
+    }
+}
+
+/// What a lookup expects a manifest to describe: the unit and the inputs the key was computed
+/// from (the key itself names the manifest's file).
+pub struct Expected<'a> {
+    pub unit: &'a str,
+    pub inputs: &'a [(String, String, Hash)],
 }
 
 /// One input of a manifest: output `name` of stage `stage`, with its content hash.
@@ -54,9 +102,10 @@ pub struct InputRef {
 
 /// Whether a (stage, key) can be served from the cache.
 pub enum Lookup {
-    Hit(Manifest),
+    Hit(Box<Manifest>),
     Miss,
-    /// A manifest exists but cannot be trusted; the reason says why.
+    /// A manifest exists but cannot be trusted; the reason says why, naming the stage, the
+    /// patient and the file.
     Broken(String),
 }
 
@@ -101,6 +150,12 @@ impl Store {
         self.root.join("locks").join(format!("{name}.lock"))
     }
 
+    /// The lock a process holds while it may be writing temporary files (see
+    /// [`crate::leftovers`]).
+    pub fn process_lock_path(&self, pid: u32) -> PathBuf {
+        self.root.join("locks").join(format!("pid-{pid}.lock"))
+    }
+
     pub fn global_lock_path(&self) -> PathBuf {
         self.root.join(".lock")
     }
@@ -114,54 +169,60 @@ impl Store {
         Ok(OutputRef { name: name.to_string(), hash, size: bytes.len() as u64 })
     }
 
-    /// Why a stored output cannot be used, or `None` when it can.
-    pub fn check_blob(&self, output: &OutputRef, verify: bool) -> Option<String> {
+    /// Why a stored output cannot be used, or `None` when it can: the blob must exist, have its
+    /// recorded size and re-hash to its name.
+    pub fn check_blob(&self, output: &OutputRef) -> Option<String> {
         let path = self.blob_path(&output.hash);
+        let name = &output.name;
         match fs::metadata(&path) {
-            Err(_) => return Some(format!("cached output `{}` is missing", output.name)),
+            Err(_) => return Some(format!("cached output `{name}` ({}) is missing", path.display())),
             Ok(m) if m.len() != output.size => {
                 return Some(format!(
-                    "cached output `{}` has {} bytes, its manifest says {}",
-                    output.name,
+                    "cached output `{name}` ({}) has {} bytes, its manifest says {}",
+                    path.display(),
                     m.len(),
                     output.size
                 ))
             }
             Ok(_) => {}
         }
-        if verify {
-            match hash_file(&path) {
-                Ok(h) if h == output.hash => {}
-                Ok(_) => return Some(format!("cached output `{}` is corrupt (hash mismatch)", output.name)),
-                Err(e) => return Some(format!("cached output `{}` cannot be read: {e}", output.name)),
+        match hash_file(&path) {
+            Ok(h) if h == output.hash => None,
+            Ok(h) => {
+                Some(format!("cached output `{name}` ({}) is corrupt: its bytes hash to {}", path.display(), h.short()))
             }
+            Err(e) => Some(format!("cached output `{name}` ({}) cannot be read: {e}", path.display())),
         }
-        None
     }
 
-    /// Looks up (stage, key): a hit only when the manifest parses and every blob checks out.
-    pub fn lookup(&self, stage: &str, key: &Hash, verify: bool) -> Lookup {
+    /// Looks up (stage, key): a hit only when the manifest parses, describes this stage, key,
+    /// unit and inputs, its digest matches (with `verify`, it must have one), and every blob it
+    /// names re-hashes to its name. A broken entry's reason names the stage, the unit and the
+    /// file.
+    pub fn lookup(&self, stage: &str, key: &Hash, expected: &Expected, verify: bool) -> Lookup {
         let path = self.manifest_path(stage, key);
         let text = match fs::read(&path) {
             Ok(t) => t,
             Err(_) => return Lookup::Miss,
         };
+        let broken = |why: String| Lookup::Broken(format!("{stage} · {}: {why}", expected.unit));
         let manifest: Manifest = match serde_json::from_slice(&text) {
             Ok(m) => m,
-            Err(e) => return Lookup::Broken(format!("manifest {} is unreadable: {e}", path.display())),
+            Err(e) => return broken(format!("manifest {} is unreadable: {e}", path.display())),
         };
-        if manifest.key != *key || manifest.stage != stage {
-            return Lookup::Broken(format!("manifest {} does not describe this key", path.display()));
+        if let Some(why) = manifest_mismatch(&manifest, stage, key, expected, verify) {
+            return broken(format!("manifest {} {why}", path.display()));
         }
         for output in &manifest.outputs {
-            if let Some(why) = self.check_blob(output, verify) {
-                return Lookup::Broken(why);
+            if let Some(why) = self.check_blob(output) {
+                return broken(why);
             }
         }
-        Lookup::Hit(manifest)
+        Lookup::Hit(Box::new(manifest))
     }
 
     /// Records a computed stage: manifest last, after its blobs are in place.
+    /// Call it with a [sealed](Manifest::sealed) manifest.
     pub fn put_manifest(&self, manifest: &Manifest) -> anyhow::Result<()> {
         let bytes = serde_json::to_vec_pretty(manifest)?;
         write_atomic(&self.manifest_path(&manifest.stage, &manifest.key), &bytes, false)
@@ -232,6 +293,44 @@ impl Store {
     }
 }
 
+/// Why `manifest`, found under (stage, key), does not describe that entry, or `None`.
+fn manifest_mismatch(
+    manifest: &Manifest,
+    stage: &str,
+    key: &Hash,
+    expected: &Expected,
+    verify: bool,
+) -> Option<String> {
+    if manifest.key != *key || manifest.stage != stage {
+        return Some(format!("describes {} {}, not this key", manifest.stage, manifest.key.short()));
+    }
+    if manifest.unit != expected.unit {
+        return Some(format!("was computed for `{}`", manifest.unit));
+    }
+    let same_inputs = manifest.inputs.len() == expected.inputs.len()
+        && manifest
+            .inputs
+            .iter()
+            .zip(expected.inputs)
+            .all(|(i, (s, n, h))| i.stage == *s && i.name == *n && i.hash == *h);
+    if !same_inputs {
+        return Some("records other inputs than its key was computed from".into());
+    }
+    match manifest.digest {
+        Some(d) if d != manifest.digest_of() => {
+            let names: Vec<&str> = manifest.outputs.iter().map(|o| o.name.as_str()).collect();
+            Some(format!(
+                "does not match its digest: its outputs ({}) or inputs were changed after it was written",
+                names.join(", ")
+            ))
+        }
+        None if verify => {
+            Some("records no digest (written by an older aret-pipe), so its outputs cannot be verified".into())
+        }
+        _ => None,
+    }
+}
+
 /// What `gc` would delete (see [`Store::garbage`]).
 #[derive(Debug, Default)]
 pub struct Garbage {
@@ -273,12 +372,12 @@ impl Garbage {
 }
 
 #[cfg(unix)]
-fn links(meta: &fs::Metadata) -> u64 {
+pub(crate) fn links(meta: &fs::Metadata) -> u64 {
     std::os::unix::fs::MetadataExt::nlink(meta)
 }
 
 #[cfg(not(unix))]
-fn links(_meta: &fs::Metadata) -> u64 {
+pub(crate) fn links(_meta: &fs::Metadata) -> u64 {
     1
 }
 
@@ -293,9 +392,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8], read_only: bool) -> anyhow::Resul
         f.write_all(bytes)?;
         f.sync_all()?;
         if read_only {
-            let mut perms = f.metadata()?.permissions();
-            perms.set_readonly(true);
-            fs::set_permissions(&tmp, perms)?;
+            set_read_only(&tmp)?;
         }
         fs::rename(&tmp, path)
     })();
@@ -305,11 +402,30 @@ pub fn write_atomic(path: &Path, bytes: &[u8], read_only: bool) -> anyhow::Resul
     result.with_context(|| format!("writing {}", path.display()))
 }
 
-/// A name no other process or thread is using at the same moment.
+/// Makes `path` read-only for everyone: mode 0444 on Unix.
+pub fn set_read_only(path: &Path) -> std::io::Result<()> {
+    #[cfg(unix)]
+    let perms = std::os::unix::fs::PermissionsExt::from_mode(0o444);
+    #[cfg(not(unix))]
+    let perms = {
+        let mut perms = fs::metadata(path)?.permissions();
+        perms.set_readonly(true);
+        perms
+    };
+    fs::set_permissions(path, perms)
+}
+
+/// A name no other process or thread is using at the same moment: `.tmp-<pid>-<n>-<nanos>`
+/// (see [`temp_owner`]).
 pub fn temp_name() -> String {
     let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
     let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
     format!(".tmp-{}-{n}-{nanos}", std::process::id())
+}
+
+/// The process id a [`temp_name`] carries, or `None` when `name` is not one.
+pub fn temp_owner(name: &str) -> Option<u32> {
+    name.strip_prefix(".tmp-")?.split('-').next()?.parse().ok()
 }
 
 /// blake3 of a file's bytes, streamed.

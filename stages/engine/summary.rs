@@ -37,7 +37,17 @@ pub struct Record {
 #[derive(Debug, Default, Serialize)]
 pub struct RunSummary {
     pub records: Vec<Record>,
+    /// From the start of the run to its end, waits for locks included.
     pub wall_seconds: f64,
+    /// Warnings (a cache entry that failed a check and was computed again) and waits for other
+    /// processes' locks, one line each, in the order they happened.
+    pub notices: Vec<String>,
+    /// Of `wall_seconds`, the time spent waiting for the cache's lock before the run could start
+    /// (another process held it exclusively: `gc`).
+    pub cache_lock_wait_seconds: f64,
+    /// Time stages spent waiting for keys other processes were computing, summed over the
+    /// stages (so it can exceed `wall_seconds` when several waited at once).
+    pub key_lock_wait_seconds: f64,
 }
 
 impl RunSummary {

@@ -1,0 +1,87 @@
+//! Temporary files a killed process left: `.tmp-<pid>-…` entries (see
+//! [`temp_name`](super::store::temp_name)) in the cache and in the folders results are
+//! published into.
+//!
+//! Whether the process that named a temporary file may still be writing it is decided by a
+//! lock, not by guessing from process ids: every process that writes temporary files into an
+//! out dir holds `cache/locks/pid-<pid>.lock` shared for as long as it may ([`hold_alive_lock`]).
+//! A `.tmp-<pid>-…` entry is stale when that lock can be taken exclusively: its process has
+//! ended (the kernel dropped its lock, even after SIGKILL). An entry of a live process, this
+//! one included, is never touched.
+
+use super::lock::FileLock;
+use super::store::{links, temp_owner, Doomed, Store};
+use anyhow::Context as _;
+use std::fs;
+use std::path::Path;
+
+/// Marks this process alive for [`stale_temps`] while the returned lock is held.
+pub fn hold_alive_lock(store: &Store) -> anyhow::Result<FileLock> {
+    FileLock::shared(&store.process_lock_path(std::process::id()))
+}
+
+/// The `.tmp-*` entries under `dir` (down to `depth` folders below it; 1: only its own entries)
+/// whose process has ended. Folders named `.tmp-*` are not entered.
+pub fn stale_temps(store: &Store, dir: &Path, depth: usize) -> anyhow::Result<Vec<Doomed>> {
+    let mut stale = Vec::new();
+    let walker = walkdir::WalkDir::new(dir).min_depth(1).max_depth(depth).into_iter();
+    let enters =
+        |e: &walkdir::DirEntry| !(e.file_type().is_dir() && e.file_name().to_string_lossy().starts_with(".tmp-"));
+    for entry in walker.filter_entry(enters) {
+        let entry = match entry {
+            Ok(e) => e,
+            Err(e) if e.io_error().is_some_and(|io| io.kind() == std::io::ErrorKind::NotFound) => continue,
+            Err(e) => return Err(e).with_context(|| format!("listing {}", dir.display())),
+        };
+        let name = entry.file_name().to_string_lossy();
+        let Some(pid) = temp_owner(&name) else { continue };
+        if !entry.file_type().is_file() || !owner_has_ended(store, pid)? {
+            continue;
+        }
+        let meta = entry.metadata()?;
+        stale.push(Doomed { path: entry.path().to_path_buf(), bytes: meta.len(), linked: links(&meta) > 1 });
+    }
+    Ok(stale)
+}
+
+/// Deletes the stale `.tmp-*` entries of `dir` itself; returns what it deleted.
+pub fn remove_stale_temps(store: &Store, dir: &Path) -> anyhow::Result<Vec<Doomed>> {
+    let stale = stale_temps(store, dir, 1)?;
+    delete(&stale)?;
+    Ok(stale)
+}
+
+/// "N stale .tmp-* file(s) …, freeing X MiB" with the bytes that were links to blobs that stay
+/// said apart: `verb` is "removed" or "would remove", `folders` where they were.
+pub fn describe(stale: &[Doomed], verb: &str, folders: &str) -> String {
+    let mib = |linked: bool| {
+        stale.iter().filter(|d| d.linked == linked).map(|d| d.bytes).sum::<u64>() as f64 / (1024.0 * 1024.0)
+    };
+    let mut line = format!(
+        "{verb} {} stale .tmp-* file(s) killed runs left in {folders}, freeing {:.1} MiB",
+        stale.len(),
+        mib(false)
+    );
+    if mib(true) > 0.0 {
+        line.push_str(&format!(" ({:.1} MiB more were links to blobs that stay)", mib(true)));
+    }
+    line
+}
+
+/// Deletes what [`stale_temps`] found (one already gone is no error).
+pub fn delete(stale: &[Doomed]) -> anyhow::Result<()> {
+    for doomed in stale {
+        match fs::remove_file(&doomed.path) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(e).with_context(|| format!("deleting {}", doomed.path.display()))
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// Whether no process holds the alive lock of `pid`.
+fn owner_has_ended(store: &Store, pid: u32) -> anyhow::Result<bool> {
+    Ok(FileLock::try_exclusive(&store.process_lock_path(pid))?.is_some())
+}
