@@ -95,16 +95,9 @@ pub fn scatter_plot(title: &str, x_label: &str, y_label: &str, sets: &[PointSet]
         .collect();
     let range = |f: fn(&(f64, f64)) -> f64| {
         let (lo, hi) = all.iter().map(f).fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
-        if hi > lo {
-            let pad = 0.05 * (hi - lo);
-            (lo - pad, hi + pad)
-        } else if lo.is_finite() {
-            (lo - 1.0, lo + 1.0)
-        } else {
-            (0.0, 1.0)
-        }
+        nice_axis(lo, hi)
     };
-    let ((x0, x1), (y0, y1)) = (range(|p| p.0), range(|p| p.1));
+    let ((x0, x1, x_step), (y0, y1, y_step)) = (range(|p| p.0), range(|p| p.1));
     let (px0, px1, py0, py1) = (left, w - right, top, h - bottom);
     let sx = |x: f64| px0 + (x - x0) / (x1 - x0) * (px1 - px0);
     let sy = |y: f64| py1 - (y - y0) / (y1 - y0) * (py1 - py0);
@@ -121,8 +114,7 @@ pub fn scatter_plot(title: &str, x_label: &str, y_label: &str, sets: &[PointSet]
         r#"<text transform="translate(16 {}) rotate(-90)" text-anchor="middle">{y_label}</text>"#,
         (py0 + py1) / 2.0
     );
-    for k in 0..=4 {
-        let (x, y) = (x0 + (x1 - x0) * k as f64 / 4.0, y0 + (y1 - y0) * k as f64 / 4.0);
+    for x in ticks(x0, x1, x_step) {
         let _ = writeln!(
             s,
             r##"<path d="M{:.1} {py0} V{py1}" stroke="#eee"/><text x="{:.1}" y="{}" text-anchor="middle">{}</text>"##,
@@ -131,6 +123,8 @@ pub fn scatter_plot(title: &str, x_label: &str, y_label: &str, sets: &[PointSet]
             py1 + 16.0,
             tick(x)
         );
+    }
+    for y in ticks(y0, y1, y_step) {
         let _ = writeln!(
             s,
             r##"<path d="M{px0} {:.1} H{px1}" stroke="#eee"/><text x="{}" y="{:.1}" text-anchor="end">{}</text>"##,
@@ -182,7 +176,30 @@ pub fn scatter_plot(title: &str, x_label: &str, y_label: &str, sets: &[PointSet]
 }
 
 /// A tick label with a sensible number of digits.
+/// An axis from `lo` to `hi` (the data's extent) widened to whole steps of 1, 2 or 5 × 10ᵏ,
+/// four to eight of them, with that step; an axis whose data are all ≥ 0 starts at 0 or above.
+fn nice_axis(lo: f64, hi: f64) -> (f64, f64, f64) {
+    let (lo, hi) = match (lo.is_finite() && hi.is_finite(), hi > lo) {
+        (false, _) => (0.0, 1.0),
+        (true, false) => (lo - 1.0, lo + 1.0),
+        (true, true) => (lo, hi),
+    };
+    let rough = (hi - lo) / 8.0;
+    let magnitude = 10f64.powf(rough.log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0].into_iter().map(|m| m * magnitude).find(|&s| s >= rough).unwrap_or(rough);
+    let start = (lo / step).floor() * step;
+    let start = if lo >= 0.0 { start.max(0.0) } else { start };
+    (start, (hi / step).ceil() * step, step)
+}
+
+/// The ticks of an axis from `lo` to `hi` at `step`.
+fn ticks(lo: f64, hi: f64, step: f64) -> Vec<f64> {
+    let n = ((hi - lo) / step).round() as usize;
+    (0..=n).map(|k| lo + k as f64 * step).collect()
+}
+
 fn tick(v: f64) -> String {
+    let v = if v.abs() < 1e-9 { 0.0 } else { v };
     let a = v.abs();
     if a >= 100.0 || v == 0.0 {
         format!("{v:.0}")
@@ -190,5 +207,18 @@ fn tick(v: f64) -> String {
         format!("{v:.1}")
     } else {
         format!("{v:.3}")
+    }
+}
+
+#[cfg(test)]
+mod axis_tests {
+    #[test]
+    fn axes_run_over_whole_nice_steps_and_volumes_do_not_go_below_zero() {
+        assert_eq!(super::nice_axis(3.0, 9870.0), (0.0, 10000.0, 2000.0));
+        assert_eq!(super::nice_axis(-730.0, 410.0), (-800.0, 600.0, 200.0));
+        assert_eq!(super::nice_axis(0.12, 0.93), (0.0, 1.0, 0.2));
+        assert_eq!(super::ticks(0.0, 10000.0, 2000.0).len(), 6);
+        let (lo, hi, step) = super::nice_axis(5.0, 5.0);
+        assert!(lo < 5.0 && hi > 5.0 && step > 0.0);
     }
 }

@@ -76,7 +76,7 @@ impl Stage for Metrics {
         let mut rows = Vec::new();
         let mut thumbs = Vec::new();
         let mut unscored = Vec::new();
-        let mut info = report::RunInfo { lines: Vec::new() };
+        let mut info = report::RunInfo { lines: Vec::new(), primary: String::new(), blind: String::new() };
         for patient in ctx.cohort_patients() {
             let read = |a: Artifact| ctx.read_patient(patient, a.stage, a.file);
             let json = |a: Artifact| -> anyhow::Result<serde_json::Value> {
@@ -94,6 +94,7 @@ impl Stage for Metrics {
                     .with_context(|| format!("{patient}: {} of box {r} has no time", TRAIN_LOG.file))?;
             }
             if info.lines.is_empty() {
+                (info.primary, info.blind) = (result.primary.name().into(), result.blind_rule.name().into());
                 let (_, _, meta) = model::decode(&ctx.read_patient_replica(patient, 0, MODEL.stage, MODEL.file)?)?;
                 info.lines = vec![
                     (
@@ -108,7 +109,10 @@ impl Stage for Metrics {
                         ),
                     ),
                     ("scene box (units)".into(), format!("{:?} – {:?}", meta.aabb.min, meta.aabb.max)),
-                    ("selection".into(), format!("primary {:?}, blind {:?}", result.primary, result.blind_rule)),
+                    (
+                        "selection".into(),
+                        format!("primary {}, blind {}", result.primary.name(), result.blind_rule.name()),
+                    ),
                     (
                         "bootstrap".into(),
                         format!("{} resamples, seed {}", self.params.bootstrap_resamples, self.params.seed),

@@ -17,9 +17,12 @@ pub struct Thumbnails {
     pub nodule: Option<Vec<u8>>,
 }
 
-/// What the run was configured with, shown at the end of the page.
+/// What the run was configured with, shown at the end of the page, and the names of its
+/// primary and blind rules (`[select] primary`, `blind`).
 pub struct RunInfo {
     pub lines: Vec<(String, String)>,
+    pub primary: String,
+    pub blind: String,
 }
 
 const CLASS_COLOURS: [(SizeClass, &str); 3] =
@@ -110,9 +113,11 @@ pub fn html(
 ) -> String {
     let mut h = String::from(
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>aret-pipe cohort report</title>\n<style>\
-         body{font-family:sans-serif;margin:24px;max-width:1280px;color:#222}table{border-collapse:collapse;margin:12px 0}\
-         td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}th{background:#f3f3f3}td.l,th.l{text-align:left}\
-         .miss{color:#c00;font-weight:bold}.hit{color:#080}.note{color:#555;font-size:90%}img{image-rendering:pixelated}\
+         body{font-family:sans-serif;margin:24px;max-width:1280px;color:#222}\
+         table{border-collapse:collapse;margin:12px 0;display:block;overflow-x:auto;max-width:100%}\
+         td,th{border:1px solid #ccc;padding:3px 7px;text-align:right;white-space:nowrap}th{background:#f3f3f3}\
+         td.l,th.l{text-align:left}.ci{color:#777;font-size:85%}.miss{color:#c00;font-weight:bold}.hit{color:#080}\
+         .note{color:#555;font-size:90%}.weak{color:#999}img{image-rendering:pixelated}\
          .plots{display:flex;gap:16px;flex-wrap:wrap}</style></head><body>\n<h1>aret-pipe cohort report</h1>\n",
     );
     let _ = writeln!(
@@ -126,25 +131,31 @@ pub fn html(
         summary.unscored.len(),
         list(&summary.unscored)
     );
-    h.push_str("<h2>Cohort</h2>\n<table><tr><th class=l>group</th><th>n</th><th>hit rate (ours)</th><th>blind</th><th>oracle</th><th>centre on the nodule (guided / blind)</th><th>hits of those not ambiguous (ours / blind)</th><th>median Dice</th><th>median APE, all (95% CI)</th><th>median APE over hits</th><th>mean APE, all</th><th>Pearson r</th><th>Spearman ρ</th><th>Bland–Altman bias (mm³)</th><th>sphere median APE</th><th>Wilcoxon vs sphere (W, p)</th><th>one reader's median APE (n)</th></tr>\n");
-    for (name, g) in &summary.groups {
+    let groups: Vec<(&&str, &Group)> = summary.groups.iter().filter(|(_, g)| g.n > 0).collect();
+    h.push_str("<h2>Cohort</h2>\n<table><tr><th class=l>group</th><th>n</th><th>hit rate (ours)</th><th>blind</th><th>oracle</th><th>centre on the nodule<br>(guided / blind)</th><th>median Dice</th><th>median APE over hits<br>(95% CI)</th><th>median APE, all<br>(95% CI)</th></tr>\n");
+    for (name, g) in &groups {
         cohort_row(&mut h, name, g);
     }
+    h.push_str("</table>\n<h2>Agreement by group</h2>\n<table><tr><th class=l>group</th><th>mean APE, all</th><th>Pearson r</th><th>Spearman ρ</th><th>Bland–Altman bias (mm³)</th><th>sphere median APE</th><th>Wilcoxon vs sphere<br>(W, p)</th><th>one reader's median APE (n)</th><th>hits of those not ambiguous<br>(ours / blind)</th></tr>\n");
+    for (name, g) in &groups {
+        agreement_row(&mut h, name, g);
+    }
     h.push_str(
-        "</table>\n<p class=note>One reader's median APE: each patient's readers' own volumes against their \
-         consensus (the median over the readers), over the patients two or more radiologists read. The ground \
-         truth carries that spread; a method within it measures as well as one radiologist does.</p>\n",
+        "</table>\n<p class=note>Intervals are 95% bootstrap intervals. One reader's median APE: each patient's \
+         readers' own volumes against their consensus (the median over the readers), over the patients two or more \
+         radiologists read. The ground truth carries that spread; a method within it measures as well as one \
+         radiologist does.</p>\n",
     );
     let _ = writeln!(
         h,
-        "<h2>The paper's numbers beside ours</h2>\n<p class=note>The paper's numbers come from its 19 real LIDC CTs with guided selection (SPEC §5); it reports no localization.</p>\n<table><tr><th class=l>statistic</th><th>paper</th><th>ours</th></tr>\n{}</table>",
+        "<h2>The paper's numbers beside ours</h2>\n<p class=note>The paper's numbers come from its 19 real LIDC CTs with guided selection (SPEC §5); it reports no localization. Ours are given over every selection and over the hits alone, beside the hit rate they come from: an error over selections that miss the nodule measures something else, and is greyed.</p>\n<table><tr><th class=l>statistic</th><th>paper</th><th>ours, every selection</th><th>ours, over hits</th><th>hit rate</th></tr>\n{}</table>",
         paper_rows(summary)
     );
-    h.push_str("<h2>Guided vs blind selection</h2>\n<table><tr><th class=l>group</th><th>rule</th><th>hit rate</th><th>median Dice</th><th>median APE, all</th><th>median APE over hits</th></tr>\n");
-    for (name, g) in &summary.groups {
+    h.push_str("<h2>The primary rule beside the blind one</h2>\n<table><tr><th class=l>group</th><th>rule</th><th>hit rate</th><th>median Dice</th><th>median APE, all</th><th>median APE over hits</th></tr>\n");
+    for (name, g) in &groups {
         for (rule, hit_rate, dice, v) in [
-            ("ours (primary)", g.localization.hit_rate_ours, g.localization.median_dice_ours, &g.ours),
-            ("blind", g.localization.hit_rate_blind, g.localization.median_dice_blind, &g.blind),
+            (info.primary.as_str(), g.localization.hit_rate_ours, g.localization.median_dice_ours, &g.ours),
+            (info.blind.as_str(), g.localization.hit_rate_blind, g.localization.median_dice_blind, &g.blind),
         ] {
             let _ = writeln!(
                 h,
@@ -176,34 +187,44 @@ pub fn html(
 }
 
 fn cohort_row(h: &mut String, name: &str, g: &Group) {
-    let all = &g.ours.all;
-    let corr = |c: &super::summary::Stat<super::summary::CorrelationEstimate>| match c.value() {
-        Some(c) => format!("{:.3} [{:.3}, {:.3}]", c.value, c.ci95[0], c.ci95[1]),
-        None => "–".into(),
-    };
+    let loc = &g.localization;
     let _ = writeln!(
         h,
-        "<tr><td class=l>{name}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{} / {}</td><td>{} / {}</td><td>{}</td><td>{}</td><td>{} ({} hits)</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{} ({})</td></tr>",
+        "<tr><td class=l>{name}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{} / {}</td><td>{}</td><td>{} ({} hits)</td><td>{}</td></tr>",
         g.n,
-        pct(g.localization.hit_rate_ours),
-        pct(g.localization.hit_rate_blind),
-        pct(g.localization.hit_rate_oracle),
-        pct(g.localization.centre_rate_guided),
-        pct(g.localization.centre_rate_blind),
-        unambiguous(g.localization.unambiguous_ours),
-        unambiguous(g.localization.unambiguous_blind),
-        num(g.localization.median_dice_ours, 2),
-        estimate(&all.median_ape_pct),
+        pct(loc.hit_rate_ours),
+        pct(loc.hit_rate_blind),
+        pct(loc.hit_rate_oracle),
+        pct(loc.centre_rate_guided),
+        pct(loc.centre_rate_blind),
+        num(loc.median_dice_ours, 2),
         estimate(&g.ours.over_hits.median_ape_pct),
         g.ours.hits,
+        estimate(&g.ours.all.median_ape_pct),
+    );
+}
+
+fn agreement_row(h: &mut String, name: &str, g: &Group) {
+    let all = &g.ours.all;
+    let corr = |c: &super::summary::Stat<super::summary::CorrelationEstimate>| match c.value() {
+        Some(c) => format!("{:.3} <span class=ci>[{:.3}, {:.3}]</span>", c.value, c.ci95[0], c.ci95[1]),
+        None => "–".into(),
+    };
+    let bias = all.bland_altman.value().map_or("–".into(), |b| {
+        format!("{:.0} <span class=ci>[{:.0}, {:.0}]</span>", b.bias, b.bias_ci[0], b.bias_ci[1])
+    });
+    let _ = writeln!(
+        h,
+        "<tr><td class=l>{name}</td><td>{}</td><td>{}</td><td>{}</td><td>{bias}</td><td>{}</td><td>{}</td><td>{} ({})</td><td>{} / {}</td></tr>",
         estimate(&all.mean_ape_pct),
         corr(&all.pearson),
         corr(&all.spearman),
-        all.bland_altman.value().map_or("–".into(), |b| format!("{:.0} [{:.0}, {:.0}]", b.bias, b.bias_ci[0], b.bias_ci[1])),
         estimate(&g.sphere.median_pct),
         all.wilcoxon_vs_sphere.value().map_or("–".into(), |w| format!("{:.0}, {}", w.w, p_value(w.p_two_sided))),
         estimate(&g.readers.median_pct),
         g.readers.n,
+        unambiguous(g.localization.unambiguous_ours),
+        unambiguous(g.localization.unambiguous_blind),
     );
 }
 
@@ -218,28 +239,39 @@ fn p_value(p: f64) -> String {
 
 fn paper_rows(summary: &Summary) -> String {
     let (ge, all) = (&summary.groups["ge10mm"], &summary.groups["all"]);
-    let med = |g: &Group| g.ours.all.median_ape_pct.value().map(|e| e.value);
-    let mean = |g: &Group| g.ours.all.mean_ape_pct.value().map(|e| e.value);
-    let hits = |g: &Group| format!(" (hit rate {})", pct(g.localization.hit_rate_ours));
-    let rows = [
-        ("≥10 mm: n", PAPER.ge10mm_n as f64, Some(ge.n as f64), String::new(), 0),
-        ("≥10 mm: median APE %", PAPER.ge10mm_median_ape_pct, med(ge), hits(ge), 1),
-        ("≥10 mm: mean APE %", PAPER.ge10mm_mean_ape_pct, mean(ge), hits(ge), 1),
-        ("≥10 mm: Pearson r", PAPER.ge10mm_pearson_r, ge.ours.all.pearson.value().map(|c| c.value), hits(ge), 3),
-        ("≥10 mm: Spearman ρ", PAPER.ge10mm_spearman_rho, ge.ours.all.spearman.value().map(|c| c.value), hits(ge), 3),
-        ("all: median APE %", PAPER.all_median_ape_pct, med(all), hits(all), 1),
-        ("all: mean APE %", PAPER.all_mean_ape_pct, mean(all), hits(all), 1),
+    type Pick = fn(&Agreement) -> Option<f64>;
+    let median: Pick = |a| a.median_ape_pct.value().map(|e| e.value);
+    let mean: Pick = |a| a.mean_ape_pct.value().map(|e| e.value);
+    // (statistic, the paper's value, the group, ours over every selection and over hits, digits)
+    type PaperRow<'a> = (&'a str, f64, &'a Group, Option<f64>, Option<f64>, usize);
+    let rows: [PaperRow; 8] = [
+        ("≥10 mm: n", PAPER.ge10mm_n as f64, ge, Some(ge.n as f64), None, 0),
+        ("≥10 mm: median APE %", PAPER.ge10mm_median_ape_pct, ge, median(&ge.ours.all), median(&ge.ours.over_hits), 1),
+        ("≥10 mm: mean APE %", PAPER.ge10mm_mean_ape_pct, ge, mean(&ge.ours.all), mean(&ge.ours.over_hits), 1),
+        ("≥10 mm: Pearson r", PAPER.ge10mm_pearson_r, ge, ge.ours.all.pearson.value().map(|c| c.value), None, 3),
+        ("≥10 mm: Spearman ρ", PAPER.ge10mm_spearman_rho, ge, ge.ours.all.spearman.value().map(|c| c.value), None, 3),
+        ("all: median APE %", PAPER.all_median_ape_pct, all, median(&all.ours.all), median(&all.ours.over_hits), 1),
+        ("all: mean APE %", PAPER.all_mean_ape_pct, all, mean(&all.ours.all), mean(&all.ours.over_hits), 1),
         (
             "all: Bland–Altman bias mm³",
             PAPER.all_bland_altman_bias_mm3,
+            all,
             all.ours.all.bland_altman.value().map(|b| b.bias),
-            hits(all),
+            None,
             1,
         ),
     ];
     rows.iter()
-        .map(|(k, paper, ours, note, digits)| {
-            format!("<tr><td class=l>{k}</td><td>{paper}</td><td>{}{note}</td></tr>\n", num(*ours, *digits))
+        .map(|(k, paper, g, every, hits, digits)| {
+            let rate = g.localization.hit_rate_ours;
+            // An error over selections that mostly miss measures other things: greyed.
+            let weak = if rate.is_some_and(|r| r < 0.5) { " class=weak" } else { "" };
+            format!(
+                "<tr><td class=l>{k}</td><td>{paper}</td><td{weak}>{}</td><td>{}</td><td>{}</td></tr>\n",
+                num(*every, *digits),
+                num(*hits, *digits),
+                pct(rate)
+            )
         })
         .collect()
 }
@@ -252,10 +284,12 @@ fn patient_row(h: &mut String, r: &PatientRow, t: &Thumbnails) {
         None => "<span class=miss>no candidate</span>".to_string(),
     };
     let b = r.blind.as_ref();
-    let img = |png: &Option<Vec<u8>>, height: u32| {
+    // Each thumbnail links to its full-size file in the patient's folder beside this page.
+    let img = |png: &Option<Vec<u8>>, height: u32, file: &str| {
         png.as_ref().map_or(String::new(), |bytes| {
             format!(
-                "<img height={height} alt=\"\" src=\"data:image/png;base64,{}\">",
+                "<a href=\"{}/{file}\"><img height={height} alt=\"{file}\" src=\"data:image/png;base64,{}\"></a>",
+                escape(&r.patient),
                 base64::engine::general_purpose::STANDARD.encode(bytes)
             )
         })
@@ -282,14 +316,14 @@ fn patient_row(h: &mut String, r: &PatientRow, t: &Thumbnails) {
         r.sphere_ape_pct,
         if r.oracle_hit { "yes" } else { "no" },
         r.train_seconds,
-        img(&t.drr_coronal, 64),
-        img(&t.nodule, 64),
+        img(&t.drr_coronal, 120, "drr_coronal.png"),
+        img(&t.nodule, 160, "nodule.png"),
     );
 }
 
 fn estimate(e: &super::summary::Stat<super::summary::Estimate>) -> String {
     match e.value() {
-        Some(e) => format!("{:.1}% [{:.1}, {:.1}]", e.value, e.ci95[0], e.ci95[1]),
+        Some(e) => format!("{:.1}% <span class=ci>[{:.1}, {:.1}]</span>", e.value, e.ci95[0], e.ci95[1]),
         None => "–".into(),
     }
 }
