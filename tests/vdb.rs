@@ -282,6 +282,9 @@ fn zip_shrinks_a_mostly_air_ct_like_volume_and_reads_back() {
     assert!(zip.len() < active_only.len() * 2 / 3, "zip: {} B, active values only: {} B", zip.len(), active_only.len());
     assert_grid_reads_back(&zip, &grid);
     assert_grid_reads_back_as(&active_only, &grid, Compression::ActiveValuesOnly);
+    // Leaves deflate in parallel tasks of a fixed size: one thread writes the same bytes.
+    let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    assert_eq!(one_thread.install(|| encode(&[grid]).unwrap()), zip);
 }
 
 fn write_mhd(dir: &std::path::Path, name: &str, volume: &Volume<f32>) -> std::path::PathBuf {
