@@ -1,10 +1,12 @@
 //! Our OpenVDB writer read back by an independent reader, the vdb-rs crate: every active voxel's
 //! position and value, nothing else active, the ScaleTranslateMap, the descriptor metadata, two
-//! grids in one file, a grid spanning several root children, and `aret-pipe convert`.
+//! grids in one file, a grid spanning several root children, and `aret-pipe convert`; under
+//! both compressions (zip + active values, the default, and active values only), and what zip
+//! saves on a CT-like volume that is mostly air.
 //! (The official library reads the same files in tests/py/test_vdb_openvdb.py.)
 
 use aret_pipe::formats::mhd;
-use aret_pipe::formats::vdb::{encode, FloatGrid, GridClass};
+use aret_pipe::formats::vdb::{encode, encode_with, Compression, FloatGrid, GridClass};
 use aret_pipe::volume::{Geometry, Volume};
 use rand::{Rng, SeedableRng};
 use std::collections::BTreeMap;
@@ -55,6 +57,8 @@ fn expected_active(dims: [usize; 3], values: &[f32]) -> BTreeMap<[i32; 3], u32> 
 
 struct Read {
     active: BTreeMap<[i32; 3], u32>,
+    /// The grid's `io::COMPRESS_*` flags: zip 0x1, active mask 0x2.
+    compression_flags: u32,
     translation: [f64; 3],
     scale: [f64; 3],
     voxel_size: [f64; 3],
@@ -64,6 +68,7 @@ struct Read {
 fn read_grid(bytes: &[u8], name: &str) -> Read {
     let mut reader = VdbReader::new(Cursor::new(bytes)).expect("vdb-rs reads the header");
     let grid = reader.read_grid::<f32>(name).expect("vdb-rs reads the grid");
+    let flags = grid.descriptor.compression.bits();
     let mut active = BTreeMap::new();
     for (pos, value, level) in grid.iter() {
         assert!(level == VdbLevel::Voxel, "we write no tiles, found one at {pos:?}");
@@ -75,6 +80,7 @@ fn read_grid(bytes: &[u8], name: &str) -> Read {
     };
     Read {
         active,
+        compression_flags: flags,
         translation: translation.to_array(),
         scale: scale_values.to_array(),
         voxel_size: voxel_size.to_array(),
@@ -82,8 +88,18 @@ fn read_grid(bytes: &[u8], name: &str) -> Read {
     }
 }
 
+/// `grid` read back from `bytes`, written with the default compression (zip + active values).
 fn assert_grid_reads_back(bytes: &[u8], grid: &FloatGrid) {
+    assert_grid_reads_back_as(bytes, grid, Compression::Zip);
+}
+
+fn assert_grid_reads_back_as(bytes: &[u8], grid: &FloatGrid, compression: Compression) {
     let read = read_grid(bytes, grid.name);
+    let (flags, description) = match compression {
+        Compression::Zip => (0x3, "zip + active values"),
+        Compression::ActiveValuesOnly => (0x2, "active values"),
+    };
+    assert_eq!(read.compression_flags, flags, "{}: compression flags", grid.name);
     let expected = expected_active(grid.dims, grid.values);
     assert!(!expected.is_empty());
     assert_eq!(read.active.len(), expected.len(), "{}: active voxel count", grid.name);
@@ -101,6 +117,7 @@ fn assert_grid_reads_back(bytes: &[u8], grid: &FloatGrid) {
     assert_eq!(meta("class"), &MetadataValue::String(class.into()));
     assert_eq!(meta("file_voxel_count"), &MetadataValue::I64(expected.len() as i64));
     assert_eq!(meta("is_saved_as_half_float"), &MetadataValue::Bool(false));
+    assert_eq!(meta("file_compression"), &MetadataValue::String(description.into()));
     let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
     for p in expected.keys() {
         for a in 0..3 {
@@ -131,6 +148,9 @@ fn odd_sized_anisotropic_grid_reads_back_voxel_for_voxel() {
     let bytes = encode(&[grid]).unwrap();
     assert_grid_reads_back(&bytes, &grid);
     assert_eq!(encode(&[grid]).unwrap(), bytes, "same grid, same bytes");
+    let uncompressed = encode_with(&[grid], Compression::ActiveValuesOnly).unwrap();
+    assert_grid_reads_back_as(&uncompressed, &grid, Compression::ActiveValuesOnly);
+    assert_ne!(uncompressed, bytes);
 }
 
 #[test]
@@ -201,6 +221,70 @@ fn all_zero_grid_is_a_valid_empty_grid() {
     let read = read_grid(&encode(&[grid]).unwrap(), "empty");
     assert!(read.active.is_empty());
     assert_eq!(read.metadata.get("file_voxel_count"), Some(&MetadataValue::I64(0)));
+}
+
+/// A CT-like volume on `ct_unit`'s scale ((HU + 1000) / 1400, clamped to [0, 1]): per slice an
+/// elliptic body of soft tissue (40 HU) holding two lungs (-850 HU), with integer-HU noise
+/// (σ ≈ 20), in air that is exactly 0, about 58 % of the voxels.
+fn ct_like(dims: [usize; 3], seed: u64) -> Vec<f32> {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let noise = rand_distr::Normal::new(0.0f64, 20.0).unwrap();
+    let [nx, ny, nz] = dims;
+    let mut values = Vec::with_capacity(nx * ny * nz);
+    let inside =
+        |x: f64, y: f64, cx: f64, cy: f64, a: f64, b: f64| ((x - cx) / a).powi(2) + ((y - cy) / b).powi(2) < 1.0;
+    for _ in 0..nz {
+        for y in 0..ny {
+            for x in 0..nx {
+                let (u, v) = (x as f64 / nx as f64, y as f64 / ny as f64);
+                let hu = if !inside(u, v, 0.5, 0.5, 0.45, 0.3) {
+                    None
+                } else if inside(u, v, 0.32, 0.48, 0.12, 0.18) || inside(u, v, 0.68, 0.48, 0.12, 0.18) {
+                    Some(-850.0)
+                } else {
+                    Some(40.0)
+                };
+                let unit = hu.map_or(0.0, |hu: f64| ((hu + rng.sample(noise)).round() + 1000.0) / 1400.0);
+                values.push(unit.clamp(0.0, 1.0) as f32);
+            }
+        }
+    }
+    values
+}
+
+#[test]
+fn zip_shrinks_a_mostly_air_ct_like_volume_and_reads_back() {
+    let dims = [160, 160, 40];
+    let values = ct_like(dims, 7);
+    let grid = FloatGrid {
+        name: "ct_unit",
+        dims,
+        values: &values,
+        voxel_size_mm: [0.703125, 0.703125, 2.5],
+        origin_mm: [-180.0, -180.0, -340.0],
+        class: GridClass::Unknown,
+    };
+    let voxels = values.len();
+    let air = values.iter().filter(|v| **v == 0.0).count();
+    assert!((0.55..0.62).contains(&(air as f64 / voxels as f64)), "{air} of {voxels} voxels are air");
+    let zip = encode(&[grid]).unwrap();
+    let active_only = encode_with(&[grid], Compression::ActiveValuesOnly).unwrap();
+    let dense = 4 * voxels;
+    println!(
+        "{voxels} voxels, {air} air: dense float32 {dense} B, active values only {} B, zip {} B",
+        active_only.len(),
+        zip.len()
+    );
+    // Air costs nothing in either layout: only the body's values (and 65 B of mask and flag
+    // per leaf) are stored.
+    assert!(active_only.len() < dense / 2, "active values only: {} B of {dense}", active_only.len());
+    // Zip keeps what noise leaves to compress: a quantised value repeats within a leaf.
+    assert!(zip.len() < active_only.len() * 2 / 3, "zip: {} B, active values only: {} B", zip.len(), active_only.len());
+    assert_grid_reads_back(&zip, &grid);
+    assert_grid_reads_back_as(&active_only, &grid, Compression::ActiveValuesOnly);
+    // Leaves deflate in parallel tasks of a fixed size: one thread writes the same bytes.
+    let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    assert_eq!(one_thread.install(|| encode(&[grid]).unwrap()), zip);
 }
 
 fn write_mhd(dir: &std::path::Path, name: &str, volume: &Volume<f32>) -> std::path::PathBuf {

@@ -13,16 +13,21 @@
 //!   metadata, a `ScaleTranslateMap` transform, the tree topology, then the leaf data.
 //! - The tree is OpenVDB's standard float tree: a root whose children are 32³ internal nodes
 //!   (4096 voxels a side), each with 16³ internal children (128 voxels), each with 8³ leaves.
-//!   A voxel is active exactly when its value is not 0 (the background); leaves and internal
-//!   nodes without an active voxel are not written, and there are no tiles.
-//! - Compression: the flags are `COMPRESS_ACTIVE_MASK` (0x2) and nothing else: each node stores
-//!   only its active values, as float32 (never half), with no zlib or blosc codec. Every reader
-//!   since file format 222 understands this. A 64³ grid takes 181 kB with 10% of its voxels
-//!   active at random (raw: 1 MiB), 1.12 MB with all of them (masks and flags cost 7%).
+//!   Background 0: a voxel is active exactly when its value is not 0; zeros (and -0) are
+//!   inactive and not stored, leaves and internal nodes without an active voxel are not
+//!   written, and there are no tiles (`vdb/leaves.rs`).
+//! - Compression (`vdb/compress.rs`): by default the flags are zip + active mask: each node
+//!   stores a flag byte and its active values only, as float32 (never half), deflated with
+//!   zlib per node, as OpenVDB does. `Compression::ActiveValuesOnly` leaves out the zlib step.
 //!
 //! Index space is cell-centred in OpenVDB: index (i, j, k) is the centre of voxel (i, j, k), so
 //! the transform maps it to `origin_mm + (i, j, k) · voxel_size_mm` in patient millimetres.
 
+mod compress;
+mod leaves;
+
+pub use compress::Compression;
+use leaves::{Leaf, LEAF_LOG2, LOWER_LOG2, LOWER_SPAN_LOG2, UPPER_LOG2};
 use std::collections::HashSet;
 use std::fmt::Write as _;
 
@@ -33,21 +38,8 @@ const MAGIC: i64 = 0x5644_4220;
 const FILE_VERSION: u32 = 224;
 /// The library version recorded in the header; readers only report it.
 const LIBRARY_VERSION: (u32, u32) = (11, 0);
-/// `io::COMPRESS_ACTIVE_MASK`: store active values only (inactive ones are the background).
-const COMPRESS_ACTIVE_MASK: u32 = 0x2;
-/// Per-node flag `NO_MASK_OR_INACTIVE_VALS`: every inactive value equals the background.
-const NO_MASK_OR_INACTIVE_VALS: u8 = 0;
 /// The tree type name for float values with 32³ / 16³ internal nodes and 8³ leaves.
 const TREE_TYPE: &str = "Tree_float_5_4_3";
-
-/// log2 of the node sizes, in voxels per side: leaf 8, lower internal 16 leaves, upper 32.
-const LEAF_LOG2: u32 = 3;
-const LOWER_LOG2: u32 = 4;
-const UPPER_LOG2: u32 = 5;
-/// Voxels per side covered by a lower (16³) and an upper (32³) internal node.
-const LOWER_SPAN_LOG2: u32 = LEAF_LOG2 + LOWER_LOG2; // 128 voxels
-const UPPER_SPAN_LOG2: u32 = LOWER_SPAN_LOG2 + UPPER_LOG2; // 4096 voxels
-const LEAF_VOXELS: usize = 1 << (3 * LEAF_LOG2);
 
 /// In-memory sizes OpenVDB 10 reports for a float tree on a 64-bit machine (measured with
 /// pyopenvdb: `file_mem_bytes` of grids with known node counts). Only for `file_mem_bytes`,
@@ -109,8 +101,15 @@ pub enum VdbError {
     DimsTooLarge { name: String, dims: [usize; 3] },
 }
 
-/// The bytes of a `.vdb` file holding `grids`, in order. Deterministic: equal input, equal bytes.
+/// The bytes of a `.vdb` file holding `grids`, in order, zip-compressed. Deterministic: equal
+/// input, equal bytes.
 pub fn encode(grids: &[FloatGrid]) -> Result<Vec<u8>, VdbError> {
+    encode_with(grids, Compression::Zip)
+}
+
+/// The bytes of a `.vdb` file holding `grids`, in order, their values stored as `compression`
+/// says. Deterministic: equal input, equal bytes.
+pub fn encode_with(grids: &[FloatGrid], compression: Compression) -> Result<Vec<u8>, VdbError> {
     validate(grids)?;
     let mut out = Out::default();
     out.i64(MAGIC);
@@ -123,7 +122,7 @@ pub fn encode(grids: &[FloatGrid]) -> Result<Vec<u8>, VdbError> {
     out.u32(0); // file-level metadata: none
     out.u32(grids.len() as u32);
     for grid in grids {
-        write_grid(&mut out, grid);
+        write_grid(&mut out, grid, compression);
     }
     let mut bytes = out.0;
     let uuid = content_uuid(&bytes[uuid_at + 36..]);
@@ -165,76 +164,8 @@ fn validate(grids: &[FloatGrid]) -> Result<(), VdbError> {
     Ok(())
 }
 
-/// An 8³ leaf with at least one active voxel.
-struct Leaf {
-    /// Index coordinates of the leaf's first voxel (multiples of 8).
-    origin: [i32; 3],
-    /// Bit `n` set when voxel `n` is active; `n = (x&7)·64 + (y&7)·8 + (z&7)` (z fastest,
-    /// OpenVDB's order, the opposite of our arrays').
-    mask: [u64; LEAF_VOXELS / 64],
-    values: [f32; LEAF_VOXELS],
-}
-
-impl Leaf {
-    fn upper_origin(&self) -> [i32; 3] {
-        self.origin.map(|c| c & !((1 << UPPER_SPAN_LOG2) - 1))
-    }
-    fn lower_origin(&self) -> [i32; 3] {
-        self.origin.map(|c| c & !((1 << LOWER_SPAN_LOG2) - 1))
-    }
-    fn active_count(&self) -> u64 {
-        self.mask.iter().map(|w| w.count_ones() as u64).sum()
-    }
-}
-
-/// The grid's non-empty leaves, in the order OpenVDB serialises them: upper nodes by origin
-/// (the root's `std::map<Coord>` order, x then y then z), then lower nodes and leaves by their
-/// offset in the parent node (x-major too), i.e. depth first.
-fn leaves(grid: &FloatGrid) -> Vec<Leaf> {
-    let [nx, ny, nz] = grid.dims;
-    let step = 1 << LEAF_LOG2;
-    let mut leaves = Vec::new();
-    for z0 in (0..nz).step_by(step) {
-        for y0 in (0..ny).step_by(step) {
-            for x0 in (0..nx).step_by(step) {
-                let mut leaf =
-                    Leaf { origin: [x0 as i32, y0 as i32, z0 as i32], mask: [0; 8], values: [0.0; LEAF_VOXELS] };
-                let mut any = false;
-                for z in z0..(z0 + step).min(nz) {
-                    for y in y0..(y0 + step).min(ny) {
-                        let row = nx * (y + ny * z);
-                        for x in x0..(x0 + step).min(nx) {
-                            let v = grid.values[row + x];
-                            // Exactly 0 (and -0) is the background: inactive, not stored.
-                            if v != 0.0 {
-                                let n = ((x - x0) << 6) | ((y - y0) << 3) | (z - z0);
-                                leaf.mask[n >> 6] |= 1 << (n & 63);
-                                leaf.values[n] = v;
-                                any = true;
-                            }
-                        }
-                    }
-                }
-                if any {
-                    leaves.push(leaf);
-                }
-            }
-        }
-    }
-    leaves.sort_by_key(|l| (l.upper_origin(), l.lower_origin(), l.origin));
-    leaves
-}
-
-/// Offset of a child in its parent internal node: x-major, `log2` children per side, each
-/// child spanning `2^child_span_log2` voxels.
-fn child_offset(origin: [i32; 3], log2: u32, child_span_log2: u32) -> usize {
-    let side = (1 << log2) - 1;
-    let [x, y, z] = origin.map(|c| ((c >> child_span_log2) & side) as usize);
-    (x << (2 * log2)) | (y << log2) | z
-}
-
-fn write_grid(out: &mut Out, grid: &FloatGrid) {
-    let leaves = leaves(grid);
+fn write_grid(out: &mut Out, grid: &FloatGrid, compression: Compression) {
+    let leaves = leaves::leaves(grid.dims, grid.values);
     // Descriptor: name, tree type, instance parent (none), then three offsets patched below.
     out.string(grid.name);
     out.string(TREE_TYPE);
@@ -242,15 +173,12 @@ fn write_grid(out: &mut Out, grid: &FloatGrid) {
     let offsets_at = out.len();
     out.bytes(&[0; 24]);
     let grid_pos = out.len();
-    out.u32(COMPRESS_ACTIVE_MASK);
-    write_metadata(out, grid, &leaves);
+    out.u32(compression.flags());
+    write_metadata(out, grid, &leaves, compression);
     write_transform(out, grid);
-    write_topology(out, &leaves);
+    write_topology(out, &leaves, compression);
     let block_pos = out.len();
-    for leaf in &leaves {
-        out.mask(&leaf.mask);
-        write_values(out, &leaf.mask, &leaf.values);
-    }
+    out.bytes(&compress::leaf_buffers(&leaves, compression));
     let end_pos = out.len();
     for (n, pos) in [grid_pos, block_pos, end_pos].into_iter().enumerate() {
         let at = offsets_at + 8 * n;
@@ -261,11 +189,11 @@ fn write_grid(out: &mut Out, grid: &FloatGrid) {
 /// The grid's metadata map, in `std::map` (byte-wise name) order, as OpenVDB writes it: the
 /// class, the creator, the `file_*` statistics OpenVDB adds on write (readers show them without
 /// loading the tree), the half-float flag (false: values are float32) and the name.
-fn write_metadata(out: &mut Out, grid: &FloatGrid, leaves: &[Leaf]) {
+fn write_metadata(out: &mut Out, grid: &FloatGrid, leaves: &[Leaf], compression: Compression) {
     let voxels: i64 = leaves.iter().map(|l| l.active_count() as i64).sum();
-    let (bbox_min, bbox_max) = active_bbox(leaves);
-    let uppers = count_distinct(leaves.iter().map(Leaf::upper_origin));
-    let lowers = count_distinct(leaves.iter().map(Leaf::lower_origin));
+    let (bbox_min, bbox_max) = leaves::active_bbox(leaves);
+    let uppers = leaves::count_distinct(leaves.iter().map(Leaf::upper_origin));
+    let lowers = leaves::count_distinct(leaves.iter().map(Leaf::lower_origin));
     let mem = MEM_TREE + MEM_UPPER * uppers + MEM_LOWER * lowers + MEM_LEAF * leaves.len() as i64;
 
     let entries: [(&str, Meta); 9] = [
@@ -273,7 +201,7 @@ fn write_metadata(out: &mut Out, grid: &FloatGrid, leaves: &[Leaf]) {
         ("creator", Meta::Str("aret-pipe")),
         ("file_bbox_max", Meta::Vec3i(bbox_max)),
         ("file_bbox_min", Meta::Vec3i(bbox_min)),
-        ("file_compression", Meta::Str("active values")),
+        ("file_compression", Meta::Str(compression.description())),
         ("file_mem_bytes", Meta::Int64(mem)),
         ("file_voxel_count", Meta::Int64(voxels)),
         ("is_saved_as_half_float", Meta::Bool(false)),
@@ -321,33 +249,6 @@ impl Meta<'_> {
     }
 }
 
-/// Inclusive index bounds of the active voxels. An empty grid gets OpenVDB's empty box
-/// (min = i32::MAX, max = i32::MIN on every axis), as OpenVDB itself writes.
-fn active_bbox(leaves: &[Leaf]) -> ([i32; 3], [i32; 3]) {
-    let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
-    for leaf in leaves {
-        for (w, &word) in leaf.mask.iter().enumerate() {
-            let mut bits = word;
-            while bits != 0 {
-                let n = w * 64 + bits.trailing_zeros() as usize;
-                bits &= bits - 1;
-                let local = [n >> 6, (n >> 3) & 7, n & 7];
-                for a in 0..3 {
-                    let c = leaf.origin[a] + local[a] as i32;
-                    lo[a] = lo[a].min(c);
-                    hi[a] = hi[a].max(c);
-                }
-            }
-        }
-    }
-    (lo, hi)
-}
-
-fn count_distinct(sorted: impl Iterator<Item = [i32; 3]>) -> i64 {
-    let mut last = None;
-    sorted.filter(|o| last.replace(*o) != Some(*o)).count() as i64
-}
-
 /// `ScaleTranslateMap`: index → world is `index · scale + translation`. OpenVDB stores the
 /// derived vectors too (voxel size, 1/scale, 1/scale², 1/(2·scale)) and reads them back as
 /// they are, so they must be consistent.
@@ -363,7 +264,8 @@ fn write_transform(out: &mut Out, grid: &FloatGrid) {
 /// The tree's structure, depth first: buffer count, background, root tiles and children; per
 /// internal node its child and value masks and its (all inactive, background) tile values;
 /// per leaf its value mask. The voxel values follow separately (`write_grid`).
-fn write_topology(out: &mut Out, leaves: &[Leaf]) {
+fn write_topology(out: &mut Out, leaves: &[Leaf], compression: Compression) {
+    let mut tile_values = compress::ValueWriter::new(compression);
     out.u32(1); // one value buffer per leaf
     out.f32(0.0); // background
     out.u32(0); // root tiles
@@ -374,15 +276,15 @@ fn write_topology(out: &mut Out, leaves: &[Leaf]) {
         let lowers: Vec<&[Leaf]> = upper.chunk_by(|a, b| a.lower_origin() == b.lower_origin()).collect();
         let mut children = vec![0u64; 1 << (3 * UPPER_LOG2 - 6)];
         for lower in &lowers {
-            set_bit(&mut children, child_offset(lower[0].lower_origin(), UPPER_LOG2, LOWER_SPAN_LOG2));
+            set_bit(&mut children, leaves::child_offset(lower[0].lower_origin(), UPPER_LOG2, LOWER_SPAN_LOG2));
         }
-        write_internal_node(out, &children);
+        write_internal_node(out, &children, &mut tile_values);
         for lower in lowers {
             let mut children = vec![0u64; 1 << (3 * LOWER_LOG2 - 6)];
             for leaf in lower {
-                set_bit(&mut children, child_offset(leaf.origin, LOWER_LOG2, LEAF_LOG2));
+                set_bit(&mut children, leaves::child_offset(leaf.origin, LOWER_LOG2, LEAF_LOG2));
             }
-            write_internal_node(out, &children);
+            write_internal_node(out, &children, &mut tile_values);
             for leaf in lower {
                 out.mask(&leaf.mask);
             }
@@ -391,21 +293,11 @@ fn write_topology(out: &mut Out, leaves: &[Leaf]) {
 }
 
 /// An internal node's child mask, its value mask (no active tiles), and its tile values: all
-/// inactive background, so under active-mask compression none is stored.
-fn write_internal_node(out: &mut Out, child_mask: &[u64]) {
+/// inactive background, so none is stored (an empty chunk under zip).
+fn write_internal_node(out: &mut Out, child_mask: &[u64], tile_values: &mut compress::ValueWriter) {
     out.mask(child_mask);
     out.mask(&vec![0u64; child_mask.len()]);
-    out.u8(NO_MASK_OR_INACTIVE_VALS);
-}
-
-/// A node's values under active-mask compression: the flag, then the active values in bit order.
-fn write_values(out: &mut Out, mask: &[u64], values: &[f32]) {
-    out.u8(NO_MASK_OR_INACTIVE_VALS);
-    for (n, v) in values.iter().enumerate() {
-        if mask[n >> 6] >> (n & 63) & 1 == 1 {
-            out.f32(*v);
-        }
-    }
+    tile_values.write(out, std::iter::empty());
 }
 
 fn set_bit(words: &mut [u64], n: usize) {
@@ -509,35 +401,6 @@ mod tests {
         assert!(matches!(encode(&[grid("a", huge, &v)]), Err(VdbError::DimsTooLarge { .. })));
         let overflow = [1usize << 30, 1 << 30, 1 << 30];
         assert!(matches!(encode(&[grid("a", overflow, &v)]), Err(VdbError::DimsTooLarge { .. })));
-    }
-
-    #[test]
-    fn leaves_are_sparse_and_in_openvdb_order() {
-        // Active voxels in three leaves: (0,0,0), (200,0,0) (second lower node), (8,0,0).
-        let dims = [201, 1, 1];
-        let mut values = vec![0.0f32; 201];
-        values[0] = 1.0;
-        values[200] = 2.0;
-        values[8] = -0.0; // -0 is the background too
-        values[9] = 3.0;
-        let g = grid("d", dims, &values);
-        let leaves = leaves(&g);
-        let origins: Vec<[i32; 3]> = leaves.iter().map(|l| l.origin).collect();
-        assert_eq!(origins, [[0, 0, 0], [8, 0, 0], [200, 0, 0]]);
-        assert_eq!(leaves.iter().map(Leaf::active_count).sum::<u64>(), 3);
-        // (9,0,0) is local x = 1: bit 64, the first bit of word 1 (z fastest inside a leaf).
-        assert_eq!(leaves[1].mask[1], 1);
-        assert_eq!(active_bbox(&leaves), ([0, 0, 0], [200, 0, 0]));
-        assert_eq!(child_offset([200, 0, 0], LOWER_LOG2, LEAF_LOG2), (200 / 8 % 16) << 8);
-        assert_eq!(child_offset([200, 0, 0], UPPER_LOG2, LOWER_SPAN_LOG2), 1 << 10);
-    }
-
-    #[test]
-    fn all_zero_grid_has_no_nodes_and_openvdbs_empty_box() {
-        let values = vec![0.0f32; 27];
-        let leaves = leaves(&grid("d", [3, 3, 3], &values));
-        assert!(leaves.is_empty());
-        assert_eq!(active_bbox(&leaves), ([i32::MAX; 3], [i32::MIN; 3]));
     }
 
     #[test]

@@ -19,7 +19,7 @@ use crate::volume::{Geometry, Volume};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 
 /// `[grid]` takes no keys: the lattice is the model's own.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]

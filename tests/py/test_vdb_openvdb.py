@@ -6,7 +6,8 @@ python3-openvdb: module `pyopenvdb`, or `openvdb` in newer releases) live in Deb
 /usr/bin/python3, not in our venv, so the reading runs there in a subprocess and hands back an
 .npz. Every voxel is compared, inactive ones included (they must read as the background 0),
 and so are the set of active voxels, the index-to-world transform, the voxel size, the grid
-class and name. The bindings missing is a skip on a developer's machine and a failure in CI
+class and name, and the compression (zip + active values: a CT-like volume that is mostly air
+takes a fraction of its dense size). The bindings missing is a skip on a developer's machine and a failure in CI
 (`.ci/run` installs them).
 """
 import json
@@ -111,6 +112,23 @@ def sparse(shape, zero_fraction, seed):
     return v
 
 
+def ct_like(shape, seed):
+    """`ct_unit`'s scale, (HU + 1000) / 1400 clamped to [0, 1]: per slice an elliptic body of
+    soft tissue (40 HU) holding two lungs (-850 HU), integer-HU noise, air exactly 0 (~58 %)."""
+    nz, ny, nx = shape
+    rng = np.random.default_rng(seed)
+    v, u = np.meshgrid(np.arange(ny) / ny, np.arange(nx) / nx, indexing="ij")
+
+    def inside(cx, cy, a, b):
+        return ((u - cx) / a) ** 2 + ((v - cy) / b) ** 2 < 1.0
+
+    body = inside(0.5, 0.5, 0.45, 0.3)
+    hu = np.where(inside(0.32, 0.48, 0.12, 0.18) | inside(0.68, 0.48, 0.12, 0.18), -850.0, 40.0)
+    noisy = np.round(hu + rng.normal(0.0, 20.0, size=shape))
+    unit = np.where(body, np.clip((noisy + 1000.0) / 1400.0, 0.0, 1.0), 0.0)
+    return unit.astype(np.float32)
+
+
 # name -> (volume [z, y, x], spacing, origin, --class)
 def volumes():
     wide = np.zeros((2, 136, 4100), np.float32)  # crosses the 4096-voxel root-child boundary in x
@@ -122,11 +140,13 @@ def volumes():
         "uncertainty": (sparse((29, 20, 37), 0.3, 2), (0.703125, 1.25, 2.5), (-170.5, 12.25, -312.0), "other"),
         "wide": (wide, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), "other"),
         "ct": (ct, (0.5, 0.5, 1.25), (10.0, -20.0, 30.5), "other"),
+        "ct_unit": (ct_like((40, 160, 160), 7), (0.703125, 0.703125, 2.5), (-180.0, -180.0, -340.0), "other"),
     }
 
 
+GRIDS = ["density", "uncertainty", "wide", "ct", "ct_unit"]
 # file -> the grids it holds (density.vdb: two grids, as the grid stage writes it)
-FILES = {"density.vdb": ["density", "uncertainty"], "wide.vdb": ["wide"], "ct.vdb": ["ct"]}
+FILES = {"density.vdb": ["density", "uncertainty"], "wide.vdb": ["wide"], "ct.vdb": ["ct"], "ct_unit.vdb": ["ct_unit"]}
 
 
 @pytest.fixture(scope="module")
@@ -161,7 +181,7 @@ def read_back(converted):
     return result
 
 
-@pytest.mark.parametrize("name", ["density", "uncertainty", "wide", "ct"])
+@pytest.mark.parametrize("name", GRIDS)
 def test_openvdb_reads_every_voxel_back(read_back, converted, name):
     _, vols = converted
     volume, _, _, _ = vols[name]
@@ -179,7 +199,7 @@ def test_openvdb_reads_every_voxel_back(read_back, converted, name):
     assert info["active_count"] == len(want) > 0
 
 
-@pytest.mark.parametrize("name", ["density", "uncertainty", "wide", "ct"])
+@pytest.mark.parametrize("name", GRIDS)
 def test_transform_maps_index_to_patient_mm(read_back, converted, name):
     _, vols = converted
     _, spacing, origin, _ = vols[name]
@@ -191,7 +211,7 @@ def test_transform_maps_index_to_patient_mm(read_back, converted, name):
         np.testing.assert_allclose(world, want, rtol=0, atol=1e-9, err_msg=f"index {ijk}")
 
 
-@pytest.mark.parametrize("name", ["density", "uncertainty", "wide", "ct"])
+@pytest.mark.parametrize("name", GRIDS)
 def test_class_name_and_statistics_metadata(read_back, converted, name):
     _, vols = converted
     volume, _, _, cls = vols[name]
@@ -200,6 +220,7 @@ def test_class_name_and_statistics_metadata(read_back, converted, name):
     meta = info["metadata"]
     assert meta["name"] == name
     assert meta["is_saved_as_half_float"] is False
+    assert meta["file_compression"] == "zip + active values"
     nonzero = np.argwhere(volume.transpose(2, 1, 0) != 0)
     assert meta["file_voxel_count"] == len(nonzero)
     assert meta["file_bbox_min"] == nonzero.min(axis=0).tolist()
@@ -220,6 +241,17 @@ def test_vdb_print_lists_each_grid_with_its_voxel_count(converted):
             assert int(count.replace(",", "")) == np.count_nonzero(vols[grid][0]), section
             assert "Type: Tree_float_5_4_3" in section
             assert "Number of active tiles:        0" in section
+
+
+def test_mostly_air_volume_takes_a_fraction_of_its_dense_size(converted):
+    tmp, vols = converted
+    volume = vols["ct_unit"][0]
+    dense = 4 * volume.size
+    size = (tmp / "ct_unit.vdb").stat().st_size
+    air = np.count_nonzero(volume == 0) / volume.size
+    assert 0.55 < air < 0.62, air
+    # Air is inactive and not stored; the body's quantised values deflate.
+    assert size < dense / 3, f"{size} bytes for {volume.size} voxels ({dense} bytes dense)"
 
 
 def test_bytes_are_identical_from_run_to_run(converted, tmp_path):
