@@ -16,10 +16,15 @@
 //! SliceThickness (0018,0050) if present and positive, else SpacingBetweenSlices (0018,0088),
 //! else 1.0 mm: there is no gap to measure, and downstream stages need a positive spacing.
 //!
-//! Skip or fail: files without the "DICM" marker, and DICOM files that are not CT images
-//! (Modality (0008,0060) ≠ CT and SOPClassUID ≠ CT Image Storage), are skipped with a reason.
-//! Anything that may be a CT slice but cannot be used (compressed, damaged, multi-frame,
-//! incomplete) is an error: skipping it could silently shorten or hole the volume.
+//! Skip or fail: a file is skipped (and counted) only when it clearly is something else: a
+//! DICOM file that is not a CT image (Modality (0008,0060) ≠ CT and SOPClassUID ≠ CT Image
+//! Storage), or a file without the "DICM" marker that is neither named like a DICOM file
+//! (`.dcm`, `.dicom`, `.dic`, `.ima`) nor too short to be one while named like one could be
+//! (no extension). Anything that may be a CT slice but cannot be used is an error naming the
+//! file: empty or truncated (shorter than the 132-byte Part 10 header) and unnamed or named
+//! `.dcm`, named `.dcm` without the marker, compressed, damaged, multi-frame, or with pixel data
+//! that does not match its pixel-format tags. Skipping any of these could silently shorten the
+//! volume at an end, where no slice gap shows the loss.
 //!
 //! Pixel decoding follows pydicom 3's `pixel_array`: unsigned data is masked to BitsStored
 //! (junk in the unused high bits is dropped), signed data is sign-extended from BitsStored.
@@ -58,6 +63,16 @@ pub struct CtSeries {
     pub transfer_syntax: String,
     /// Files ignored (not DICOM, or DICOM but not a CT image), with the reason.
     pub skipped: Vec<(PathBuf, String)>,
+}
+
+/// How every skip reason for a file without the DICOM marker starts.
+const NOT_DICOM: &str = "not a DICOM file";
+
+impl CtSeries {
+    /// How many of [`Self::skipped`] are not DICOM at all (the rest are DICOM but not CT).
+    pub fn skipped_not_dicom(&self) -> usize {
+        self.skipped.iter().filter(|(_, reason)| reason.starts_with(NOT_DICOM)).count()
+    }
 }
 
 /// A DICOM attribute named the way users look it up: keyword and (gggg,eeee).
@@ -101,6 +116,7 @@ pub mod attr {
         PIXEL_SPACING = "PixelSpacing",
         BITS_ALLOCATED = "BitsAllocated",
         BITS_STORED = "BitsStored",
+        HIGH_BIT = "HighBit",
         PIXEL_REPRESENTATION = "PixelRepresentation",
         RESCALE_INTERCEPT = "RescaleIntercept",
         RESCALE_SLOPE = "RescaleSlope",
@@ -118,6 +134,15 @@ pub enum DicomError {
         #[source]
         source: std::io::Error,
     },
+
+    #[error(
+        "{}: {len} bytes without the DICOM 'DICM' marker (at byte 128, or 0), yet {}: it may be a \
+         truncated or damaged CT slice, and skipping it could silently shorten the volume; \
+         re-copy or re-export the series, or remove this file from the folder",
+        path.display(),
+        if *named_dicom { "named like a DICOM file" } else { "too short for a DICOM header and without an extension" }
+    )]
+    NotPart10 { path: PathBuf, len: usize, named_dicom: bool },
 
     #[error(
         "{}: has the DICOM 'DICM' marker but cannot be parsed ({detail}); the file is truncated \
@@ -230,11 +255,19 @@ pub enum DicomError {
     UnsupportedPixelEncoding { path: PathBuf, tag: TagRef, value: String, supported: &'static str },
 
     #[error(
-        "{}: {} holds {found} bytes but Rows × Columns × BitsAllocated/8 needs {expected}; the \
-         file is truncated: re-export it",
-        path.display(), attr::PIXEL_DATA
+        "{}: {} holds {found} bytes but {} × {} × {} × {}/8 = {rows} × {cols} × 1 × {bits_allocated}/8 \
+         needs {expected}{}; {}",
+        path.display(), attr::PIXEL_DATA, attr::ROWS, attr::COLUMNS, attr::SAMPLES_PER_PIXEL,
+        attr::BITS_ALLOCATED,
+        if expected % 2 == 1 { " (one more with the even-length pad byte)" } else { "" },
+        if found < expected {
+            "the file is truncated, or the pixel-format tags are wrong: re-export it"
+        } else {
+            "the pixel-format tags do not describe the pixel data (e.g. BitsAllocated 8 over 16-bit \
+             data), which would decode as garbage: fix or re-export this file"
+        }
     )]
-    PixelDataLength { path: PathBuf, found: usize, expected: usize },
+    PixelDataLength { path: PathBuf, found: usize, expected: usize, rows: u32, cols: u32, bits_allocated: u32 },
 }
 
 fn describe_series(series: &[(String, usize, PathBuf)]) -> String {
@@ -334,7 +367,7 @@ fn read_file(path: &Path) -> Result<FileKind, DicomError> {
     // Part 10 files start with "DICM" after a 128-byte preamble; some writers omit the
     // preamble. Without the marker it is not a DICOM file we can trust (README, XML, ...).
     let Some(start) = dicm_offset(&bytes) else {
-        return Ok(FileKind::Skipped("not a DICOM file (no 'DICM' marker at byte 128 or 0)".into()));
+        return without_marker(path, bytes.len());
     };
     let bytes = &bytes[start..];
     // The meta group reader trusts length fields too (see `length_guard`).
@@ -363,6 +396,23 @@ fn read_file(path: &Path) -> Result<FileKind, DicomError> {
         return Ok(FileKind::Skipped(reason));
     }
     ct_slice(path, &obj, ts).map(|s| FileKind::Ct(Box::new(s)))
+}
+
+/// Extensions that say "a DICOM file" (compared ignoring case).
+const DICOM_EXTENSIONS: [&str; 4] = ["dcm", "dicom", "dic", "ima"];
+/// The 128-byte preamble and the 4-byte "DICM" marker.
+const PART10_HEADER_BYTES: usize = 132;
+
+/// A file without the "DICM" marker: skipped when it clearly is something else, an error when
+/// it may be a damaged slice (see the module doc).
+fn without_marker(path: &Path, len: usize) -> Result<FileKind, DicomError> {
+    let extension = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
+    let named_dicom = extension.as_deref().is_some_and(|e| DICOM_EXTENSIONS.contains(&e));
+    let too_short = len < PART10_HEADER_BYTES;
+    if named_dicom || (too_short && extension.is_none()) {
+        return Err(DicomError::NotPart10 { path: path.to_path_buf(), len, named_dicom });
+    }
+    Ok(FileKind::Skipped(format!("{NOT_DICOM} (no 'DICM' marker at byte 128 or 0)")))
 }
 
 /// Byte offset of the "DICM" magic, if the file has it where Part 10 puts it.
@@ -497,8 +547,7 @@ fn ct_slice(path: &Path, obj: &InMemDicomObject, ts: String) -> Result<CtSlice, 
     let rescale = rescale(path, obj)?;
 
     let big_endian = ts == EXPLICIT_VR_BIG_ENDIAN;
-    let n_pixels = rows as usize * cols as usize;
-    let stored = stored_values(path, obj, &format, big_endian, n_pixels)?;
+    let stored = stored_values(path, obj, &format, big_endian, [rows, cols])?;
     let (hu, rounding_max_abs) = to_hu(&stored, rescale);
 
     Ok(CtSlice {
@@ -564,6 +613,13 @@ fn pixel_format(path: &Path, obj: &InMemDicomObject) -> Result<PixelFormat, Dico
     if bits_stored == 0 || bits_stored > bits_allocated {
         return Err(unsupported(attr::BITS_STORED, bits_stored.to_string(), "1 to BitsAllocated"));
     }
+    // CT images store their bits from bit 0 up (HighBit = BitsStored − 1); any other HighBit
+    // means the stored value sits elsewhere in the word, which this decoder does not do.
+    if let Some(high_bit) = optional_u32(path, obj, attr::HIGH_BIT)? {
+        if high_bit + 1 != bits_stored {
+            return Err(unsupported(attr::HIGH_BIT, high_bit.to_string(), "BitsStored − 1"));
+        }
+    }
     let signed = match required_u32(path, obj, attr::PIXEL_REPRESENTATION)? {
         0 => false,
         1 => true,
@@ -598,13 +654,14 @@ fn rescale(path: &Path, obj: &InMemDicomObject) -> Result<Rescale, DicomError> {
     Ok(Rescale { slope, intercept })
 }
 
-/// Stored pixel values as pydicom's `pixel_array` gives them.
+/// Stored pixel values as pydicom's `pixel_array` gives them, after checking that PixelData
+/// holds exactly Rows × Columns × BitsAllocated/8 bytes (one sample per pixel, one frame).
 fn stored_values(
     path: &Path,
     obj: &InMemDicomObject,
     format: &PixelFormat,
     big_endian: bool,
-    n_pixels: usize,
+    [rows, cols]: [u32; 2],
 ) -> Result<Vec<i32>, DicomError> {
     let element = obj
         .get(tags::PIXEL_DATA)
@@ -627,11 +684,19 @@ fn stored_values(
         }
     };
     let bytes_per_pixel = format.bits_allocated as usize / 8;
-    let expected = n_pixels * bytes_per_pixel;
-    if raw.len() < expected {
-        return Err(DicomError::PixelDataLength { path: path.to_path_buf(), found: raw.len(), expected });
+    let expected = rows as usize * cols as usize * bytes_per_pixel;
+    // Values have even length, so an odd pixel count of 8-bit data carries one pad byte.
+    let padded = expected + expected % 2;
+    if raw.len() != expected && raw.len() != padded {
+        return Err(DicomError::PixelDataLength {
+            path: path.to_path_buf(),
+            found: raw.len(),
+            expected,
+            rows,
+            cols,
+            bits_allocated: format.bits_allocated,
+        });
     }
-    // Extra bytes (an odd-length pad byte) are ignored, as pydicom does.
     Ok(decode_pixels(&raw[..expected], format, big_endian))
 }
 
@@ -863,10 +928,10 @@ fn check_orthonormal(path: &Path, iop: &[f64; 6]) -> Result<(), DicomError> {
 }
 
 fn no_ct_slices(examined: usize, skipped: &[(PathBuf, String)]) -> DicomError {
-    let not_dicom = skipped.iter().filter(|(_, reason)| reason.starts_with("not a DICOM file")).count();
+    let not_dicom = skipped.iter().filter(|(_, reason)| reason.starts_with(NOT_DICOM)).count();
     let example = skipped
         .iter()
-        .find(|(_, reason)| !reason.starts_with("not a DICOM file"))
+        .find(|(_, reason)| !reason.starts_with(NOT_DICOM))
         .or(skipped.first())
         .map(|(path, reason)| format!(", e.g. {}: {reason}", path.display()))
         .unwrap_or_default();
