@@ -18,8 +18,21 @@
 //!    ratings missing, blank or `0`) is not a ≥ 3 mm nodule read for pylidc either: counted in
 //!    `unrated_reads`, not kept.
 //! 4. `nonNodule` marks are counted in `non_nodules` and never kept.
+//!
+//! # Limits
+//! A document larger than [`MAX_FILE_BYTES`] or nesting elements deeper than [`MAX_DEPTH`] is
+//! refused before it is parsed. Real LIDC files are under 2 MB and nest 6 deep; the limits keep
+//! a hostile file from exhausting memory or overflowing the parser's stack (which would abort
+//! the whole run, not just this patient). Parsing time is linear in the file's size.
 
+use super::xml_nesting;
 use roxmltree::{Document, Node};
+use std::path::Path;
+
+/// Largest LIDC XML file read, in bytes (16 MiB).
+pub const MAX_FILE_BYTES: u64 = 16 << 20;
+/// Deepest element nesting read (the LIDC schema nests 6 deep).
+pub const MAX_DEPTH: usize = 64;
 
 /// A whole `LidcReadMessage`: one CT series read by up to four radiologists.
 #[derive(Debug, Clone, PartialEq)]
@@ -84,6 +97,12 @@ pub struct Roi {
 
 #[derive(Debug, thiserror::Error)]
 pub enum LidcError {
+    #[error("cannot read the LIDC XML file: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("LIDC XML of {bytes} bytes exceeds the limit of {limit} bytes (MAX_FILE_BYTES); no real LIDC file comes near it")]
+    TooLarge { bytes: u64, limit: u64 },
+    #[error("LIDC XML line {line}: elements nest deeper than the limit of {limit} levels (MAX_DEPTH); the LIDC schema nests 6 deep")]
+    TooDeep { line: u32, limit: usize },
     #[error("LIDC XML is not well-formed: {0}")]
     Xml(#[from] roxmltree::Error),
     #[error("LIDC XML line {line}: root element is <{found}>, expected <LidcReadMessage>")]
@@ -94,8 +113,28 @@ pub enum LidcError {
     BadValue { element: String, value: String, expected: &'static str, line: u32 },
 }
 
+/// Read and parse the `LidcReadMessage` file at `path`, refusing one larger than
+/// [`MAX_FILE_BYTES`] before reading it. Errors do not name the file: callers add it.
+pub fn read(path: &Path) -> Result<ReadMessage, LidcError> {
+    let bytes = std::fs::metadata(path)?.len();
+    if bytes > MAX_FILE_BYTES {
+        return Err(LidcError::TooLarge { bytes, limit: MAX_FILE_BYTES });
+    }
+    let text = std::fs::read(path)?;
+    let text = String::from_utf8(text).map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e))?;
+    parse(&text)
+}
+
 /// Parse a `LidcReadMessage` document. Never panics; errors name the element and its line.
+/// Documents over [`MAX_FILE_BYTES`] or nested deeper than [`MAX_DEPTH`] are refused unparsed.
 pub fn parse(xml: &str) -> Result<ReadMessage, LidcError> {
+    if xml.len() as u64 > MAX_FILE_BYTES {
+        return Err(LidcError::TooLarge { bytes: xml.len() as u64, limit: MAX_FILE_BYTES });
+    }
+    if let Some(at) = xml_nesting::first_deeper_than(xml, MAX_DEPTH) {
+        let line = xml[..at].bytes().filter(|&b| b == b'\n').count() as u32 + 1;
+        return Err(LidcError::TooDeep { line, limit: MAX_DEPTH });
+    }
     let doc = Document::parse(xml)?;
     let root = doc.root_element();
     if root.tag_name().name() != "LidcReadMessage" {

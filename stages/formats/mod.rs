@@ -9,3 +9,4 @@ pub mod obj;
 pub mod png;
 pub mod svg;
 pub mod vdb;
+pub mod xml_nesting;
