@@ -155,3 +155,17 @@ fn files_that_clearly_are_something_else_are_still_skipped() {
     assert_eq!(series.hu.geometry.dims[2], 3);
     assert_eq!((series.skipped.len(), series.skipped_not_dicom()), (4, 3));
 }
+
+/// Two letters that are no standard VR (here `UI` of TransferSyntaxUID turned `UF`) once made
+/// the parser guess a 4-byte length and zero-fill a buffer of it (a second per slice, and
+/// gigabytes) before failing: the reader refuses the file before the parser sees it.
+#[test]
+fn an_element_with_a_value_representation_outside_the_standard_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let files = w::write_series(dir.path(), &w::series(2), w::default_name);
+    let mut bytes = std::fs::read(&files[0]).unwrap();
+    let at = bytes.windows(6).position(|w| w == [0x02, 0x00, 0x10, 0x00, b'U', b'I']).unwrap();
+    bytes[at + 5] = b'F';
+    std::fs::write(&files[0], bytes).unwrap();
+    assert_mentions(&read_err(&files), &["slice_0.dcm", "(0002,0010) has an invalid value representation"]);
+}

@@ -1102,6 +1102,7 @@ mod length_guard {
     const ITEM: (u16, u16) = (0xFFFE, 0xE000);
     const ITEM_END: (u16, u16) = (0xFFFE, 0xE00D);
     const SEQUENCE_END: (u16, u16) = (0xFFFE, 0xE0DD);
+    const GROUP_LENGTH: (u16, u16) = (0x0002, 0x0000);
     /// Far deeper than any real CT header (2–4 levels), far shallower than a stack overflow.
     const MAX_DEPTH: usize = 32;
 
@@ -1142,6 +1143,7 @@ mod length_guard {
             data_set_encoding: encoding,
             in_meta: true,
             meta_only,
+            meta_end: None,
         };
         walker.elements(None, 0)
     }
@@ -1153,6 +1155,9 @@ mod length_guard {
         data_set_encoding: Encoding,
         in_meta: bool,
         meta_only: bool,
+        /// Where the file meta group ends by its group length (0002,0000): the meta reader
+        /// stops there, whatever follows, so the data set must start exactly there too.
+        meta_end: Option<usize>,
     }
 
     impl Walker<'_> {
@@ -1209,6 +1214,7 @@ mod length_guard {
                     // its own encoding (a big-endian 0008 reads as 0x0800 here: also "not 2").
                     let group = self.bytes.get(self.pos..self.pos + 2);
                     if group != Some(&[0x02, 0x00][..]) {
+                        self.check_meta_end()?;
                         if self.meta_only {
                             return Ok(());
                         }
@@ -1222,6 +1228,11 @@ mod length_guard {
                     return Ok(());
                 }
                 let (len, is_sequence) = self.element_length(tag)?;
+                if self.in_meta && tag == GROUP_LENGTH && len == 4 && self.meta_end.is_none() {
+                    let group_length = self.u32()? as usize;
+                    self.meta_end = Some(self.pos.saturating_add(group_length));
+                    continue;
+                }
                 if len == UNDEFINED {
                     if tag == (0x7FE0, 0x0010) {
                         self.fragments()?;
@@ -1240,6 +1251,21 @@ mod length_guard {
             }
         }
 
+        /// The data set (or the file's end) must begin where the group length says the meta
+        /// group ends: elsewhere, the parser would read the data set from another offset than
+        /// the one whose lengths were checked here.
+        fn check_meta_end(&self) -> Result<(), String> {
+            match self.meta_end {
+                Some(end) if end == self.pos => Ok(()),
+                Some(end) => Err(format!(
+                    "the file meta group length (0002,0000) puts the data set at byte {end}, but the \
+                     group ends at byte {}",
+                    self.pos
+                )),
+                None => Err("the file meta group has no group length (0002,0000)".into()),
+            }
+        }
+
         /// The value length of the element whose tag was just read, and whether it is a
         /// sequence (whose items must be walked, not skipped).
         fn element_length(&mut self, tag: (u16, u16)) -> Result<(u32, bool), String> {
@@ -1250,11 +1276,17 @@ mod length_guard {
                 return Ok((len, is_sequence));
             }
             let vr = self.take::<2>()?;
-            if !vr.iter().all(u8::is_ascii_uppercase) {
-                return Err(format!("element ({:04X},{:04X}) has an invalid value representation", tag.0, tag.1));
-            }
+            // Only the standard's VRs: for any other two letters the parser guesses a length
+            // layout of its own, and the lengths checked here would not be the ones it reads.
+            const SHORT: [&[u8; 2]; 21] = [
+                b"AE", b"AS", b"AT", b"CS", b"DA", b"DS", b"DT", b"FD", b"FL", b"IS", b"LO", b"LT", b"PN", b"SH",
+                b"SL", b"SS", b"ST", b"TM", b"UI", b"UL", b"US",
+            ];
             const LONG: [&[u8; 2]; 13] =
                 [b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"];
+            if !SHORT.contains(&&vr) && !LONG.contains(&&vr) {
+                return Err(format!("element ({:04X},{:04X}) has an invalid value representation", tag.0, tag.1));
+            }
             if LONG.contains(&&vr) {
                 self.take::<2>()?; // reserved
                 Ok((self.u32()?, &vr == b"SQ"))

@@ -1,0 +1,87 @@
+//! The LIDC XML reader's limits (file size, nesting depth) and a contour of forty thousand
+//! points read end to end: parsed, filled and measured to the values a square gives.
+
+use aret_pipe::formats::lidc_xml::{self, LidcError, MAX_DEPTH, MAX_FILE_BYTES};
+use aret_pipe::kernels::consensus::{scan_truth, GroundTruthParams, ScanGeometry};
+use std::time::Instant;
+
+const RATINGS: &str = "<characteristics><subtlety>5</subtlety><internalStructure>1</internalStructure>\
+    <calcification>6</calcification><sphericity>3</sphericity><margin>3</margin><lobulation>3</lobulation>\
+    <spiculation>4</spiculation><texture>5</texture><malignancy>5</malignancy></characteristics>";
+
+fn one_roi_message(z_mm: f64, points: &[(i64, i64)]) -> String {
+    let mut edges = String::with_capacity(points.len() * 64);
+    for (x, y) in points {
+        edges.push_str(&format!("<edgeMap><xCoord>{x}</xCoord><yCoord>{y}</yCoord></edgeMap>\n"));
+    }
+    format!(
+        "<?xml version=\"1.0\"?>\n<LidcReadMessage><readingSession><unblindedReadNodule><noduleID>N1</noduleID>\
+         {RATINGS}<roi><imageZposition>{z_mm}</imageZposition><inclusion>TRUE</inclusion>\n{edges}</roi>\
+         </unblindedReadNodule></readingSession></LidcReadMessage>\n"
+    )
+}
+
+/// `<LidcReadMessage>` holding `inner` more levels of `<a>`.
+fn nested(inner: usize) -> String {
+    format!("<LidcReadMessage>\n{}{}</LidcReadMessage>", "<a>".repeat(inner), "</a>".repeat(inner))
+}
+
+/// 5,000 levels in 35 KB once overflowed the parser's stack: a process abort, not an error.
+#[test]
+fn nesting_past_the_limit_is_an_error_naming_line_and_limit() {
+    let message = lidc_xml::parse(&nested(MAX_DEPTH - 1)).expect("the limit itself is accepted");
+    assert!(message.sessions.is_empty());
+    for inner in [MAX_DEPTH, 5_000, 100_000] {
+        let err = lidc_xml::parse(&nested(inner)).unwrap_err();
+        assert!(matches!(err, LidcError::TooDeep { line: 2, limit: 64 }), "{err}");
+        assert!(err.to_string().contains("deeper than the limit of 64 levels (MAX_DEPTH)"), "{err}");
+    }
+}
+
+#[test]
+fn a_file_over_the_size_limit_is_refused_before_it_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.xml");
+    let body = one_roi_message(1.0, &[(1, 1), (2, 2)]);
+    let padding = " ".repeat(MAX_FILE_BYTES as usize + 1 - body.len());
+    std::fs::write(&path, format!("{body}{padding}")).unwrap();
+    let err = lidc_xml::read(&path).unwrap_err().to_string();
+    assert!(
+        err.contains(&format!("{} bytes exceeds the limit of {MAX_FILE_BYTES} bytes", MAX_FILE_BYTES + 1)),
+        "{err}"
+    );
+    // One byte less is read.
+    std::fs::write(&path, format!("{body}{}", &padding[1..])).unwrap();
+    assert_eq!(lidc_xml::read(&path).unwrap().sessions.len(), 1);
+}
+
+/// The boundary of a 200-pixel square, each of its 800 pixels given 50 times: 40,000 points
+/// (2.4 MB). Filling and measuring it once cost time quadratic in the points (seconds); the
+/// result must be the square's: 199 × 199 pixels inside once the contour's own are switched
+/// off, and the diagonal as diameter.
+#[test]
+fn a_contour_of_forty_thousand_points_is_filled_and_measured_as_its_shape() {
+    let (lo, side) = (100i64, 200i64);
+    let boundary = (0..side)
+        .map(|t| (lo + t, lo))
+        .chain((0..side).map(|t| (lo + side, lo + t)))
+        .chain((0..side).map(|t| (lo + side - t, lo + side)))
+        .chain((0..side).map(|t| (lo, lo + side - t)));
+    let points: Vec<(i64, i64)> = boundary.flat_map(|p| std::iter::repeat_n(p, 50)).collect();
+    assert_eq!(points.len(), 40_000);
+    let xml = one_roi_message(-102.5, &points);
+    assert!(xml.len() > 2_400_000);
+
+    let started = Instant::now();
+    let message = lidc_xml::parse(&xml).unwrap();
+    let parsed = started.elapsed();
+    assert_eq!(message.sessions[0].reads[0].rois[0].points.len(), 40_000);
+    let geometry = ScanGeometry::new((0..8).map(|k| -110.0 + 2.5 * k as f64).collect(), 0.7, 512, 512).unwrap();
+    let truth = scan_truth(&message, &geometry, 2.5, &GroundTruthParams::default()).unwrap();
+    eprintln!("{} bytes: parsed in {parsed:?}, parsed and measured in {:?}", xml.len(), started.elapsed());
+
+    let nodule = &truth.nodules[0];
+    assert_eq!(nodule.consensus_voxels, 199 * 199);
+    let diagonal = (side as f64 * 0.7).hypot(side as f64 * 0.7);
+    assert!((nodule.annotated_diameter_mm - diagonal).abs() < 1e-9, "{}", nodule.annotated_diameter_mm);
+}
