@@ -1,7 +1,7 @@
-//! The LIDC XML reader's limits (file size, nesting depth) and a contour of forty thousand
-//! points read end to end: parsed, filled and measured to the values a square gives.
+//! The LIDC XML reader's limits (file size, nesting depth, reads) and contours of forty thousand
+//! points read end to end: parsed, filled, measured and clustered to the values a square gives.
 
-use aret_pipe::formats::lidc_xml::{self, LidcError, MAX_DEPTH, MAX_FILE_BYTES};
+use aret_pipe::formats::lidc_xml::{self, LidcError, MAX_DEPTH, MAX_FILE_BYTES, MAX_READS};
 use aret_pipe::kernels::consensus::{scan_truth, GroundTruthParams, ScanGeometry};
 use std::time::Instant;
 
@@ -9,16 +9,17 @@ const RATINGS: &str = "<characteristics><subtlety>5</subtlety><internalStructure
     <calcification>6</calcification><sphericity>3</sphericity><margin>3</margin><lobulation>3</lobulation>\
     <spiculation>4</spiculation><texture>5</texture><malignancy>5</malignancy></characteristics>";
 
-fn one_roi_message(z_mm: f64, points: &[(i64, i64)]) -> String {
+/// `readers` reading sessions, each with one read of one contour through `points`.
+fn message(readers: usize, z_mm: f64, points: &[(i64, i64)]) -> String {
     let mut edges = String::with_capacity(points.len() * 64);
     for (x, y) in points {
         edges.push_str(&format!("<edgeMap><xCoord>{x}</xCoord><yCoord>{y}</yCoord></edgeMap>\n"));
     }
-    format!(
-        "<?xml version=\"1.0\"?>\n<LidcReadMessage><readingSession><unblindedReadNodule><noduleID>N1</noduleID>\
-         {RATINGS}<roi><imageZposition>{z_mm}</imageZposition><inclusion>TRUE</inclusion>\n{edges}</roi>\
-         </unblindedReadNodule></readingSession></LidcReadMessage>\n"
-    )
+    let session = format!(
+        "<readingSession><unblindedReadNodule><noduleID>N1</noduleID>{RATINGS}<roi><imageZposition>{z_mm}\
+         </imageZposition><inclusion>TRUE</inclusion>\n{edges}</roi></unblindedReadNodule></readingSession>\n"
+    );
+    format!("<?xml version=\"1.0\"?>\n<LidcReadMessage>\n{}</LidcReadMessage>\n", session.repeat(readers))
 }
 
 /// `<LidcReadMessage>` holding `inner` more levels of `<a>`.
@@ -42,7 +43,7 @@ fn nesting_past_the_limit_is_an_error_naming_line_and_limit() {
 fn a_file_over_the_size_limit_is_refused_before_it_is_read() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("big.xml");
-    let body = one_roi_message(1.0, &[(1, 1), (2, 2)]);
+    let body = message(1, 1.0, &[(1, 1), (2, 2)]);
     let padding = " ".repeat(MAX_FILE_BYTES as usize + 1 - body.len());
     std::fs::write(&path, format!("{body}{padding}")).unwrap();
     let err = lidc_xml::read(&path).unwrap_err().to_string();
@@ -55,10 +56,24 @@ fn a_file_over_the_size_limit_is_refused_before_it_is_read() {
     assert_eq!(lidc_xml::read(&path).unwrap().sessions.len(), 1);
 }
 
-/// The boundary of a 200-pixel square, each of its 800 pixels given 50 times: 40,000 points
-/// (2.4 MB). Filling and measuring it once cost time quadratic in the points (seconds); the
-/// result must be the square's: 199 × 199 pixels inside once the contour's own are switched
-/// off, and the diagonal as diameter.
+#[test]
+fn more_reads_than_the_limit_are_refused_naming_the_first_one_past_it() {
+    let read = "<unblindedReadNodule><noduleID>n</noduleID></unblindedReadNodule>\n";
+    let with = |reads: usize| {
+        format!("<LidcReadMessage>\n<readingSession>\n{}</readingSession></LidcReadMessage>", read.repeat(reads))
+    };
+    assert_eq!(lidc_xml::parse(&with(MAX_READS)).unwrap().sessions[0].small_nodules, MAX_READS);
+    let err = lidc_xml::parse(&with(MAX_READS + 1)).unwrap_err().to_string();
+    assert_eq!(
+        err,
+        "LIDC XML line 1003: more than 1000 <unblindedReadNodule> reads (MAX_READS); real LIDC files have a few dozen"
+    );
+}
+
+/// Two readers outlining the boundary of a 200-pixel square, each of its 800 pixels given 50
+/// times: 40,000 points a contour (4.8 MB). Filling, measuring and clustering them once cost
+/// time quadratic in the points (seconds); the result must be the square's: 199 × 199 pixels
+/// inside once the contour's own are switched off, the diagonal as diameter, one nodule.
 #[test]
 fn a_contour_of_forty_thousand_points_is_filled_and_measured_as_its_shape() {
     let (lo, side) = (100i64, 200i64);
@@ -69,18 +84,20 @@ fn a_contour_of_forty_thousand_points_is_filled_and_measured_as_its_shape() {
         .chain((0..side).map(|t| (lo, lo + side - t)));
     let points: Vec<(i64, i64)> = boundary.flat_map(|p| std::iter::repeat_n(p, 50)).collect();
     assert_eq!(points.len(), 40_000);
-    let xml = one_roi_message(-102.5, &points);
-    assert!(xml.len() > 2_400_000);
+    let xml = message(2, -102.5, &points);
+    assert!(xml.len() > 4_800_000);
 
     let started = Instant::now();
-    let message = lidc_xml::parse(&xml).unwrap();
+    let parsed_message = lidc_xml::parse(&xml).unwrap();
     let parsed = started.elapsed();
-    assert_eq!(message.sessions[0].reads[0].rois[0].points.len(), 40_000);
+    assert_eq!(parsed_message.sessions[1].reads[0].rois[0].points.len(), 40_000);
     let geometry = ScanGeometry::new((0..8).map(|k| -110.0 + 2.5 * k as f64).collect(), 0.7, 512, 512).unwrap();
-    let truth = scan_truth(&message, &geometry, 2.5, &GroundTruthParams::default()).unwrap();
+    let truth = scan_truth(&parsed_message, &geometry, 2.5, &GroundTruthParams::default()).unwrap();
     eprintln!("{} bytes: parsed in {parsed:?}, parsed and measured in {:?}", xml.len(), started.elapsed());
 
+    assert_eq!(truth.nodules.len(), 1);
     let nodule = &truth.nodules[0];
+    assert_eq!(nodule.annotation_count(), 2);
     assert_eq!(nodule.consensus_voxels, 199 * 199);
     let diagonal = (side as f64 * 0.7).hypot(side as f64 * 0.7);
     assert!((nodule.annotated_diameter_mm - diagonal).abs() < 1e-9, "{}", nodule.annotated_diameter_mm);

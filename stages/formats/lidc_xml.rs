@@ -21,9 +21,10 @@
 //!
 //! # Limits
 //! A document larger than [`MAX_FILE_BYTES`] or nesting elements deeper than [`MAX_DEPTH`] is
-//! refused before it is parsed. Real LIDC files are under 2 MB and nest 6 deep; the limits keep
-//! a hostile file from exhausting memory or overflowing the parser's stack (which would abort
-//! the whole run, not just this patient). Parsing time is linear in the file's size.
+//! refused before it is parsed, and one with more than [`MAX_READS`] nodule reads after. Real
+//! LIDC files are under 2 MB, nest 6 deep and hold a few dozen reads; the limits keep a hostile file
+//! from exhausting memory or overflowing the parser's stack (which would abort the whole run,
+//! not just this patient). Parsing time is linear in the file's size.
 
 use super::xml_nesting;
 use roxmltree::{Document, Node};
@@ -33,6 +34,9 @@ use std::path::Path;
 pub const MAX_FILE_BYTES: u64 = 16 << 20;
 /// Deepest element nesting read (the LIDC schema nests 6 deep).
 pub const MAX_DEPTH: usize = 64;
+/// Most `unblindedReadNodule` reads in one file, over all its reading sessions (real files
+/// have a few dozen). Clustering compares every pair of reads, so this bounds its table.
+pub const MAX_READS: usize = 1_000;
 
 /// A whole `LidcReadMessage`: one CT series read by up to four radiologists.
 #[derive(Debug, Clone, PartialEq)]
@@ -103,6 +107,8 @@ pub enum LidcError {
     TooLarge { bytes: u64, limit: u64 },
     #[error("LIDC XML line {line}: elements nest deeper than the limit of {limit} levels (MAX_DEPTH); the LIDC schema nests 6 deep")]
     TooDeep { line: u32, limit: usize },
+    #[error("LIDC XML line {line}: more than {limit} <unblindedReadNodule> reads (MAX_READS); real LIDC files have a few dozen")]
+    TooManyReads { line: u32, limit: usize },
     #[error("LIDC XML is not well-formed: {0}")]
     Xml(#[from] roxmltree::Error),
     #[error("LIDC XML line {line}: root element is <{found}>, expected <LidcReadMessage>")]
@@ -142,6 +148,10 @@ pub fn parse(xml: &str) -> Result<ReadMessage, LidcError> {
     }
     let header = child(root, "ResponseHeader");
     let header_text = |name| header.and_then(|h| child(h, name)).and_then(trimmed_text);
+    let mut reads = children(root, "readingSession").flat_map(|s| children(s, "unblindedReadNodule"));
+    if let Some(past_the_limit) = reads.nth(MAX_READS) {
+        return Err(LidcError::TooManyReads { line: line_of(past_the_limit), limit: MAX_READS });
+    }
     let sessions = children(root, "readingSession").map(parse_session).collect::<Result<_, _>>()?;
     Ok(ReadMessage {
         series_instance_uid: header_text("SeriesInstanceUid"),
