@@ -1,8 +1,8 @@
 //! The LIDC XML reader's limits (file size, nesting depth, reads) and contours of forty thousand
 //! points read end to end: parsed, filled, measured and clustered to the values a square gives.
 
-use aret_pipe::formats::lidc_xml::{self, LidcError, MAX_DEPTH, MAX_FILE_BYTES, MAX_READS};
-use aret_pipe::kernels::consensus::{scan_truth, GroundTruthParams, ScanGeometry};
+use aret_pipe::formats::lidc_xml::{self, LidcError, MAX_CONTOUR_PIXELS, MAX_DEPTH, MAX_FILE_BYTES, MAX_READS};
+use aret_pipe::kernels::consensus::{scan_truth, GroundTruthParams, ScanGeometry, MAX_NODULE_BOX_VOXELS};
 use std::time::Instant;
 
 const RATINGS: &str = "<characteristics><subtlety>5</subtlety><internalStructure>1</internalStructure>\
@@ -70,6 +70,40 @@ fn more_reads_than_the_limit_are_refused_naming_the_first_one_past_it() {
     );
 }
 
+/// Full-image triangles, each filled over its 512 × 512 bounding square: 10,000 of them once
+/// took 12 s; the contour budget stops the file at the 382nd, and 381 are read.
+#[test]
+fn contours_covering_more_than_the_pixel_budget_are_refused_and_the_budget_itself_is_read() {
+    let roi = "<roi><imageZposition>-100</imageZposition><inclusion>TRUE</inclusion><edgeMap><xCoord>0</xCoord>\
+        <yCoord>0</yCoord></edgeMap><edgeMap><xCoord>511</xCoord><yCoord>0</yCoord></edgeMap><edgeMap>\
+        <xCoord>511</xCoord><yCoord>511</yCoord></edgeMap></roi>\n";
+    let with = |rois: usize| {
+        format!(
+            "<LidcReadMessage>\n<readingSession><unblindedReadNodule><noduleID>N</noduleID>{RATINGS}\n{}\
+             </unblindedReadNodule></readingSession></LidcReadMessage>",
+            roi.repeat(rois)
+        )
+    };
+    let fitting = (MAX_CONTOUR_PIXELS / (512 * 512)) as usize;
+    assert_eq!(fitting, 381);
+    let err = lidc_xml::parse(&with(10_000)).unwrap_err().to_string();
+    assert!(
+        err.starts_with(
+            "LIDC XML line 384: with this <roi>, the contours' bounding rectangles cover more than 100000000 pixels"
+        ),
+        "{err}"
+    );
+    let geometry = ScanGeometry::new((0..8).map(|k| -110.0 + 2.5 * k as f64).collect(), 0.7, 512, 512).unwrap();
+    let voxels = |rois: usize| {
+        let started = Instant::now();
+        let truth = scan_truth(&lidc_xml::parse(&with(rois)).unwrap(), &geometry, 2.5, &GroundTruthParams::default());
+        eprintln!("{rois} full-image contours: parsed and measured in {:?}", started.elapsed());
+        truth.unwrap().nodules[0].consensus_voxels
+    };
+    // The same triangle drawn 381 times on one slice fills what it fills once.
+    assert_eq!(voxels(fitting), voxels(1));
+}
+
 /// Two readers outlining the boundary of a 200-pixel square, each of its 800 pixels given 50
 /// times: 40,000 points a contour (4.8 MB). Filling, measuring and clustering them once cost
 /// time quadratic in the points (seconds); the result must be the square's: 199 × 199 pixels
@@ -101,4 +135,31 @@ fn a_contour_of_forty_thousand_points_is_filled_and_measured_as_its_shape() {
     assert_eq!(nodule.consensus_voxels, 199 * 199);
     let diagonal = (side as f64 * 0.7).hypot(side as f64 * 0.7);
     assert!((nodule.annotated_diameter_mm - diagonal).abs() < 1e-9, "{}", nodule.annotated_diameter_mm);
+}
+
+/// Two short lines, on the first and the last of 200 slices, at opposite corners: a read of
+/// tiny contours whose box is the whole scan (52 million voxels, and several masks over it).
+#[test]
+fn a_read_spanning_far_more_of_the_scan_than_a_nodule_is_refused() {
+    let line = |z: f64, from: (i32, i32), to: (i32, i32)| {
+        format!(
+            "<roi><imageZposition>{z}</imageZposition><inclusion>TRUE</inclusion>\
+             <edgeMap><xCoord>{}</xCoord><yCoord>{}</yCoord></edgeMap>\
+             <edgeMap><xCoord>{}</xCoord><yCoord>{}</yCoord></edgeMap></roi>",
+            from.0, from.1, to.0, to.1
+        )
+    };
+    let xml = format!(
+        "<LidcReadMessage><readingSession><unblindedReadNodule><noduleID>N</noduleID>{RATINGS}{}{}\
+         </unblindedReadNodule></readingSession></LidcReadMessage>",
+        line(0.0, (0, 0), (1, 0)),
+        line(199.0 * 2.5, (511, 510), (511, 511))
+    );
+    let geometry = ScanGeometry::new((0..200).map(|k| 2.5 * k as f64).collect(), 0.7, 512, 512).unwrap();
+    let message = lidc_xml::parse(&xml).unwrap();
+    let err = scan_truth(&message, &geometry, 2.5, &GroundTruthParams::default()).unwrap_err().to_string();
+    assert!(
+        err.contains(&format!("hold 52428800 voxels together, more than the limit of {MAX_NODULE_BOX_VOXELS}")),
+        "{err}"
+    );
 }
