@@ -116,6 +116,16 @@ fn refuse_colliding_ids(units: &[Unit], root: &Path) -> anyhow::Result<()> {
 
 /// `root/<patient>/…`: each non-hidden sub-folder is one patient, named by the folder.
 fn dicom_folders(root: &Path) -> anyhow::Result<Vec<Unit>> {
+    let units = patient_folders(root, |_| true)?;
+    if units.is_empty() {
+        bail!("[dataset] root {} has no patient folders: expected one sub-folder per patient", root.display());
+    }
+    Ok(units)
+}
+
+/// The non-hidden sub-folders of `root` whose names `keep` accepts, each one patient named by
+/// its folder (a name that makes no valid ID is an error; one `keep` refuses is passed over).
+fn patient_folders(root: &Path, keep: impl Fn(&[u8]) -> bool) -> anyhow::Result<Vec<Unit>> {
     let entries = std::fs::read_dir(root).map_err(|e| {
         anyhow!(
             "[dataset] root {} cannot be read ({e}): put one sub-folder per patient holding its CT series there, \
@@ -127,13 +137,11 @@ fn dicom_folders(root: &Path) -> anyhow::Result<Vec<Unit>> {
     for entry in entries {
         let entry = entry.with_context(|| format!("listing {}", root.display()))?;
         let name = entry.file_name();
-        if name.as_encoded_bytes().starts_with(b".") || !entry.path().is_dir() {
+        let bytes = name.as_encoded_bytes();
+        if bytes.starts_with(b".") || !keep(bytes) || !entry.path().is_dir() {
             continue;
         }
         units.push(Unit::folder(patient_id(&name, &entry.path())?, entry.path()));
-    }
-    if units.is_empty() {
-        bail!("[dataset] root {} has no patient folders: expected one sub-folder per patient", root.display());
     }
     Ok(units)
 }
@@ -143,11 +151,8 @@ fn dicom_folders(root: &Path) -> anyhow::Result<Vec<Unit>> {
 fn lidc_folders(root: &Path) -> anyhow::Result<Vec<Unit>> {
     let collection = root.join("LIDC-IDRI");
     let dir = if collection.is_dir() { collection } else { root.to_path_buf() };
-    let units: Vec<Unit> = dicom_folders(&dir)
-        .map_err(|e| anyhow!("{e:#} (kind = \"lidc\" expects root/LIDC-IDRI/LIDC-IDRI-XXXX/<study>/<series>/)"))?
-        .into_iter()
-        .filter(|u| u.id.starts_with("LIDC-IDRI-"))
-        .collect();
+    let units = patient_folders(&dir, |name| name.starts_with(b"LIDC-IDRI-"))
+        .map_err(|e| anyhow!("{e:#} (kind = \"lidc\" expects root/LIDC-IDRI/LIDC-IDRI-XXXX/<study>/<series>/)"))?;
     if units.is_empty() {
         bail!(
             "[dataset] root {} has no LIDC-IDRI-XXXX patient folders (TCIA layout: LIDC-IDRI/LIDC-IDRI-XXXX/…)",

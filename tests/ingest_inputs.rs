@@ -145,6 +145,26 @@ fn patient_folders_whose_names_are_not_utf8_are_refused_not_merged() {
     assert!(err.contains("data/p\u{fffd}") && err.contains("not valid UTF-8"), "{err}");
 }
 
+/// In the TCIA layout only `LIDC-IDRI-*` folders are patients: other names are passed over
+/// whatever they are, a patient folder's name must still make a valid ID.
+#[test]
+fn lidc_roots_check_the_patient_folders_and_pass_over_the_rest() {
+    let dir = tempfile::tempdir().unwrap();
+    write_patient(dir.path(), OsStr::new("LIDC-IDRI/LIDC-IDRI-0042"));
+    std::fs::create_dir_all(dir.path().join("data/LIDC-IDRI/-old notes ")).unwrap();
+    std::fs::create_dir_all(dir.path().join(OsStr::from_bytes(b"data/LIDC-IDRI/backup\xff"))).unwrap();
+    write_config(dir.path(), "lidc", "data");
+    let out = aret(dir.path(), &["run", "pipeline.toml", "--until", "ingest"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(dir.path().join("work/out/LIDC-IDRI-0042/ct_hu.mhd").exists());
+
+    write_patient(dir.path(), OsStr::new("LIDC-IDRI/LIDC-IDRI-0043\t"));
+    let out = aret(dir.path(), &["run", "pipeline.toml", "--until", "ingest"]);
+    assert!(!out.status.success());
+    let err = text(&out.stderr);
+    assert!(err.contains("`LIDC-IDRI-0043\\t` cannot be a patient ID") && err.contains("whitespace"), "{err}");
+}
+
 #[test]
 fn skipped_files_are_counted_in_ct_series_json_never_named() {
     let dir = tempfile::tempdir().unwrap();
