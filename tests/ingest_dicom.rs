@@ -255,7 +255,9 @@ fn non_dicom_and_non_ct_files_are_skipped_with_a_reason() {
     std::fs::write(&readme, "CT of the chest, 3 slices\n").unwrap();
     let xml = dir.path().join("annotation.xml");
     std::fs::write(&xml, "<?xml version=\"1.0\"?><nodules/>").unwrap();
-    let empty = dir.path().join("empty");
+    // Empty, but named as something else: an empty file without an extension could be a
+    // slice cut to nothing, and is an error (tests/dicom_damage.rs).
+    let empty = dir.path().join("empty.txt");
     std::fs::write(&empty, "").unwrap();
     let mut cr = SliceSpec::ct(7);
     cr.modality = "CR".into();

@@ -16,10 +16,15 @@
 //! SliceThickness (0018,0050) if present and positive, else SpacingBetweenSlices (0018,0088),
 //! else 1.0 mm: there is no gap to measure, and downstream stages need a positive spacing.
 //!
-//! Skip or fail: files without the "DICM" marker, and DICOM files that are not CT images
-//! (Modality (0008,0060) ≠ CT and SOPClassUID ≠ CT Image Storage), are skipped with a reason.
-//! Anything that may be a CT slice but cannot be used (compressed, damaged, multi-frame,
-//! incomplete) is an error: skipping it could silently shorten or hole the volume.
+//! Skip or fail: a file is skipped (and counted) only when it clearly is something else: a
+//! DICOM file that is not a CT image (Modality (0008,0060) ≠ CT and SOPClassUID ≠ CT Image
+//! Storage), or a file without the "DICM" marker that is neither named like a DICOM file
+//! (`.dcm`, `.dicom`, `.dic`, `.ima`) nor too short to be one while named like one could be
+//! (no extension). Anything that may be a CT slice but cannot be used is an error naming the
+//! file: empty or truncated (shorter than the 132-byte Part 10 header) and unnamed or named
+//! `.dcm`, named `.dcm` without the marker, compressed, damaged, multi-frame, or with pixel data
+//! that does not match its pixel-format tags. Skipping any of these could silently shorten the
+//! volume at an end, where no slice gap shows the loss.
 //!
 //! Pixel decoding follows pydicom 3's `pixel_array`: unsigned data is masked to BitsStored
 //! (junk in the unused high bits is dropped), signed data is sign-extended from BitsStored.
@@ -40,6 +45,8 @@ use std::borrow::Cow;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+mod length_guard;
+
 /// A CT series read into Hounsfield units.
 #[derive(Debug, Clone)]
 pub struct CtSeries {
@@ -58,6 +65,16 @@ pub struct CtSeries {
     pub transfer_syntax: String,
     /// Files ignored (not DICOM, or DICOM but not a CT image), with the reason.
     pub skipped: Vec<(PathBuf, String)>,
+}
+
+/// How every skip reason for a file without the DICOM marker starts.
+const NOT_DICOM: &str = "not a DICOM file";
+
+impl CtSeries {
+    /// How many of [`Self::skipped`] are not DICOM at all (the rest are DICOM but not CT).
+    pub fn skipped_not_dicom(&self) -> usize {
+        self.skipped.iter().filter(|(_, reason)| reason.starts_with(NOT_DICOM)).count()
+    }
 }
 
 /// A DICOM attribute named the way users look it up: keyword and (gggg,eeee).
@@ -101,6 +118,7 @@ pub mod attr {
         PIXEL_SPACING = "PixelSpacing",
         BITS_ALLOCATED = "BitsAllocated",
         BITS_STORED = "BitsStored",
+        HIGH_BIT = "HighBit",
         PIXEL_REPRESENTATION = "PixelRepresentation",
         RESCALE_INTERCEPT = "RescaleIntercept",
         RESCALE_SLOPE = "RescaleSlope",
@@ -118,6 +136,15 @@ pub enum DicomError {
         #[source]
         source: std::io::Error,
     },
+
+    #[error(
+        "{}: {len} bytes without the DICOM 'DICM' marker (at byte 128, or 0), yet {}: it may be a \
+         truncated or damaged CT slice, and skipping it could silently shorten the volume; \
+         re-copy or re-export the series, or remove this file from the folder",
+        path.display(),
+        if *named_dicom { "named like a DICOM file" } else { "too short for a DICOM header and without an extension" }
+    )]
+    NotPart10 { path: PathBuf, len: usize, named_dicom: bool },
 
     #[error(
         "{}: has the DICOM 'DICM' marker but cannot be parsed ({detail}); the file is truncated \
@@ -230,11 +257,19 @@ pub enum DicomError {
     UnsupportedPixelEncoding { path: PathBuf, tag: TagRef, value: String, supported: &'static str },
 
     #[error(
-        "{}: {} holds {found} bytes but Rows × Columns × BitsAllocated/8 needs {expected}; the \
-         file is truncated: re-export it",
-        path.display(), attr::PIXEL_DATA
+        "{}: {} holds {found} bytes but {} × {} × {} × {}/8 = {rows} × {cols} × 1 × {bits_allocated}/8 \
+         needs {expected}{}; {}",
+        path.display(), attr::PIXEL_DATA, attr::ROWS, attr::COLUMNS, attr::SAMPLES_PER_PIXEL,
+        attr::BITS_ALLOCATED,
+        if expected % 2 == 1 { " (one more with the even-length pad byte)" } else { "" },
+        if found < expected {
+            "the file is truncated, or the pixel-format tags are wrong: re-export it"
+        } else {
+            "the pixel-format tags do not describe the pixel data (e.g. BitsAllocated 8 over 16-bit \
+             data), which would decode as garbage: fix or re-export this file"
+        }
     )]
-    PixelDataLength { path: PathBuf, found: usize, expected: usize },
+    PixelDataLength { path: PathBuf, found: usize, expected: usize, rows: u32, cols: u32, bits_allocated: u32 },
 }
 
 fn describe_series(series: &[(String, usize, PathBuf)]) -> String {
@@ -334,7 +369,7 @@ fn read_file(path: &Path) -> Result<FileKind, DicomError> {
     // Part 10 files start with "DICM" after a 128-byte preamble; some writers omit the
     // preamble. Without the marker it is not a DICOM file we can trust (README, XML, ...).
     let Some(start) = dicm_offset(&bytes) else {
-        return Ok(FileKind::Skipped("not a DICOM file (no 'DICM' marker at byte 128 or 0)".into()));
+        return without_marker(path, bytes.len());
     };
     let bytes = &bytes[start..];
     // The meta group reader trusts length fields too (see `length_guard`).
@@ -363,6 +398,23 @@ fn read_file(path: &Path) -> Result<FileKind, DicomError> {
         return Ok(FileKind::Skipped(reason));
     }
     ct_slice(path, &obj, ts).map(|s| FileKind::Ct(Box::new(s)))
+}
+
+/// Extensions that say "a DICOM file" (compared ignoring case).
+const DICOM_EXTENSIONS: [&str; 4] = ["dcm", "dicom", "dic", "ima"];
+/// The 128-byte preamble and the 4-byte "DICM" marker.
+const PART10_HEADER_BYTES: usize = 132;
+
+/// A file without the "DICM" marker: skipped when it clearly is something else, an error when
+/// it may be a damaged slice (see the module doc).
+fn without_marker(path: &Path, len: usize) -> Result<FileKind, DicomError> {
+    let extension = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
+    let named_dicom = extension.as_deref().is_some_and(|e| DICOM_EXTENSIONS.contains(&e));
+    let too_short = len < PART10_HEADER_BYTES;
+    if named_dicom || (too_short && extension.is_none()) {
+        return Err(DicomError::NotPart10 { path: path.to_path_buf(), len, named_dicom });
+    }
+    Ok(FileKind::Skipped(format!("{NOT_DICOM} (no 'DICM' marker at byte 128 or 0)")))
 }
 
 /// Byte offset of the "DICM" magic, if the file has it where Part 10 puts it.
@@ -497,8 +549,7 @@ fn ct_slice(path: &Path, obj: &InMemDicomObject, ts: String) -> Result<CtSlice, 
     let rescale = rescale(path, obj)?;
 
     let big_endian = ts == EXPLICIT_VR_BIG_ENDIAN;
-    let n_pixels = rows as usize * cols as usize;
-    let stored = stored_values(path, obj, &format, big_endian, n_pixels)?;
+    let stored = stored_values(path, obj, &format, big_endian, [rows, cols])?;
     let (hu, rounding_max_abs) = to_hu(&stored, rescale);
 
     Ok(CtSlice {
@@ -564,6 +615,13 @@ fn pixel_format(path: &Path, obj: &InMemDicomObject) -> Result<PixelFormat, Dico
     if bits_stored == 0 || bits_stored > bits_allocated {
         return Err(unsupported(attr::BITS_STORED, bits_stored.to_string(), "1 to BitsAllocated"));
     }
+    // CT images store their bits from bit 0 up (HighBit = BitsStored − 1); any other HighBit
+    // means the stored value sits elsewhere in the word, which this decoder does not do.
+    if let Some(high_bit) = optional_u32(path, obj, attr::HIGH_BIT)? {
+        if high_bit + 1 != bits_stored {
+            return Err(unsupported(attr::HIGH_BIT, high_bit.to_string(), "BitsStored − 1"));
+        }
+    }
     let signed = match required_u32(path, obj, attr::PIXEL_REPRESENTATION)? {
         0 => false,
         1 => true,
@@ -598,13 +656,14 @@ fn rescale(path: &Path, obj: &InMemDicomObject) -> Result<Rescale, DicomError> {
     Ok(Rescale { slope, intercept })
 }
 
-/// Stored pixel values as pydicom's `pixel_array` gives them.
+/// Stored pixel values as pydicom's `pixel_array` gives them, after checking that PixelData
+/// holds exactly Rows × Columns × BitsAllocated/8 bytes (one sample per pixel, one frame).
 fn stored_values(
     path: &Path,
     obj: &InMemDicomObject,
     format: &PixelFormat,
     big_endian: bool,
-    n_pixels: usize,
+    [rows, cols]: [u32; 2],
 ) -> Result<Vec<i32>, DicomError> {
     let element = obj
         .get(tags::PIXEL_DATA)
@@ -627,11 +686,19 @@ fn stored_values(
         }
     };
     let bytes_per_pixel = format.bits_allocated as usize / 8;
-    let expected = n_pixels * bytes_per_pixel;
-    if raw.len() < expected {
-        return Err(DicomError::PixelDataLength { path: path.to_path_buf(), found: raw.len(), expected });
+    let expected = rows as usize * cols as usize * bytes_per_pixel;
+    // Values have even length, so an odd pixel count of 8-bit data carries one pad byte.
+    let padded = expected + expected % 2;
+    if raw.len() != expected && raw.len() != padded {
+        return Err(DicomError::PixelDataLength {
+            path: path.to_path_buf(),
+            found: raw.len(),
+            expected,
+            rows,
+            cols,
+            bits_allocated: format.bits_allocated,
+        });
     }
-    // Extra bytes (an odd-length pad byte) are ignored, as pydicom does.
     Ok(decode_pixels(&raw[..expected], format, big_endian))
 }
 
@@ -863,10 +930,10 @@ fn check_orthonormal(path: &Path, iop: &[f64; 6]) -> Result<(), DicomError> {
 }
 
 fn no_ct_slices(examined: usize, skipped: &[(PathBuf, String)]) -> DicomError {
-    let not_dicom = skipped.iter().filter(|(_, reason)| reason.starts_with("not a DICOM file")).count();
+    let not_dicom = skipped.iter().filter(|(_, reason)| reason.starts_with(NOT_DICOM)).count();
     let example = skipped
         .iter()
-        .find(|(_, reason)| !reason.starts_with("not a DICOM file"))
+        .find(|(_, reason)| !reason.starts_with(NOT_DICOM))
         .or(skipped.first())
         .map(|(path, reason)| format!(", e.g. {}: {reason}", path.display()))
         .unwrap_or_default();
@@ -1015,225 +1082,5 @@ fn assemble(
         hu_rounding_max_abs,
         transfer_syntax,
         skipped,
-    }
-}
-
-// ---------------------------------------------------------------------------------------
-
-/// A walk over element *headers* (never values) checking that every declared length fits in
-/// the bytes that remain, and that nesting stays shallow, before the real parser runs.
-///
-/// Why: dicom-parser allocates and zero-fills a buffer of the declared length before
-/// reading the value, so a single flipped bit in a length field made it fill up to 4 GiB
-/// (seconds, and a possible out-of-memory abort) before noticing the file is short; and
-/// deeply nested sequences could overflow its recursion. Both are found here in one cheap
-/// pass and reported as a damaged file.
-mod length_guard {
-    use dicom_core::dictionary::{DataDictionary, DataDictionaryEntry};
-    use dicom_core::{Tag, VR};
-    use dicom_dictionary_std::StandardDataDictionary;
-
-    const UNDEFINED: u32 = 0xFFFF_FFFF;
-    const ITEM: (u16, u16) = (0xFFFE, 0xE000);
-    const ITEM_END: (u16, u16) = (0xFFFE, 0xE00D);
-    const SEQUENCE_END: (u16, u16) = (0xFFFE, 0xE0DD);
-    /// Far deeper than any real CT header (2–4 levels), far shallower than a stack overflow.
-    const MAX_DEPTH: usize = 32;
-
-    /// How the data set after the file meta group is encoded.
-    #[derive(Clone, Copy)]
-    pub struct Encoding {
-        explicit_vr: bool,
-        big_endian: bool,
-    }
-
-    /// `None` where the bytes cannot be walked: deflated data sets (compressed as a whole)
-    /// and transfer syntaxes we do not know.
-    pub fn encoding_of(ts: &str) -> Option<Encoding> {
-        match ts {
-            "1.2.840.10008.1.2" => Some(Encoding { explicit_vr: false, big_endian: false }),
-            "1.2.840.10008.1.2.2" => Some(Encoding { explicit_vr: true, big_endian: true }),
-            "1.2.840.10008.1.2.1.99" | "1.2.840.10008.1.2.4.95" | "1.2.840.10008.1.2.4.205" => None,
-            // Explicit VR LE and every encapsulated syntax we can name use explicit VR LE.
-            ts if ts == "1.2.840.10008.1.2.1"
-                || super::transfer_syntax_name(ts) != "unknown or private transfer syntax" =>
-            {
-                Some(Encoding { explicit_vr: true, big_endian: false })
-            }
-            _ => None,
-        }
-    }
-
-    /// `bytes` start at the "DICM" magic. With `None`, only the file meta group is checked
-    /// (its encoding is fixed; the data set's is only known once the meta group is read).
-    pub fn check(bytes: &[u8], encoding: Option<Encoding>) -> Result<(), String> {
-        let meta_only = encoding.is_none();
-        let encoding = encoding.unwrap_or(Encoding { explicit_vr: true, big_endian: false });
-        let mut walker = Walker {
-            bytes,
-            pos: 4,
-            // The file meta group (0002,xxxx) is always explicit VR little endian.
-            encoding: Encoding { explicit_vr: true, big_endian: false },
-            data_set_encoding: encoding,
-            in_meta: true,
-            meta_only,
-        };
-        walker.elements(None, 0)
-    }
-
-    struct Walker<'a> {
-        bytes: &'a [u8],
-        pos: usize,
-        encoding: Encoding,
-        data_set_encoding: Encoding,
-        in_meta: bool,
-        meta_only: bool,
-    }
-
-    impl Walker<'_> {
-        fn remaining(&self) -> usize {
-            self.bytes.len().saturating_sub(self.pos)
-        }
-
-        fn take<const N: usize>(&mut self) -> Result<[u8; N], String> {
-            let out = self
-                .bytes
-                .get(self.pos..self.pos + N)
-                .and_then(|s| <[u8; N]>::try_from(s).ok())
-                .ok_or_else(|| format!("file ends inside an element header at byte {}", self.pos))?;
-            self.pos += N;
-            Ok(out)
-        }
-
-        fn u16(&mut self) -> Result<u16, String> {
-            let b = self.take::<2>()?;
-            Ok(if self.encoding.big_endian { u16::from_be_bytes(b) } else { u16::from_le_bytes(b) })
-        }
-
-        fn u32(&mut self) -> Result<u32, String> {
-            let b = self.take::<4>()?;
-            Ok(if self.encoding.big_endian { u32::from_be_bytes(b) } else { u32::from_le_bytes(b) })
-        }
-
-        fn skip(&mut self, tag: (u16, u16), len: u32) -> Result<(), String> {
-            let len = len as usize;
-            if len > self.remaining() {
-                return Err(format!(
-                    "element ({:04X},{:04X}) declares {len} bytes but only {} remain in the file",
-                    tag.0,
-                    tag.1,
-                    self.remaining()
-                ));
-            }
-            self.pos += len;
-            Ok(())
-        }
-
-        /// Data elements until `end` (a defined-length item), an item delimiter, or the end
-        /// of the file (top level).
-        fn elements(&mut self, end: Option<usize>, depth: usize) -> Result<(), String> {
-            if depth > MAX_DEPTH {
-                return Err(format!("sequences nested deeper than {MAX_DEPTH} levels"));
-            }
-            loop {
-                if end.is_some_and(|e| self.pos >= e) || self.remaining() == 0 {
-                    return Ok(());
-                }
-                if self.in_meta {
-                    // The first element outside group 0002 starts the data set proper, in
-                    // its own encoding (a big-endian 0008 reads as 0x0800 here: also "not 2").
-                    let group = self.bytes.get(self.pos..self.pos + 2);
-                    if group != Some(&[0x02, 0x00][..]) {
-                        if self.meta_only {
-                            return Ok(());
-                        }
-                        self.in_meta = false;
-                        self.encoding = self.data_set_encoding;
-                    }
-                }
-                let tag = (self.u16()?, self.u16()?);
-                if tag == ITEM_END || tag == SEQUENCE_END {
-                    self.u32()?;
-                    return Ok(());
-                }
-                let (len, is_sequence) = self.element_length(tag)?;
-                if len == UNDEFINED {
-                    if tag == (0x7FE0, 0x0010) {
-                        self.fragments()?;
-                    } else {
-                        self.items(None, depth + 1)?;
-                    }
-                } else if is_sequence {
-                    let len_usize = len as usize;
-                    if len_usize > self.remaining() {
-                        return self.skip(tag, len);
-                    }
-                    self.items(Some(self.pos + len_usize), depth + 1)?;
-                } else {
-                    self.skip(tag, len)?;
-                }
-            }
-        }
-
-        /// The value length of the element whose tag was just read, and whether it is a
-        /// sequence (whose items must be walked, not skipped).
-        fn element_length(&mut self, tag: (u16, u16)) -> Result<(u32, bool), String> {
-            if !self.encoding.explicit_vr || tag.0 == 0xFFFE {
-                let len = self.u32()?;
-                let is_sequence =
-                    StandardDataDictionary.by_tag(Tag(tag.0, tag.1)).is_some_and(|e| e.vr().relaxed() == VR::SQ);
-                return Ok((len, is_sequence));
-            }
-            let vr = self.take::<2>()?;
-            if !vr.iter().all(u8::is_ascii_uppercase) {
-                return Err(format!("element ({:04X},{:04X}) has an invalid value representation", tag.0, tag.1));
-            }
-            const LONG: [&[u8; 2]; 13] =
-                [b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"];
-            if LONG.contains(&&vr) {
-                self.take::<2>()?; // reserved
-                Ok((self.u32()?, &vr == b"SQ"))
-            } else {
-                Ok((u32::from(self.u16()?), false))
-            }
-        }
-
-        /// Items of a sequence until `end` or the sequence delimiter.
-        fn items(&mut self, end: Option<usize>, depth: usize) -> Result<(), String> {
-            loop {
-                if end.is_some_and(|e| self.pos >= e) || self.remaining() == 0 {
-                    return Ok(());
-                }
-                let tag = (self.u16()?, self.u16()?);
-                let len = self.u32()?;
-                match tag {
-                    SEQUENCE_END => return Ok(()),
-                    ITEM if len == UNDEFINED => self.elements(None, depth)?,
-                    ITEM => {
-                        if len as usize > self.remaining() {
-                            return self.skip(tag, len);
-                        }
-                        self.elements(Some(self.pos + len as usize), depth)?;
-                    }
-                    _ => return Err(format!("({:04X},{:04X}) where a sequence item was expected", tag.0, tag.1)),
-                }
-            }
-        }
-
-        /// Encapsulated pixel data: byte fragments (never walked into) until the delimiter.
-        fn fragments(&mut self) -> Result<(), String> {
-            loop {
-                if self.remaining() == 0 {
-                    return Ok(());
-                }
-                let tag = (self.u16()?, self.u16()?);
-                let len = self.u32()?;
-                match tag {
-                    SEQUENCE_END => return Ok(()),
-                    ITEM => self.skip(tag, len)?,
-                    _ => return Err(format!("({:04X},{:04X}) where a pixel data fragment was expected", tag.0, tag.1)),
-                }
-            }
-        }
     }
 }

@@ -18,8 +18,30 @@
 //!    ratings missing, blank or `0`) is not a ≥ 3 mm nodule read for pylidc either: counted in
 //!    `unrated_reads`, not kept.
 //! 4. `nonNodule` marks are counted in `non_nodules` and never kept.
+//!
+//! # Limits
+//! A document larger than [`MAX_FILE_BYTES`] or nesting elements deeper than [`MAX_DEPTH`] is
+//! refused before it is parsed, and one with more than [`MAX_READS`] nodule reads, or contours
+//! whose bounding rectangles cover more than [`MAX_CONTOUR_PIXELS`], while it is read. Real
+//! LIDC files are under 2 MB, nest 6 deep and hold a few dozen reads of small contours; the limits keep a hostile file
+//! from exhausting memory or overflowing the parser's stack (which would abort the whole run,
+//! not just this patient). Parsing time is linear in the file's size.
 
+use super::xml_nesting;
 use roxmltree::{Document, Node};
+use std::path::Path;
+
+/// Largest LIDC XML file read, in bytes (16 MiB).
+pub const MAX_FILE_BYTES: u64 = 16 << 20;
+/// Deepest element nesting read (the LIDC schema nests 6 deep).
+pub const MAX_DEPTH: usize = 64;
+/// Most `unblindedReadNodule` reads in one file, over all its reading sessions (real files
+/// have a few dozen). Clustering compares every pair of reads, so this bounds its table.
+pub const MAX_READS: usize = 1_000;
+/// Most pixels the contours' bounding rectangles cover together, summed over every contour of
+/// two or more points (real files: under 10⁶). Each contour is filled over its rectangle, so
+/// this bounds the ground truth's work (about half a second at the limit).
+pub const MAX_CONTOUR_PIXELS: u64 = 100_000_000;
 
 /// A whole `LidcReadMessage`: one CT series read by up to four radiologists.
 #[derive(Debug, Clone, PartialEq)]
@@ -84,6 +106,16 @@ pub struct Roi {
 
 #[derive(Debug, thiserror::Error)]
 pub enum LidcError {
+    #[error("cannot read the LIDC XML file: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("LIDC XML of {bytes} bytes exceeds the limit of {limit} bytes (MAX_FILE_BYTES); no real LIDC file comes near it")]
+    TooLarge { bytes: u64, limit: u64 },
+    #[error("LIDC XML line {line}: elements nest deeper than the limit of {limit} levels (MAX_DEPTH); the LIDC schema nests 6 deep")]
+    TooDeep { line: u32, limit: usize },
+    #[error("LIDC XML line {line}: more than {limit} <unblindedReadNodule> reads (MAX_READS); real LIDC files have a few dozen")]
+    TooManyReads { line: u32, limit: usize },
+    #[error("LIDC XML line {line}: with this <roi>, the contours' bounding rectangles cover more than {limit} pixels (MAX_CONTOUR_PIXELS); real LIDC files cover under a million")]
+    ContoursTooLarge { line: u32, limit: u64 },
     #[error("LIDC XML is not well-formed: {0}")]
     Xml(#[from] roxmltree::Error),
     #[error("LIDC XML line {line}: root element is <{found}>, expected <LidcReadMessage>")]
@@ -94,8 +126,28 @@ pub enum LidcError {
     BadValue { element: String, value: String, expected: &'static str, line: u32 },
 }
 
+/// Read and parse the `LidcReadMessage` file at `path`, refusing one larger than
+/// [`MAX_FILE_BYTES`] before reading it. Errors do not name the file: callers add it.
+pub fn read(path: &Path) -> Result<ReadMessage, LidcError> {
+    let bytes = std::fs::metadata(path)?.len();
+    if bytes > MAX_FILE_BYTES {
+        return Err(LidcError::TooLarge { bytes, limit: MAX_FILE_BYTES });
+    }
+    let text = std::fs::read(path)?;
+    let text = String::from_utf8(text).map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e))?;
+    parse(&text)
+}
+
 /// Parse a `LidcReadMessage` document. Never panics; errors name the element and its line.
+/// Documents over [`MAX_FILE_BYTES`] or nested deeper than [`MAX_DEPTH`] are refused unparsed.
 pub fn parse(xml: &str) -> Result<ReadMessage, LidcError> {
+    if xml.len() as u64 > MAX_FILE_BYTES {
+        return Err(LidcError::TooLarge { bytes: xml.len() as u64, limit: MAX_FILE_BYTES });
+    }
+    if let Some(at) = xml_nesting::first_deeper_than(xml, MAX_DEPTH) {
+        let line = xml[..at].bytes().filter(|&b| b == b'\n').count() as u32 + 1;
+        return Err(LidcError::TooDeep { line, limit: MAX_DEPTH });
+    }
     let doc = Document::parse(xml)?;
     let root = doc.root_element();
     if root.tag_name().name() != "LidcReadMessage" {
@@ -103,7 +155,13 @@ pub fn parse(xml: &str) -> Result<ReadMessage, LidcError> {
     }
     let header = child(root, "ResponseHeader");
     let header_text = |name| header.and_then(|h| child(h, name)).and_then(trimmed_text);
-    let sessions = children(root, "readingSession").map(parse_session).collect::<Result<_, _>>()?;
+    let reads = || children(root, "readingSession").flat_map(|s| children(s, "unblindedReadNodule"));
+    if let Some(past_the_limit) = reads().nth(MAX_READS) {
+        return Err(LidcError::TooManyReads { line: line_of(past_the_limit), limit: MAX_READS });
+    }
+    let mut contour_pixels = 0;
+    let sessions =
+        children(root, "readingSession").map(|s| parse_session(s, &mut contour_pixels)).collect::<Result<_, _>>()?;
     Ok(ReadMessage {
         series_instance_uid: header_text("SeriesInstanceUid"),
         study_instance_uid: header_text("StudyInstanceUID"),
@@ -111,7 +169,8 @@ pub fn parse(xml: &str) -> Result<ReadMessage, LidcError> {
     })
 }
 
-fn parse_session(session: Node) -> Result<ReadingSession, LidcError> {
+/// `contour_pixels` carries the running total checked against [`MAX_CONTOUR_PIXELS`].
+fn parse_session(session: Node, contour_pixels: &mut u64) -> Result<ReadingSession, LidcError> {
     let mut out = ReadingSession {
         radiologist: child(session, "servicingRadiologistID").and_then(trimmed_text),
         reads: Vec::new(),
@@ -122,7 +181,7 @@ fn parse_session(session: Node) -> Result<ReadingSession, LidcError> {
     };
     for read in children(session, "unblindedReadNodule") {
         let nodule_id = required_text(read, "noduleID")?;
-        let (rois, single_point_rois) = parse_rois(read)?;
+        let (rois, single_point_rois) = parse_rois(read, contour_pixels)?;
         out.single_point_rois += single_point_rois;
         if rois.is_empty() {
             out.small_nodules += 1;
@@ -137,18 +196,31 @@ fn parse_session(session: Node) -> Result<ReadingSession, LidcError> {
 }
 
 /// The read's contours (two or more points) and how many single-point ROIs were dropped.
-fn parse_rois(read: Node) -> Result<(Vec<Roi>, usize), LidcError> {
+fn parse_rois(read: Node, contour_pixels: &mut u64) -> Result<(Vec<Roi>, usize), LidcError> {
     let mut rois = Vec::new();
     let mut single_point = 0;
-    for roi in children(read, "roi") {
-        let roi = parse_roi(roi)?;
+    for node in children(read, "roi") {
+        let roi = parse_roi(node)?;
         if roi.points.len() < 2 {
             single_point += 1;
         } else {
+            *contour_pixels = contour_pixels.saturating_add(bounding_pixels(&roi.points));
+            if *contour_pixels > MAX_CONTOUR_PIXELS {
+                return Err(LidcError::ContoursTooLarge { line: line_of(node), limit: MAX_CONTOUR_PIXELS });
+            }
             rois.push(roi);
         }
     }
     Ok((rois, single_point))
+}
+
+/// Pixels of the points' bounding rectangle (edges included).
+fn bounding_pixels(points: &[(i32, i32)]) -> u64 {
+    let span = |values: &mut dyn Iterator<Item = i32>| {
+        let (lo, hi) = values.fold((i32::MAX, i32::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
+        (i64::from(hi) - i64::from(lo) + 1) as u64
+    };
+    span(&mut points.iter().map(|p| p.0)) * span(&mut points.iter().map(|p| p.1))
 }
 
 fn parse_roi(roi: Node) -> Result<Roi, LidcError> {

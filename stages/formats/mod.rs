@@ -10,3 +10,4 @@ pub mod obj;
 pub mod png;
 pub mod svg;
 pub mod vdb;
+pub mod xml_nesting;

@@ -199,8 +199,15 @@ fn point_ij(x: i32, y: i32, z_mm: f64, geometry: &ScanGeometry) -> Result<[i64; 
 
 /// Largest pairwise distance, scaling each coordinate to mm before subtracting as
 /// `scipy.spatial.distance.pdist(points * pixel_spacing)` does (same rounding).
+///
+/// Only the convex hull's corners are compared: the farthest pair is always two of them (the
+/// distance to a point is strictly convex along any segment), and on integer pixels two
+/// different true distances differ far more than rounding could reorder. So the value is
+/// pdist's, bit for bit. The points cost a sort; the pairs are the corners', of which a convex
+/// polygon on a slice's pixel grid has a few hundred at most, however many points it has.
 fn contour_diameter_mm(points_ij: &[[i64; 2]], pixel_spacing_mm: f64) -> f64 {
-    let mm: Vec<[f64; 2]> = points_ij.iter().map(|p| p.map(|v| v as f64 * pixel_spacing_mm)).collect();
+    let hull = hull_corners(points_ij);
+    let mm: Vec<[f64; 2]> = hull.iter().map(|p| p.map(|v| v as f64 * pixel_spacing_mm)).collect();
     let mut largest = 0.0f64;
     for (n, a) in mm.iter().enumerate() {
         for b in &mm[n + 1..] {
@@ -211,20 +218,40 @@ fn contour_diameter_mm(points_ij: &[[i64; 2]], pixel_spacing_mm: f64) -> f64 {
     largest
 }
 
-/// Calls `f(i, j)` for every pixel matplotlib counts inside the contour. Only the contour's own
-/// bounding rectangle is tested: the crossings test never counts a point outside it.
-fn for_each_inside(contour: &Contour, mut f: impl FnMut(usize, usize)) {
-    let polygon = MplPolygon::from_contour(&contour.points_ij);
-    let Some((lo, hi)) = polygon.bounds() else {
-        return;
-    };
-    for i in lo[0]..=hi[0] {
-        for j in lo[1]..=hi[1] {
-            if polygon.contains(i, j) {
-                f(i as usize, j as usize);
+/// The strict corners of the points' convex hull (Andrew's monotone chain; collinear and
+/// repeated points dropped), or the distinct points themselves when there are fewer than three.
+fn hull_corners(points: &[[i64; 2]]) -> Vec<[i64; 2]> {
+    let mut sorted = points.to_vec();
+    sorted.sort_unstable();
+    sorted.dedup();
+    if sorted.len() < 3 {
+        return sorted;
+    }
+    // Cross product > 0: o → a → b turns left (counter-clockwise).
+    let turns_left =
+        |o: [i64; 2], a: [i64; 2], b: [i64; 2]| (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]) > 0;
+    let mut hull: Vec<[i64; 2]> = Vec::with_capacity(2 * sorted.len());
+    // The lower chain left to right, then the upper chain right to left; each chain starts at
+    // the corner the previous one ended on (`chain_start`) and never pops it.
+    let lower = sorted.iter();
+    let upper = sorted[..sorted.len() - 1].iter().rev();
+    for chain in [lower.collect::<Vec<_>>(), upper.collect::<Vec<_>>()] {
+        let chain_start = hull.len().saturating_sub(1);
+        for &p in chain {
+            while hull.len() >= chain_start + 2 && !turns_left(hull[hull.len() - 2], hull[hull.len() - 1], p) {
+                hull.pop();
             }
+            hull.push(p);
         }
     }
+    hull.pop(); // the first corner, reached again at the end of the upper chain
+    hull
+}
+
+/// Calls `f(i, j)` for every pixel matplotlib counts inside the contour. Only the contour's own
+/// bounding rectangle is visited: the crossings test never counts a point outside it.
+fn for_each_inside(contour: &Contour, mut f: impl FnMut(usize, usize)) {
+    MplPolygon::from_contour(&contour.points_ij).for_each_inside(|i, j| f(i as usize, j as usize));
 }
 
 fn switch_off_points(mask: &mut BoxMask, contour: &Contour) {
@@ -310,5 +337,36 @@ pub(crate) mod tests {
         // Full square: i 1..=9 × j 1..=10 = 90; the hole (i 4..=6 × j 4..=7 = 12) and its four
         // vertices, all inside the big square, leave 90 − 16 = 74.
         assert_eq!(mask.count(), 74);
+    }
+
+    /// The hull-corner diameter is pdist's all-pairs maximum, bit for bit, on random point
+    /// sets with repeats and collinear runs.
+    #[test]
+    fn hull_diameter_equals_the_all_pairs_maximum() {
+        let mut state = 0x2545_F491_4F6C_DD1D_u64;
+        let mut next = |n: u64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state % n) as i64
+        };
+        for trial in 0..500 {
+            let len = 1 + next(40) as usize;
+            let spread = 2 + next(60) as u64;
+            let mut points: Vec<[i64; 2]> = (0..len).map(|_| [next(spread), next(spread)]).collect();
+            if trial % 5 == 0 {
+                points.extend((0..10).map(|t| [t, 2 * t])); // a collinear run
+            }
+            let ps = 0.5 + next(1000) as f64 / 997.0;
+            let mm: Vec<[f64; 2]> = points.iter().map(|p| p.map(|v| v as f64 * ps)).collect();
+            let mut all_pairs = 0.0f64;
+            for (n, a) in mm.iter().enumerate() {
+                for b in &mm[n + 1..] {
+                    let (di, dj) = (a[0] - b[0], a[1] - b[1]);
+                    all_pairs = all_pairs.max((di * di + dj * dj).sqrt());
+                }
+            }
+            assert_eq!(contour_diameter_mm(&points, ps).to_bits(), all_pairs.to_bits(), "{points:?}");
+        }
     }
 }

@@ -5,6 +5,7 @@ use super::annotation::{check_not_empty, Annotation};
 use super::mask::BBox;
 use super::mask::GroundTruthError;
 use std::cmp::Ordering;
+use std::collections::HashMap;
 
 /// Parameters of [`cluster_annotations`], pylidc's defaults by [`Default`].
 #[derive(Debug, Clone, PartialEq)]
@@ -98,9 +99,9 @@ fn check_cluster_params(params: &ClusterParams) -> Result<(), GroundTruthError> 
     Ok(())
 }
 
-/// Symmetric matrix of annotation distances (index units). Pairs whose bounding boxes are
-/// farther apart than `cutoff` get `+inf` without the point-by-point search: `tol` only shrinks
-/// from `cutoff`, so they can never link.
+/// Symmetric matrix of annotation distances (index units), `+inf` beyond `cutoff`: `tol` only
+/// shrinks from `cutoff`, so such pairs can never link. Pairs whose bounding boxes are farther
+/// apart than `cutoff` skip the point-by-point search.
 fn distance_matrix(annotations: &[Annotation], cutoff: f64) -> Vec<Vec<f64>> {
     let n = annotations.len();
     let points: Vec<Vec<[i64; 3]>> = annotations.iter().map(|a| a.points_ijk().collect()).collect();
@@ -111,7 +112,7 @@ fn distance_matrix(annotations: &[Annotation], cutoff: f64) -> Vec<Vec<f64>> {
             let dist = if bbox_distance(&boxes[a], &boxes[b]) > cutoff {
                 f64::INFINITY
             } else {
-                min_point_distance(&points[a], &points[b])
+                min_point_distance(&points[a], &points[b], cutoff)
             };
             d[a][b] = dist;
             d[b][a] = dist;
@@ -130,18 +131,57 @@ fn bbox_distance(a: &BBox, b: &BBox) -> f64 {
     (0..3).map(|axis| gap(axis).powi(2)).sum::<f64>().sqrt()
 }
 
-/// `cdist(...).min()`: the squared distances are exact integers and `sqrt` is monotone and
-/// correctly rounded, so `sqrt(min d²)` equals scipy's minimum of square roots bit for bit.
-fn min_point_distance(a: &[[i64; 3]], b: &[[i64; 3]]) -> f64 {
+/// `cdist(...).min()` when it is at most `cutoff`, else `+inf`: clustering never links a pair
+/// farther apart than its starting tolerance, so the exact value beyond it does not matter.
+///
+/// The points of `b` are bucketed in cubes of side ⌈cutoff⌉ (at least 1), and each point of `a`
+/// meets only the points in its own and the 26 neighbouring cubes, where any pair within
+/// `cutoff` lies. The work grows with the points, not with their product (two annotations of
+/// 40,000 points each once cost 1.6 × 10⁹ comparisons). The squared distances are exact integers
+/// and `sqrt` is monotone and correctly rounded, so `sqrt(min d²)` equals scipy's minimum of
+/// square roots bit for bit.
+fn min_point_distance(a: &[[i64; 3]], b: &[[i64; 3]], cutoff: f64) -> f64 {
+    let side = (cutoff.ceil() as i64).max(1);
+    let cube_of = |p: &[i64; 3]| p.map(|v| v.div_euclid(side));
+    let mut cubes: HashMap<[i64; 3], Vec<[i64; 3]>> = HashMap::new();
+    for q in b {
+        cubes.entry(cube_of(q)).or_default().push(*q);
+    }
+    for points in cubes.values_mut() {
+        points.sort_unstable();
+        points.dedup();
+    }
+    let mut a = a.to_vec();
+    a.sort_unstable();
+    a.dedup();
     let mut best = i64::MAX;
-    for p in a {
-        for q in b {
-            let d2 = (0..3).map(|c| (p[c] - q[c]).pow(2)).sum::<i64>();
-            best = best.min(d2);
+    for p in &a {
+        let c = cube_of(p);
+        for d in NEIGHBOURS {
+            let Some(points) = cubes.get(&[c[0] + d[0], c[1] + d[1], c[2] + d[2]]) else { continue };
+            for q in points {
+                best = best.min((0..3).map(|c| (p[c] - q[c]).pow(2)).sum::<i64>());
+            }
         }
     }
-    (best as f64).sqrt()
+    let distance = (best as f64).sqrt();
+    if best == i64::MAX || distance > cutoff {
+        f64::INFINITY
+    } else {
+        distance
+    }
 }
+
+/// A cube's offsets to itself and its 26 neighbours.
+const NEIGHBOURS: [[i64; 3]; 27] = {
+    let mut out = [[0; 3]; 27];
+    let mut n = 0;
+    while n < 27 {
+        out[n] = [(n % 3) as i64 - 1, (n / 3 % 3) as i64 - 1, (n / 9) as i64 - 1];
+        n += 1;
+    }
+    out
+};
 
 /// Component label per annotation for links `d <= tol`; labels numbered in order of each
 /// component's smallest member, like scipy's `connected_components`.
@@ -213,5 +253,40 @@ mod tests {
         let tight = ClusterParams { tol: Some(1.5), ..ClusterParams::default() };
         let c = cluster_annotations(&anns, 2.5, &tight).unwrap();
         assert_eq!(c.clusters, vec![vec![2], vec![1, 3], vec![0]]);
+    }
+
+    /// The cube search finds scipy's minimum whenever it is within the cutoff, bit for bit,
+    /// and says `+inf` exactly when it is not.
+    #[test]
+    fn cube_search_matches_all_pairs_within_the_cutoff() {
+        let mut state = 0x0DDB_A11C_AFE5_EED5_u64;
+        let mut next = |n: u64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state % n) as i64
+        };
+        for _ in 0..600 {
+            let spread = 1 + next(30) as u64;
+            let (len_a, len_b) = (1 + next(25) as usize, 1 + next(25) as usize);
+            let mut points = |n: usize| -> Vec<[i64; 3]> {
+                (0..n).map(|_| [next(spread) - 5, next(spread), next(spread / 3 + 1)]).collect()
+            };
+            let (a, b) = (points(len_a), points(len_b));
+            let cutoff = next(40) as f64 / 7.0;
+            let mut best = i64::MAX;
+            for p in &a {
+                for q in &b {
+                    best = best.min((0..3).map(|c| (p[c] - q[c]).pow(2)).sum::<i64>());
+                }
+            }
+            let all_pairs = (best as f64).sqrt();
+            let found = min_point_distance(&a, &b, cutoff);
+            if all_pairs <= cutoff {
+                assert_eq!(found.to_bits(), all_pairs.to_bits(), "{a:?} {b:?} {cutoff}");
+            } else {
+                assert_eq!(found, f64::INFINITY, "{a:?} {b:?} {cutoff}");
+            }
+        }
     }
 }

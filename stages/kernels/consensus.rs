@@ -194,8 +194,14 @@ impl ScanTruth {
     }
 }
 
+/// Most voxels the nodules' bounding boxes may hold together. Each nodule keeps several masks
+/// over its box (about 14 bytes a voxel), so this bounds the ground truth's memory and time
+/// (about 300 MB at the limit); real LIDC nodules hold under a million.
+pub const MAX_NODULE_BOX_VOXELS: usize = 20_000_000;
+
 /// Annotations, clusters and per-nodule ground truth for a parsed message. The default
 /// clustering tolerance is `slice_thickness_mm` (DICOM SliceThickness, as pylidc uses).
+/// Nodules whose boxes together exceed [`MAX_NODULE_BOX_VOXELS`] are an error.
 pub fn scan_truth(
     message: &ReadMessage,
     geometry: &ScanGeometry,
@@ -211,6 +217,11 @@ pub fn scan_truth(
         }
     }
     let clustering = cluster_annotations(&annotations, slice_thickness_mm, &params.cluster)?;
+    let box_of = |members: &Vec<usize>| members.iter().map(|&m| annotations[m].bbox()).reduce(|a, b| a.union(&b));
+    let voxels = clustering.clusters.iter().filter_map(box_of).map(|b| b.len()).fold(0usize, usize::saturating_add);
+    if voxels > MAX_NODULE_BOX_VOXELS {
+        return Err(GroundTruthError::NodulesTooLarge { voxels, limit: MAX_NODULE_BOX_VOXELS });
+    }
     let nodules = clustering
         .clusters
         .iter()

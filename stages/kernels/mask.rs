@@ -32,6 +32,12 @@ pub enum GroundTruthError {
     AnnotationIndex { index: usize, count: usize },
     #[error("cannot paint a mask with bbox {bbox:?} into a volume of dims {dims:?} ({len} values)")]
     PaintDims { bbox: BBox, dims: [usize; 3], len: usize },
+    #[error(
+        "the nodules' bounding boxes hold {voxels} voxels together, more than the limit of {limit} \
+         (MAX_NODULE_BOX_VOXELS; real LIDC nodules hold under a million): the annotations span \
+         far more of the scan than any nodule does"
+    )]
+    NodulesTooLarge { voxels: usize, limit: usize },
 }
 
 /// An inclusive voxel box in `(i, j, k)` = (row, column, slice) indices.

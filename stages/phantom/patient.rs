@@ -82,8 +82,8 @@ pub fn generate_from_files(
     let name = |p: &Path| p.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
     let scan_text = std::fs::read_to_string(scan_path).with_context(|| format!("reading {}", scan_path.display()))?;
     let scan = ScanInfo::parse(&scan_text, &name(scan_path))?;
+    let annotations = lidc_xml::read(xml_path).map_err(|e| anyhow!("{}: {e}", xml_path.display()))?;
     let xml = std::fs::read_to_string(xml_path).with_context(|| format!("reading {}", xml_path.display()))?;
-    let annotations = lidc_xml::parse(&xml).map_err(|e| anyhow!("{}: {e}", xml_path.display()))?;
     generate(&scan, &annotations, (name(xml_path), xml), params)
 }
 

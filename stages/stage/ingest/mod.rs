@@ -1,11 +1,13 @@
 //! `ingest`: a patient's DICOM CT series to an int16 HU volume in patient space (SPEC §3 ingest).
 //!
-//! Input: the patient's files (any nesting; files that are not CT DICOM are skipped and listed),
+//! Input: the patient's files (any nesting; files that are not CT DICOM are skipped and counted),
 //! optionally with its LIDC XML. Outputs: `ct_hu.mhd` + `ct_hu.raw` (int16 HU, MetaImage with
 //! spacing, origin and direction), `ct_series.json` (geometry and provenance), and from the
 //! annotations `ground_truth.json` + `gt_mask.mhd`/`.raw` (see [`truth`]) and `target_site.json`,
 //! whether the target lies against the lung's wall (see [`site`]). No patient-identifying
-//! tag reaches any of them: the patient is named only by the ID the dataset gives it.
+//! tag reaches any of them, and no file name other than the annotation file's: the patient is
+//! named only by the ID the dataset gives it, and skipped files only by how many there are (a
+//! file name can carry a patient's name).
 
 pub mod site;
 pub mod truth;
@@ -18,7 +20,8 @@ use serde::{Deserialize, Serialize};
 
 /// 2: `ground_truth.json` gives each annotation's own volume.
 /// 3: `target_site.json`: whether the target lies against the lung's wall.
-pub const VERSION: u32 = 3;
+/// 4: `ct_series.json` counts skipped files instead of naming them; stricter DICOM checks.
+pub const VERSION: u32 = 4;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -60,8 +63,17 @@ pub struct SeriesInfo {
     pub hu_rounding_max_abs: f64,
     pub hu_min: i16,
     pub hu_max: i16,
-    /// Files of the patient folder that are not part of the CT series, with the reason.
-    pub skipped_files: Vec<(String, String)>,
+    /// How many files of the patient's folder are not part of the CT series. Never their names.
+    pub skipped_files: SkippedFiles,
+}
+
+/// Files of the patient's folder left out of the CT series, counted by kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SkippedFiles {
+    /// Files that are clearly not DICOM (no `DICM` marker, not named or sized like a slice).
+    pub not_dicom: usize,
+    /// DICOM files that are not CT images (a scout, a structured report, …).
+    pub dicom_not_ct: usize,
 }
 
 pub struct Ingest {
@@ -87,9 +99,6 @@ impl Stage for Ingest {
         let files = ctx.input_files(self.input[0])?;
         let paths: Vec<_> = files.iter().map(|f| f.path.clone()).collect();
         let series = dicom::read_ct_series(&paths, self.params.slice_gap_tolerance)?;
-        let relative = |p: &std::path::Path| {
-            files.iter().find(|f| f.path == p).map(|f| f.name.clone()).unwrap_or_else(|| p.display().to_string())
-        };
         let info = SeriesInfo {
             patient: ctx.patient().to_string(),
             geometry: series.hu.geometry.clone(),
@@ -100,7 +109,10 @@ impl Stage for Ingest {
             hu_rounding_max_abs: series.hu_rounding_max_abs,
             hu_min: series.hu.data.iter().copied().min().unwrap_or(0),
             hu_max: series.hu.data.iter().copied().max().unwrap_or(0),
-            skipped_files: series.skipped.iter().map(|(p, why)| (relative(p), why.clone())).collect(),
+            skipped_files: SkippedFiles {
+                not_dicom: series.skipped_not_dicom(),
+                dicom_not_ct: series.skipped.len() - series.skipped_not_dicom(),
+            },
         };
         let annotations = truth::find_annotations(&files)?;
         let (ground_truth, gt_mask) = truth::ground_truth(ctx.patient(), &series, annotations, self.params.clevel)?;

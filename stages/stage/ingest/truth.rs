@@ -56,8 +56,7 @@ pub struct Nodule {
 pub fn find_annotations(files: &[InputFile]) -> anyhow::Result<Option<(String, lidc_xml::ReadMessage)>> {
     let mut found = Vec::new();
     for f in files.iter().filter(|f| f.name.to_ascii_lowercase().ends_with(".xml")) {
-        let text = std::fs::read_to_string(&f.path).with_context(|| format!("reading {}", f.name))?;
-        match lidc_xml::parse(&text) {
+        match lidc_xml::read(&f.path) {
             Ok(message) => found.push((f.name.clone(), message)),
             Err(LidcError::WrongRoot { .. }) => continue,
             Err(e) => bail!("{}: {e}", f.name),
