@@ -71,7 +71,8 @@ pub fn nodule_png(density: &Volume<f32>, outlines: &Outlines, cuts: &[Cut], titl
             (cut.label.clone(), panels)
         })
         .collect();
-    let outcome = match verdict.split([':', ' ']).next().unwrap_or("") {
+    // The verdict's first word: "hit", "MISS" or another ("unverified" without a ground truth).
+    let outcome = match verdict.split(|c: char| !c.is_ascii_alphabetic()).next().unwrap_or("") {
         "hit" => ("HIT", GREEN),
         "MISS" => ("MISS", RED),
         _ => ("UNVERIFIED", GREY),
@@ -275,7 +276,7 @@ mod tests {
         let outlines = Outlines { selected: &ball, truth: Some(&ball), rival: None };
         let cuts = [Cut { label: "through the guided selection".into(), center: [20, 15, 10] }];
         let sheet = |verdict: &str| decode(&nodule_png(&density, &outlines, &cuts, "P1: guided selection", verdict));
-        let (width, height, hit) = sheet("hit");
+        let (width, height, hit) = sheet("hit; the guided search found no blob of the annotated size");
         // Three 80 × 60 … mm panels at 1 mm pixels and a 128-pixel inset, under a title, a legend,
         // the views' names and the row's label.
         assert!(width >= 80 + 80 + 60 + 128 && height >= 128 + 4 * GLYPH_PX, "{width} × {height}");
