@@ -32,6 +32,10 @@ pub struct RunArgs {
     pub verify: bool,
     /// Publish independent copies instead of read-only hard links into the cache.
     pub copy: bool,
+    /// Only the per-patient stages of this shard's patients ([`crate::shard`]).
+    pub shard: Option<crate::shard::Shard>,
+    /// Only the cohort stages, once every patient's results are cached.
+    pub gather: bool,
 }
 
 /// What `aret-pipe status` shows.
@@ -71,6 +75,32 @@ fn prepare(
     Ok(Prepared { config, graph, units, store })
 }
 
+/// `run --gather`: an error listing the patients whose per-patient results are not all cached,
+/// with the command that computes them, so the cohort stages never compute them themselves.
+fn refuse_missing_patients(config_path: &Path, p: &Prepared, verify: bool) -> anyhow::Result<()> {
+    let per_patient: Vec<&str> = p.graph.per_patient().iter().map(|s| s.name()).collect();
+    let rows = preview::preview(&p.graph, &p.store, &p.units, verify, &[]);
+    let mut missing: Vec<&str> = rows
+        .iter()
+        .filter(|r| per_patient.contains(&r.stage.as_str()) && !matches!(r.state, State::Cached { .. }))
+        .map(|r| r.unit.split('/').next().unwrap_or(&r.unit))
+        .collect();
+    missing.dedup();
+    if !missing.is_empty() {
+        bail!(
+            "--gather: {} of {} patients are not computed yet: {}. Compute them first (their shards, or \
+             `aret-pipe run {} --patients {} --until {}`), then gather again",
+            missing.len(),
+            p.units.len(),
+            missing.join(", "),
+            config_path.display(),
+            missing.join(","),
+            per_patient.last().copied().unwrap_or("select"),
+        );
+    }
+    Ok(())
+}
+
 /// `aret-pipe run`. Returns the process exit code: 0 when every stage of every patient succeeded.
 pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     let stop = StopRequest::default();
@@ -81,11 +111,18 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
              outcome in out_dir/run_report.json"
         );
     }
-    let p = prepare(config_path, &args.sets, args.patients.as_deref(), args.until.as_deref())?;
+    let mut p = prepare(config_path, &args.sets, args.patients.as_deref(), args.until.as_deref())?;
     crate::resources::check_memory(&p.config)?;
+    if let Some(shard) = args.shard {
+        p.units.retain(|u| shard.holds(&u.id));
+        p.graph = p.graph.without_cohort();
+    }
     let force = forced_stages(&p.graph, &args.force)?;
     let mut waited_for = Vec::new();
     let (_shared, cache_wait) = wait_for_cache(&p.store, &mut waited_for)?;
+    if args.gather {
+        refuse_missing_patients(config_path, &p, args.verify)?;
+    }
     if args.dry_run {
         let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &force);
         if args.json {

@@ -21,6 +21,7 @@ pub mod kernels;
 pub mod phantom;
 pub mod pipeline;
 pub mod resources;
+pub mod shard;
 pub mod stage;
 pub mod train;
 pub mod volume;

@@ -46,6 +46,21 @@ enum Command {
         /// of every byte, and each run re-hashes the copies to see they still hold the results.
         #[arg(long)]
         copy: bool,
+        /// Run the per-patient stages of shard K of N only (0-based, e.g. `0/4` … `3/4`): a
+        /// patient's shard depends only on its ID and N. The cohort stages wait for --gather.
+        #[arg(long, conflicts_with_all = ["gather", "shard_from_env"])]
+        shard: Option<String>,
+        /// The shard of a Slurm array task (SLURM_ARRAY_TASK_ID and SLURM_ARRAY_TASK_COUNT) or of
+        /// a Kubernetes Indexed Job (JOB_COMPLETION_INDEX, with --shard-count).
+        #[arg(long, conflicts_with = "gather")]
+        shard_from_env: bool,
+        /// The number of shards, for --shard-from-env where the scheduler does not say it.
+        #[arg(long, requires = "shard_from_env")]
+        shard_count: Option<u64>,
+        /// Run the cohort stages once every patient's results are cached (by the shards); fails
+        /// naming the patients that are not, and the command that computes them.
+        #[arg(long)]
+        gather: bool,
     },
     /// Show what is cached and what is stale, and why.
     Status {
@@ -195,7 +210,21 @@ fn main() -> ExitCode {
             json: JsonPlan { json },
             verify,
             copy,
-        } => commands::run(&config, &RunArgs { sets, patients, until, force, dry_run, json, verify, copy }),
+            shard,
+            shard_from_env,
+            shard_count,
+            gather,
+        } => {
+            let shard = match (shard, shard_from_env) {
+                (Some(text), _) => aret_pipe::shard::Shard::parse(&text).map(Some),
+                (None, true) => aret_pipe::shard::Shard::from_env(shard_count, |v| std::env::var(v).ok()).map(Some),
+                (None, false) => Ok(None),
+            };
+            shard.and_then(|shard| {
+                let args = RunArgs { sets, patients, until, force, dry_run, json, verify, copy, shard, gather };
+                commands::run(&config, &args)
+            })
+        }
         Command::Status { config, sets: Sets { sets }, patients, json: JsonPlan { json }, verify } => {
             commands::status(&config, &StatusArgs { sets, patients, verify, json }).map(|table| {
                 print!("{table}");

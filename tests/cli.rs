@@ -740,3 +740,50 @@ fn the_perfect_field_runs_through_the_engine_and_ignores_the_fits_keys() {
     let stderr = text(&out.stderr);
     assert!(!out.status.success() && stderr.contains("[train.vm]") && stderr.contains("model = \"vm\""), "{stderr}");
 }
+
+#[test]
+fn shards_compute_their_patients_and_the_gather_the_cohort_as_one_run_would() {
+    let ids = ["P1", "P2", "P3", "P4"];
+    let p = Project::new(&ids, 4);
+    // Where each patient falls among two shards: the same rule as the tool's.
+    let shard_of = |id: &str| aret_pipe::shard::shard_of(id, 2);
+    let gather = p.aret(&["run", "pipeline.toml", "--gather"]);
+    let refused = text(&gather.stderr);
+    assert!(!gather.status.success() && refused.contains("4 of 4 patients are not computed yet"), "{refused}");
+    assert!(refused.contains("--patients P1,P2,P3,P4"), "{refused}");
+
+    let first = p.run(&["--shard", "0/2"]);
+    let in_first: Vec<&str> = ids.iter().copied().filter(|id| shard_of(id) == 0).collect();
+    assert_eq!(count(&first, "select", "computed"), in_first.len());
+    assert_eq!(count(&first, "metrics", "computed") + count(&first, "metrics", "cached"), 0, "no cohort stage");
+    let left: Vec<&str> = ids.iter().copied().filter(|id| shard_of(id) == 1).collect();
+    if !left.is_empty() {
+        let gather = p.aret(&["run", "pipeline.toml", "--gather"]);
+        let refused = text(&gather.stderr);
+        assert!(!gather.status.success() && refused.contains(&left.join(", ")), "{refused}");
+    }
+    // The second shard as a Slurm array task would run it.
+    let second = p
+        .command(&["run", "pipeline.toml", "--shard-from-env"])
+        .env("SLURM_ARRAY_TASK_ID", "1")
+        .env("SLURM_ARRAY_TASK_COUNT", "2")
+        .output()
+        .unwrap();
+    assert!(second.status.success(), "{}", text(&second.stderr));
+    let gathered = p.run(&["--gather"]);
+    assert_eq!(count(&gathered, "select", "cached"), 4);
+    assert_eq!(count(&gathered, "metrics", "computed"), 1);
+    // One run over the whole cohort on a fresh cache writes the same per-patient results and
+    // the same cohort summary (these patients have no annotations: all four are unscored).
+    p.write_config("whole.toml", "cache-whole", "out-whole", "");
+    assert!(p.aret(&["run", "whole.toml"]).status.success());
+    let read = |path: String| std::fs::read(p.path(&path)).unwrap();
+    for id in ids {
+        for file in ["result.json", "density.raw", "nodule_mask.raw"] {
+            assert_eq!(read(format!("out/{id}/{file}")), read(format!("out-whole/{id}/{file}")), "{id} {file}");
+        }
+    }
+    let summary: Value = serde_json::from_slice(&read("out/summary.json".into())).unwrap();
+    assert_eq!(summary["unscored"].as_array().map(Vec::len), Some(4), "{summary}");
+    assert_eq!(read("out/summary.json".into()), read("out-whole/summary.json".into()));
+}

@@ -178,6 +178,11 @@ impl StageGraph {
         self.stages.iter().find(|s| s.name() == name).map(|s| s.as_ref())
     }
 
+    /// The per-patient stages alone: what one shard of a cohort runs.
+    pub fn without_cohort(self) -> StageGraph {
+        StageGraph { stages: self.stages.into_iter().filter(|s| !s.is_cohort()).collect() }
+    }
+
     /// The graph cut after `last`: `last` and every stage it depends on, in order.
     pub fn until(self, last: &str) -> anyhow::Result<StageGraph> {
         if self.get(last).is_none() {
