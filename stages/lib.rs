@@ -23,6 +23,7 @@ pub mod pipeline;
 pub mod resources;
 pub mod shard;
 pub mod stage;
+pub mod submit;
 pub mod train;
 pub mod volume;
 

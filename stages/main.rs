@@ -149,12 +149,68 @@ enum Command {
         #[arg(long, value_enum)]
         class: Vec<ClassArg>,
     },
+    /// Write the job files that run a cohort as shards on a cluster's scheduler, then a gather.
+    Submit {
+        #[command(subcommand)]
+        target: SubmitTarget,
+    },
     /// Developer entry point: one numeric kernel on MetaImage or JSON files (docs/kernels.md).
     #[command(hide = true)]
     Kernel {
         #[command(subcommand)]
         kernel: aret_pipe::kernel_command::KernelCommand,
     },
+}
+
+#[derive(Subcommand)]
+enum SubmitTarget {
+    /// A Slurm job array of shards (aret-shards.sbatch) and a gather job after it
+    /// (aret-gather.sbatch, `afterany`).
+    Slurm {
+        /// The pipeline configuration.
+        config: PathBuf,
+        #[command(flatten)]
+        shards: SubmitShards,
+        /// `#SBATCH --partition`.
+        #[arg(long)]
+        partition: Option<String>,
+        /// `#SBATCH --time`, e.g. 02:00:00.
+        #[arg(long)]
+        time: Option<String>,
+        /// `#SBATCH --mem`, e.g. 8G.
+        #[arg(long)]
+        mem: Option<String>,
+        /// Hand the scripts to sbatch and print the job ids.
+        #[arg(long)]
+        submit: bool,
+    },
+    /// A Kubernetes Indexed Job of shards and a gather Job (aret-pipe-jobs.yaml).
+    K8s {
+        /// The pipeline configuration, relative to the root of the claim.
+        config: PathBuf,
+        #[command(flatten)]
+        shards: SubmitShards,
+        /// The container image holding aret-pipe.
+        #[arg(long)]
+        image: String,
+        /// The PersistentVolumeClaim holding the configuration, dataset and cache (mounted at /work).
+        #[arg(long)]
+        cache_pvc: String,
+    },
+}
+
+/// How many shards, where the job files go, and whether only to show the shards.
+#[derive(Args)]
+struct SubmitShards {
+    /// How many shards (array tasks).
+    #[arg(long)]
+    array: u64,
+    /// The folder the job files are written to.
+    #[arg(long, default_value = "submit")]
+    out: PathBuf,
+    /// Print each shard's patients; write nothing.
+    #[arg(long)]
+    dry_run: bool,
 }
 
 /// `--set` of `run`, `status` and `gc`.
@@ -260,6 +316,21 @@ fn main() -> ExitCode {
                 },
             )
         }
+        Command::Submit { target } => match target {
+            SubmitTarget::Slurm { config, shards, partition, time, mem, submit } => {
+                let request = aret_pipe::submit::SlurmRequest { shards: shards.array, partition, time, mem };
+                commands::submit_slurm(&config, &request, &shards.out, submit, shards.dry_run)
+            }
+            SubmitTarget::K8s { config, shards, image, cache_pvc } => {
+                let request =
+                    aret_pipe::submit::KubernetesRequest { shards: shards.array, image: &image, claim: &cache_pvc };
+                commands::submit_kubernetes(&config, &request, &shards.out, shards.dry_run)
+            }
+        }
+        .map(|report| {
+            print!("{report}");
+            0
+        }),
         Command::Convert { inputs, output, grid, class } => {
             let classes: Vec<_> = class
                 .into_iter()
