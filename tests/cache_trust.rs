@@ -8,93 +8,17 @@ use aret_pipe::engine::preview::{self, State};
 use aret_pipe::engine::progress::{self, Progress};
 use aret_pipe::engine::run::{self, Publish, RunOptions, RunSummary, StopRequest, Unit};
 use aret_pipe::engine::store::{Manifest, Store};
-use aret_pipe::engine::{Context, Hash, Output, Stage, StageGraph, SOURCE};
+use aret_pipe::engine::{Context, Hash, Output, Stage, StageGraph};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Arc;
 use std::time::Duration;
 
-type Counter = Arc<AtomicUsize>;
-
-/// The patient's files joined, and how many there are.
-struct Concat(Counter);
-impl Stage for Concat {
-    fn name(&self) -> &'static str {
-        "concat"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn inputs(&self) -> &'static [&'static str] {
-        &[SOURCE]
-    }
-    fn params(&self) -> serde_json::Value {
-        serde_json::json!({})
-    }
-    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        self.0.fetch_add(1, Ordering::SeqCst);
-        let parts: Vec<String> =
-            ctx.source_files().iter().map(|f| std::fs::read_to_string(&f.path)).collect::<Result<_, _>>()?;
-        Ok(vec![Output::new("all.txt", parts.concat()), Output::new("files.txt", parts.len().to_string())])
-    }
-}
-
-/// The length of `concat/all.txt`.
-struct Length(Counter);
-impl Stage for Length {
-    fn name(&self) -> &'static str {
-        "length"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn inputs(&self) -> &'static [&'static str] {
-        &["concat"]
-    }
-    fn params(&self) -> serde_json::Value {
-        serde_json::json!({})
-    }
-    fn reads(&self, _stage: &str, output: &str) -> bool {
-        output == "all.txt"
-    }
-    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        self.0.fetch_add(1, Ordering::SeqCst);
-        Ok(vec![Output::new("len.txt", ctx.read("concat", "all.txt")?.len().to_string())])
-    }
-}
-
-/// Cohort: one line per patient with its length.
-struct Report(Counter);
-impl Stage for Report {
-    fn name(&self) -> &'static str {
-        "report"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn inputs(&self) -> &'static [&'static str] {
-        &["length"]
-    }
-    fn params(&self) -> serde_json::Value {
-        serde_json::json!({})
-    }
-    fn is_cohort(&self) -> bool {
-        true
-    }
-    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        self.0.fetch_add(1, Ordering::SeqCst);
-        let mut text = String::new();
-        for p in ctx.cohort_patients() {
-            text.push_str(&format!("{p} {}\n", String::from_utf8(ctx.read_patient(p, "length", "len.txt")?)?));
-        }
-        Ok(vec![Output::new("report.txt", text)])
-    }
-}
+mod support;
+use support::toy_stages::{ended_pid, Concat, Counters, Length, Report};
 
 /// Two patients (P1: "ab" + "cde", P2: "xyz") and a cache, counting each stage's runs.
 struct World {
     dir: tempfile::TempDir,
-    runs: [Counter; 3],
+    counters: Counters,
 }
 
 /// Every file the first run publishes, with its bytes.
@@ -116,7 +40,7 @@ impl World {
             std::fs::create_dir_all(path.parent().unwrap()).unwrap();
             std::fs::write(path, text).unwrap();
         }
-        World { dir, runs: Default::default() }
+        World { dir, counters: Counters::default() }
     }
 
     /// A world after one full run, its counters reset.
@@ -128,8 +52,13 @@ impl World {
     }
 
     fn graph(&self) -> StageGraph {
-        let [c, l, r] = self.runs.clone();
-        StageGraph::new(vec![Box::new(Concat(c)), Box::new(Length(l)), Box::new(Report(r))]).unwrap()
+        let c = &self.counters;
+        StageGraph::new(vec![
+            Box::new(Concat { sep: String::new(), runs: c.concat.clone(), stop: StopRequest::default() }),
+            Box::new(Length { parity_only: false, runs: c.length.clone() }),
+            Box::new(Report { runs: c.report.clone() }),
+        ])
+        .unwrap()
     }
 
     fn units(&self) -> Vec<Unit> {
@@ -157,7 +86,7 @@ impl World {
 
     /// How many times concat, length and report ran since the last call.
     fn take(&self) -> [usize; 3] {
-        self.runs.each_ref().map(|c| c.swap(0, Ordering::SeqCst))
+        self.counters.take()
     }
 
     fn path(&self, rel: &str) -> PathBuf {
@@ -366,14 +295,6 @@ fn published_files_are_read_only_links_and_an_edit_through_one_is_found() {
     assert_eq!((mode(&out), inode(&out)), (0o444, inode(&blob)));
 }
 
-/// The id of a process that has ended.
-fn ended_pid() -> u32 {
-    let mut child = std::process::Command::new("true").spawn().unwrap();
-    let pid = child.id();
-    child.wait().unwrap();
-    pid
-}
-
 #[test]
 fn temporary_files_of_ended_processes_go_and_a_live_process_keeps_its_own() {
     let w = World::cached();
@@ -490,7 +411,11 @@ impl Stage for Tamper {
 #[test]
 fn bytes_that_change_after_their_check_are_refused_when_a_stage_reads_them() {
     let w = World::cached();
-    let graph = StageGraph::new(vec![Box::new(Concat(w.runs[0].clone())), Box::new(Tamper)]).unwrap();
+    let graph = StageGraph::new(vec![
+        Box::new(Concat { sep: String::new(), runs: w.counters.concat.clone(), stop: StopRequest::default() }),
+        Box::new(Tamper),
+    ])
+    .unwrap();
     let options = RunOptions {
         verify: false,
         force: vec![],

@@ -9,6 +9,7 @@ use std::path::Path;
 use std::process::Output;
 use std::time::Duration;
 use support::dicom_writer::{default_name, series, write_series};
+use support::toy_stages::ended_pid;
 
 const BIN: &str = env!("CARGO_BIN_EXE_aret-pipe");
 
@@ -58,14 +59,6 @@ fn run_publishes_read_only_links_and_with_copy_writable_copies() {
     assert_eq!(mode_and_links(&published), (0o644, 1), "an independent, writable copy");
     run_until_hu(dir.path(), &[]);
     assert_eq!(mode_and_links(&published).0, 0o444, "links again");
-}
-
-/// The id of a process that has ended.
-fn ended_pid() -> u32 {
-    let mut child = std::process::Command::new("true").spawn().unwrap();
-    let pid = child.id();
-    child.wait().unwrap();
-    pid
 }
 
 #[test]

@@ -5,126 +5,12 @@ use aret_pipe::engine::preview::{self, State};
 use aret_pipe::engine::progress::Progress;
 use aret_pipe::engine::run::{self, Outcome, Publish, RunOptions, RunSummary, StopRequest, Unit};
 use aret_pipe::engine::store::Store;
-use aret_pipe::engine::{Context, Hash, Output, Stage, StageGraph, SOURCE};
+use aret_pipe::engine::{Hash, Stage, StageGraph};
 use std::collections::HashSet;
 use std::path::Path;
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Arc;
 
-type Counter = Arc<AtomicUsize>;
-
-/// Joins the patient's files (sorted by name) with `sep`. Fails on a file named `poison`; a
-/// file named `stop` asks the run to stop while this stage works (as Ctrl-C would).
-struct Concat {
-    sep: String,
-    runs: Counter,
-    stop: StopRequest,
-}
-impl Stage for Concat {
-    fn name(&self) -> &'static str {
-        "concat"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn inputs(&self) -> &'static [&'static str] {
-        &[SOURCE]
-    }
-    fn params(&self) -> serde_json::Value {
-        serde_json::json!({ "sep": self.sep })
-    }
-    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        self.runs.fetch_add(1, Ordering::SeqCst);
-        let mut parts = Vec::new();
-        for f in ctx.source_files() {
-            if f.rel == "poison" {
-                anyhow::bail!("file `poison` is not allowed");
-            }
-            if f.rel == "panic" {
-                panic!("deliberate panic");
-            }
-            if f.rel == "stop" {
-                self.stop.request();
-            }
-            parts.push(std::fs::read_to_string(&f.path)?);
-        }
-        let count = parts.len().to_string();
-        Ok(vec![Output::new("all.txt", parts.join(&self.sep)), Output::new("files.txt", count)])
-    }
-}
-
-/// Length of `concat/all.txt`, or only its parity. Reads nothing else of `concat`.
-struct Length {
-    parity_only: bool,
-    runs: Counter,
-}
-impl Stage for Length {
-    fn name(&self) -> &'static str {
-        "length"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn inputs(&self) -> &'static [&'static str] {
-        &["concat"]
-    }
-    fn params(&self) -> serde_json::Value {
-        serde_json::json!({ "parity_only": self.parity_only })
-    }
-    fn reads(&self, _stage: &str, output: &str) -> bool {
-        output == "all.txt"
-    }
-    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        self.runs.fetch_add(1, Ordering::SeqCst);
-        let n = ctx.read("concat", "all.txt")?.len();
-        let v = if self.parity_only { n % 2 } else { n };
-        Ok(vec![Output::new("len.txt", v.to_string())])
-    }
-}
-
-/// Cohort: one line per patient that got through.
-struct Report {
-    runs: Counter,
-}
-impl Stage for Report {
-    fn name(&self) -> &'static str {
-        "report"
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn inputs(&self) -> &'static [&'static str] {
-        &["length"]
-    }
-    fn params(&self) -> serde_json::Value {
-        serde_json::json!({})
-    }
-    fn is_cohort(&self) -> bool {
-        true
-    }
-    fn run(&self, ctx: &Context) -> anyhow::Result<Vec<Output>> {
-        self.runs.fetch_add(1, Ordering::SeqCst);
-        let mut text = String::new();
-        for p in ctx.cohort_patients() {
-            let len = String::from_utf8(ctx.read_patient(p, "length", "len.txt")?)?;
-            text.push_str(&format!("{p} {len}\n"));
-        }
-        Ok(vec![Output::new("report.txt", text)])
-    }
-}
-
-#[derive(Default)]
-struct Counters {
-    concat: Counter,
-    length: Counter,
-    report: Counter,
-}
-
-impl Counters {
-    fn take(&self) -> [usize; 3] {
-        [&self.concat, &self.length, &self.report].map(|c| c.swap(0, Ordering::SeqCst))
-    }
-}
+mod support;
+use support::toy_stages::{Concat, Counters, Length, Report};
 
 struct World {
     dir: tempfile::TempDir,
