@@ -273,6 +273,8 @@ pub(crate) fn check_not_empty<'a>(
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
 
     pub(crate) fn geometry() -> ScanGeometry {
         ScanGeometry::new(vec![0.0, 2.5, 5.0, 7.5, 10.0], 0.5, 32, 32).unwrap()
@@ -343,13 +345,8 @@ pub(crate) mod tests {
     /// sets with repeats and collinear runs.
     #[test]
     fn hull_diameter_equals_the_all_pairs_maximum() {
-        let mut state = 0x2545_F491_4F6C_DD1D_u64;
-        let mut next = |n: u64| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state % n) as i64
-        };
+        let mut rng = ChaCha8Rng::seed_from_u64(0x2545_F491_4F6C_DD1D);
+        let mut next = |n: u64| rng.gen_range(0..n) as i64;
         for trial in 0..500 {
             let len = 1 + next(40) as usize;
             let spread = 2 + next(60) as u64;

@@ -230,6 +230,8 @@ fn group_by_label(labels: &[usize]) -> Vec<Vec<usize>> {
 mod tests {
     use super::*;
     use crate::kernels::annotation::tests::square_annotation;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
 
     #[test]
     fn clustering_links_by_index_distance_and_shrinks_tol() {
@@ -259,13 +261,8 @@ mod tests {
     /// and says `+inf` exactly when it is not.
     #[test]
     fn cube_search_matches_all_pairs_within_the_cutoff() {
-        let mut state = 0x0DDB_A11C_AFE5_EED5_u64;
-        let mut next = |n: u64| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state % n) as i64
-        };
+        let mut rng = ChaCha8Rng::seed_from_u64(0x0DDB_A11C_AFE5_EED5);
+        let mut next = |n: u64| rng.gen_range(0..n) as i64;
         for _ in 0..600 {
             let spread = 1 + next(30) as u64;
             let (len_a, len_b) = (1 + next(25) as usize, 1 + next(25) as usize);

@@ -136,6 +136,8 @@ fn edge_crosses_ray(x0: i64, y0: i64, x1: i64, y1: i64, tx: i64, ty: i64) -> boo
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
 
     fn square() -> MplPolygon {
         MplPolygon::from_contour(&[[0, 0], [4, 0], [4, 4], [0, 4]])
@@ -192,13 +194,8 @@ mod tests {
     /// (self-intersecting, repeated and collinear vertices included) and on the test shapes.
     #[test]
     fn row_fill_matches_the_point_test() {
-        let mut state = 0x9E37_79B9_7F4A_7C15_u64;
-        let mut next = |n: u64| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state % n) as i64
-        };
+        let mut rng = ChaCha8Rng::seed_from_u64(0x9E37_79B9_7F4A_7C15);
+        let mut next = |n: u64| rng.gen_range(0..n) as i64;
         let mut shapes = vec![
             vec![[0, 0], [4, 0], [4, 4], [0, 4]],
             vec![[0, 0], [0, 4]],
