@@ -1,6 +1,7 @@
 //! A bounded, seeded mutation fuzzer for the configuration loader: the shipped `pipeline.toml`
-//! and the product presets, mutated byte by byte and line by line, must each load or be refused
-//! with an error, never panic. `FUZZ_CONFIG_ITERATIONS` sets the count (default 100,000).
+//! and the product presets (each through its `extends`), mutated byte by byte and line by line,
+//! must each load or be refused with an error, never panic. `FUZZ_CONFIG_ITERATIONS` sets the
+//! count (default 100,000).
 
 use aret_pipe::config::Config;
 use rand::{Rng, SeedableRng};
@@ -35,32 +36,21 @@ const EDGE_VALUES: &[&str] = &[
     "[1e308, -1e308, nan]",
 ];
 
-fn seeds() -> Vec<String> {
+/// The texts mutated: the shipped `pipeline.toml`, parsed from text, and each product preset,
+/// loaded from a file that extends an unmutated copy of it, so that `extends` and the layers
+/// are mutated too.
+fn seeds() -> (String, Vec<String>) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let mut texts = vec![std::fs::read_to_string(root.join("pipeline.toml")).unwrap()];
+    let shipped = std::fs::read_to_string(root.join("pipeline.toml")).unwrap();
+    let mut presets = Vec::new();
     for entry in std::fs::read_dir(root.join("presets")).unwrap() {
         let path = entry.unwrap().path();
         if path.extension().is_some_and(|e| e == "toml") {
-            // A preset extends pipeline.toml: its tables merged over the shipped ones, as one text.
-            let mut merged: toml::Table = texts[0].parse().unwrap();
-            let mut preset: toml::Table = std::fs::read_to_string(&path).unwrap().parse().unwrap();
-            preset.remove("extends");
-            merge(&mut merged, preset);
-            texts.push(toml::to_string(&merged).unwrap());
+            presets.push(std::fs::read_to_string(&path).unwrap());
         }
     }
-    texts
-}
-
-fn merge(base: &mut toml::Table, top: toml::Table) {
-    for (key, value) in top {
-        match (base.get_mut(&key), value) {
-            (Some(toml::Value::Table(b)), toml::Value::Table(t)) => merge(b, t),
-            (_, value) => {
-                base.insert(key, value);
-            }
-        }
-    }
+    presets.sort();
+    (shipped, presets)
 }
 
 /// Bytes a mutation inserts: TOML's punctuation, digits and a newline.
@@ -110,25 +100,40 @@ fn mutate(text: &str, rng: &mut ChaCha8Rng) -> Vec<u8> {
 fn mutated_configurations_load_or_are_refused_and_never_panic() {
     let iterations: usize =
         std::env::var("FUZZ_CONFIG_ITERATIONS").ok().and_then(|v| v.parse().ok()).unwrap_or(100_000);
-    let seeds = seeds();
-    assert!(seeds.len() > 5, "pipeline.toml and the presets");
+    let (shipped, presets) = seeds();
+    assert!(presets.len() >= 5, "the product presets");
+    // The presets' folder beside an unmutated pipeline.toml, as in the repository.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("pipeline.toml"), &shipped).unwrap();
+    std::fs::create_dir(dir.path().join("presets")).unwrap();
+    let fuzzed = dir.path().join("presets").join("fuzzed.toml");
     let mut rng = ChaCha8Rng::seed_from_u64(20261129);
     let (mut loaded, mut refused) = (0usize, 0usize);
     let started = Instant::now();
     for i in 0..iterations {
-        let bytes = mutate(&seeds[i % seeds.len()], &mut rng);
-        let Ok(text) = String::from_utf8(bytes) else {
-            refused += 1; // the file reader refuses non-UTF-8 before the parser sees it
-            continue;
-        };
-        let outcome = catch_unwind(AssertUnwindSafe(|| Config::parse(&text).map(|_| ()).map_err(|e| e.to_string())));
+        let seed = if i % (presets.len() + 1) == 0 { &shipped } else { &presets[i % (presets.len() + 1) - 1] };
+        let bytes = mutate(seed, &mut rng);
+        let is_shipped = std::ptr::eq(seed, &shipped);
+        if !is_shipped {
+            std::fs::write(&fuzzed, &bytes).unwrap();
+        }
+        let outcome = catch_unwind(AssertUnwindSafe(|| {
+            let config = if is_shipped {
+                // The file reader refuses non-UTF-8 before the parser sees it.
+                let text = String::from_utf8(bytes.clone()).map_err(|e| anyhow::anyhow!("not UTF-8: {e}"))?;
+                Config::parse(&text)
+            } else {
+                Config::load(&fuzzed)
+            };
+            config.map(|_| ())
+        }));
         match outcome {
             Ok(Ok(())) => loaded += 1,
-            Ok(Err(message)) => {
-                assert!(!message.trim().is_empty(), "an empty error for:\n{text}");
+            Ok(Err(e)) => {
+                assert!(!e.to_string().trim().is_empty(), "an empty error for:\n{}", String::from_utf8_lossy(&bytes));
                 refused += 1;
             }
-            Err(_) => panic!("the loader panicked on iteration {i}:\n{text}"),
+            Err(_) => panic!("the loader panicked on iteration {i}:\n{}", String::from_utf8_lossy(&bytes)),
         }
     }
     assert_eq!(loaded + refused, iterations);
