@@ -85,6 +85,7 @@ fn refuse_missing_patients(config_path: &Path, p: &Prepared, verify: bool) -> an
         .filter(|r| per_patient.contains(&r.stage.as_str()) && !matches!(r.state, State::Cached { .. }))
         .map(|r| r.unit.split('/').next().unwrap_or(&r.unit))
         .collect();
+    missing.sort_unstable();
     missing.dedup();
     if !missing.is_empty() {
         bail!(
@@ -559,99 +560,6 @@ pub fn phantom_source(config_path: &Path) -> anyhow::Result<(PathBuf, crate::pha
         );
     }
     Ok((config.dataset_root(), config.dataset.phantom.clone().unwrap_or_default()))
-}
-
-/// How each shard of `shards` splits the configuration's patients, a line each.
-fn shard_lines(config: &Config, shards: u64) -> anyhow::Result<String> {
-    let units = dataset::units(config, None)?;
-    let mut text = String::new();
-    for index in 0..shards {
-        let shard = crate::shard::Shard { index, count: shards };
-        let ids: Vec<&str> = units.iter().filter(|u| shard.holds(&u.id)).map(|u| u.id.as_str()).collect();
-        text.push_str(&format!("shard {index}/{shards}: {} patients: {}\n", ids.len(), ids.join(", ")));
-    }
-    Ok(text)
-}
-
-/// `aret-pipe submit slurm`: writes the array and gather scripts into `out` (with `dry_run`,
-/// only prints the shards), and with `submit` hands them to `sbatch`.
-pub fn submit_slurm(
-    config_path: &Path,
-    request: &crate::submit::SlurmRequest,
-    out: &Path,
-    submit: bool,
-    dry_run: bool,
-) -> anyhow::Result<String> {
-    let config = Config::load(config_path)?;
-    let mut report = shard_lines(&config, request.shards.max(1))?;
-    if dry_run {
-        return Ok(report);
-    }
-    std::fs::create_dir_all(out.join("logs")).with_context(|| format!("creating {}", out.display()))?;
-    let config_abs = crate::submit::absolute(config_path)?;
-    let program = std::env::current_exe().context("finding this aret-pipe")?;
-    let workdir = crate::submit::absolute(Path::new("."))?;
-    let launch = crate::submit::Launch { program: &program, config: &config_abs, workdir: &workdir };
-    let logs = crate::submit::absolute(&out.join("logs"))?;
-    let [shards, gather] = crate::submit::slurm_scripts(request, &launch, &logs)?;
-    let (shards_path, gather_path) = (out.join("aret-shards.sbatch"), out.join("aret-gather.sbatch"));
-    write_atomic(&shards_path, shards.as_bytes(), false)?;
-    write_atomic(&gather_path, gather.as_bytes(), false)?;
-    report.push_str(&format!(
-        "wrote {} (task K: `aret-pipe run {} --shard K/{}`) and {} (then `--gather`)\n",
-        shards_path.display(),
-        config_path.display(),
-        request.shards,
-        gather_path.display()
-    ));
-    if submit {
-        let [array, gather] = crate::submit::sbatch(&shards_path, &gather_path)?;
-        report.push_str(&format!(
-            "submitted: the shards as job {array}, the gather as job {gather} (afterany:{array})\n"
-        ));
-    } else {
-        report.push_str(&format!(
-            "submit with: jid=$(sbatch --parsable {}) && sbatch --dependency=afterany:$jid {}\n",
-            shards_path.display(),
-            gather_path.display()
-        ));
-    }
-    Ok(report)
-}
-
-/// `aret-pipe submit k8s`: writes the Indexed Job and the gather Job into `out`/aret-pipe-jobs.yaml
-/// (with `dry_run`, only prints the shards). The configuration's path is taken as it lies in the
-/// claim, whose root is this folder's layout.
-pub fn submit_kubernetes(
-    config_path: &Path,
-    request: &crate::submit::KubernetesRequest,
-    out: &Path,
-    dry_run: bool,
-) -> anyhow::Result<String> {
-    if config_path.is_absolute() {
-        bail!(
-            "{}: give the configuration's path relative to the root of the claim (mounted at {} in the pods), \
-             and run submit from that root",
-            config_path.display(),
-            crate::submit::K8S_MOUNT
-        );
-    }
-    let config = Config::load(config_path)?;
-    let mut report = shard_lines(&config, request.shards.max(1))?;
-    if dry_run {
-        return Ok(report);
-    }
-    let in_claim = config_path.to_str().with_context(|| format!("{} is not UTF-8", config_path.display()))?;
-    let yaml = crate::submit::kubernetes_manifests(request, in_claim)?;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let path = out.join("aret-pipe-jobs.yaml");
-    write_atomic(&path, yaml.as_bytes(), false)?;
-    report.push_str(&format!(
-        "wrote {}: pod K runs `aret-pipe run {in_claim} --shard K/{}`; then the gather Job runs `--gather`\n",
-        path.display(),
-        request.shards
-    ));
-    Ok(report)
 }
 
 /// `aret-pipe convert`: MetaImage volumes (`.mhd` + their raw data; uchar, short or float) to

@@ -319,12 +319,12 @@ fn main() -> ExitCode {
         Command::Submit { target } => match target {
             SubmitTarget::Slurm { config, shards, partition, time, mem, submit } => {
                 let request = aret_pipe::submit::SlurmRequest { shards: shards.array, partition, time, mem };
-                commands::submit_slurm(&config, &request, &shards.out, submit, shards.dry_run)
+                aret_pipe::submit::slurm(&config, &request, &shards.out, submit, shards.dry_run)
             }
             SubmitTarget::K8s { config, shards, image, cache_pvc } => {
                 let request =
                     aret_pipe::submit::KubernetesRequest { shards: shards.array, image: &image, claim: &cache_pvc };
-                commands::submit_kubernetes(&config, &request, &shards.out, shards.dry_run)
+                aret_pipe::submit::kubernetes(&config, &request, &shards.out, shards.dry_run)
             }
         }
         .map(|report| {

@@ -4,6 +4,9 @@
 //! are missing); Kubernetes gets an Indexed Job and a gather Job. Nothing is scheduled here
 //! except by `sbatch` itself with `--submit`.
 
+use crate::config::Config;
+use crate::dataset;
+use crate::engine::store::write_atomic;
 use anyhow::{bail, Context as _};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -123,7 +126,7 @@ pub fn kubernetes_manifests(request: &KubernetesRequest, config: &str) -> anyhow
 }
 
 /// `sbatch` the array, then the gather after it; returns both job ids.
-pub fn sbatch(shards_script: &Path, gather_script: &Path) -> anyhow::Result<[String; 2]> {
+fn sbatch(shards_script: &Path, gather_script: &Path) -> anyhow::Result<[String; 2]> {
     let run = |args: &[&str], script: &Path| -> anyhow::Result<String> {
         let out = Command::new("sbatch")
             .arg("--parsable")
@@ -144,8 +147,101 @@ pub fn sbatch(shards_script: &Path, gather_script: &Path) -> anyhow::Result<[Str
 }
 
 /// The absolute form of `path` (the tasks may start anywhere).
-pub fn absolute(path: &Path) -> anyhow::Result<PathBuf> {
+fn absolute(path: &Path) -> anyhow::Result<PathBuf> {
     std::fs::canonicalize(path).with_context(|| format!("{} does not exist", path.display()))
+}
+
+/// How each shard of `shards` splits the configuration's patients, a line each.
+fn shard_lines(config: &Config, shards: u64) -> anyhow::Result<String> {
+    let units = dataset::units(config, None)?;
+    let mut text = String::new();
+    for index in 0..shards {
+        let shard = crate::shard::Shard { index, count: shards };
+        let ids: Vec<&str> = units.iter().filter(|u| shard.holds(&u.id)).map(|u| u.id.as_str()).collect();
+        text.push_str(&format!("shard {index}/{shards}: {} patients: {}\n", ids.len(), ids.join(", ")));
+    }
+    Ok(text)
+}
+
+/// `aret-pipe submit slurm`: writes the array and gather scripts into `out` (with `dry_run`,
+/// only prints the shards), and with `submit` hands them to `sbatch`.
+pub fn slurm(
+    config_path: &Path,
+    request: &SlurmRequest,
+    out: &Path,
+    submit: bool,
+    dry_run: bool,
+) -> anyhow::Result<String> {
+    let config = Config::load(config_path)?;
+    let mut report = shard_lines(&config, request.shards.max(1))?;
+    if dry_run {
+        return Ok(report);
+    }
+    std::fs::create_dir_all(out.join("logs")).with_context(|| format!("creating {}", out.display()))?;
+    let config_abs = absolute(config_path)?;
+    let program = std::env::current_exe().context("finding this aret-pipe")?;
+    let workdir = absolute(Path::new("."))?;
+    let launch = Launch { program: &program, config: &config_abs, workdir: &workdir };
+    let logs = absolute(&out.join("logs"))?;
+    let [shards, gather] = slurm_scripts(request, &launch, &logs)?;
+    let (shards_path, gather_path) = (out.join("aret-shards.sbatch"), out.join("aret-gather.sbatch"));
+    write_atomic(&shards_path, shards.as_bytes(), false)?;
+    write_atomic(&gather_path, gather.as_bytes(), false)?;
+    report.push_str(&format!(
+        "wrote {} (task K: `aret-pipe run {} --shard K/{}`) and {} (then `--gather`)\n",
+        shards_path.display(),
+        config_path.display(),
+        request.shards,
+        gather_path.display()
+    ));
+    if submit {
+        let [array, gather] = sbatch(&shards_path, &gather_path)?;
+        report.push_str(&format!(
+            "submitted: the shards as job {array}, the gather as job {gather} (afterany:{array})\n"
+        ));
+    } else {
+        report.push_str(&format!(
+            "submit with: jid=$(sbatch --parsable {}) && sbatch --dependency=afterany:$jid {}\n",
+            shards_path.display(),
+            gather_path.display()
+        ));
+    }
+    Ok(report)
+}
+
+/// `aret-pipe submit k8s`: writes the Indexed Job and the gather Job into `out`/aret-pipe-jobs.yaml
+/// (with `dry_run`, only prints the shards). The configuration's path is taken as it lies in the
+/// claim, whose root is this folder's layout.
+pub fn kubernetes(
+    config_path: &Path,
+    request: &KubernetesRequest,
+    out: &Path,
+    dry_run: bool,
+) -> anyhow::Result<String> {
+    if config_path.is_absolute() {
+        bail!(
+            "{}: give the configuration's path relative to the root of the claim (mounted at {} in the pods), \
+             and run submit from that root",
+            config_path.display(),
+            K8S_MOUNT
+        );
+    }
+    let config = Config::load(config_path)?;
+    let mut report = shard_lines(&config, request.shards.max(1))?;
+    if dry_run {
+        return Ok(report);
+    }
+    let in_claim = config_path.to_str().with_context(|| format!("{} is not UTF-8", config_path.display()))?;
+    let yaml = kubernetes_manifests(request, in_claim)?;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let path = out.join("aret-pipe-jobs.yaml");
+    write_atomic(&path, yaml.as_bytes(), false)?;
+    report.push_str(&format!(
+        "wrote {}: pod K runs `aret-pipe run {in_claim} --shard K/{}`; then the gather Job runs `--gather`\n",
+        path.display(),
+        request.shards
+    ));
+    Ok(report)
 }
 
 #[cfg(test)]
