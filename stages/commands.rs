@@ -3,12 +3,13 @@
 //! convert.
 
 use crate::config::Config;
+use crate::engine::files::write_atomic;
+use crate::engine::lease::{self, Lease};
 use crate::engine::leftovers;
-use crate::engine::lock::{Access, FileLock};
 use crate::engine::preview::{self, Row, State};
 use crate::engine::progress::{self, Progress};
 use crate::engine::run::{self, Publish, RunOptions, RunSummary, StopRequest, Unit};
-use crate::engine::store::{write_atomic, Doomed, Store};
+use crate::engine::store::{Doomed, Store};
 use crate::engine::{Hash, StageGraph};
 use crate::formats::vdb::{self, FloatGrid, GridClass};
 use crate::volume::Volume;
@@ -119,8 +120,13 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         p.graph = p.graph.without_cohort();
     }
     let force = forced_stages(&p.graph, &args.force)?;
+    // Held until run_report.json is written: its temporary file is this process's too.
+    let _alive = leftovers::hold_alive_lease(&p.store, "aret-pipe run")?;
     let mut waited_for = Vec::new();
-    let (_shared, cache_wait) = wait_for_cache(&p.store, &mut waited_for)?;
+    let cache_wait = lease::wait_while_gc(p.store.root(), &mut |line| {
+        eprintln!("aret-pipe: {line}");
+        waited_for.push(line);
+    });
     if args.gather {
         refuse_missing_patients(config_path, &p, args.verify)?;
     }
@@ -142,13 +148,11 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         publish: if args.copy { Publish::Copies } else { Publish::Links },
         stop,
     };
-    // Held until run_report.json is written: its temporary file is this process's too.
-    let _alive = leftovers::hold_alive_lock(&p.store)?;
     let progress = Progress::auto(&p.graph.runs_per_stage(p.units.len()));
     let mut summary = run::run(&p.graph, &p.store, &p.units, &options, &progress);
     drop(progress);
     summary.wall_seconds += cache_wait.as_secs_f64();
-    summary.cache_lock_wait_seconds = cache_wait.as_secs_f64();
+    summary.gc_wait_seconds = cache_wait.as_secs_f64();
     summary.notices.splice(0..0, waited_for);
     write_report(&p.store, &options.out_dir, &mut summary)?;
     print!("{}", progress::table(&summary, &p.graph.names()));
@@ -170,13 +174,31 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     })
 }
 
-/// The cache's lock, shared, and how long it took: a process holding it exclusively (`gc`) makes
-/// the caller wait, and a wait over a second is said on stderr and kept in `said`.
-fn wait_for_cache(store: &Store, said: &mut Vec<String>) -> anyhow::Result<(FileLock, std::time::Duration)> {
-    FileLock::wait(&store.global_lock_path(), Access::Shared, "the cache lock", &mut |line| {
-        eprintln!("aret-pipe: {line}");
-        said.push(line);
-    })
+/// The cache's `gc` lease, once no other process holds a live lease on it (on any host):
+/// otherwise an error naming each holder.
+fn take_gc_lease(store: &Store) -> anyhow::Result<Lease> {
+    let root = store.root();
+    let lease = match Lease::take_gc(root, "aret-pipe gc")? {
+        Ok(lease) => lease,
+        Err(other) => {
+            bail!("{} is collecting garbage in the cache {} now; let it finish", other.describe(), root.display())
+        }
+    };
+    let others: Vec<String> = lease::live_leases(root)?
+        .into_iter()
+        .filter(|(path, _)| path != lease.path())
+        .map(|(_, record)| record.describe())
+        .collect();
+    if !others.is_empty() {
+        bail!(
+            "the cache {} is in use by {}; run gc when they have finished (a killed process's lease \
+             ends within {} s)",
+            root.display(),
+            others.join("; "),
+            lease::LEASE_TTL.as_secs()
+        );
+    }
+    Ok(lease)
 }
 
 /// The stages `--force` names, checked against the graph: each a stage's name, or [`FORCE_ALL`]
@@ -241,7 +263,7 @@ fn write_report(store: &Store, out_dir: &Path, summary: &mut RunSummary) -> anyh
 /// the same as one JSON document ([`plan_json`]).
 pub fn status(config_path: &Path, args: &StatusArgs) -> anyhow::Result<String> {
     let p = prepare(config_path, &args.sets, args.patients.as_deref(), None)?;
-    let (_shared, _) = wait_for_cache(&p.store, &mut Vec::new())?;
+    lease::wait_while_gc(p.store.root(), &mut |line| eprintln!("aret-pipe: {line}"));
     let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &[]);
     if args.json {
         return plan_json("status", config_path, &p.graph, &rows);
@@ -355,21 +377,8 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
     }
     let cache_dir = config.cache_dir();
     let store = Store::open(&cache_dir)?;
-    // A dry run deletes nothing, so it may run beside a run; a real one must not.
-    let cache_lock = if dry_run {
-        FileLock::shared(&store.global_lock_path())?
-    } else {
-        match FileLock::try_exclusive(&store.global_lock_path())? {
-            Some(lock) => lock,
-            None => bail!(
-                "another aret-pipe process is using the cache {}; run gc when it has finished",
-                store.root().display()
-            ),
-        }
-    };
-    if !dry_run {
-        cache_lock.describe_holder("aret-pipe gc");
-    }
+    // A dry run deletes nothing, so it may run beside a run; a real one must not, on any host.
+    let _gc_lease = if dry_run { None } else { Some(take_gc_lease(&store)?) };
     let keep = if prune { Some(results_in_use(config_paths, sets, &cache_dir)?) } else { None };
     let mut out_dirs = vec![config.out_dir()];
     for path in config_paths.iter().skip(1) {
@@ -383,11 +392,12 @@ pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
     for dir in out_dirs.iter().filter(|d| d.is_dir()) {
         temps.extend(leftovers::stale_temps(&store, dir, 3)?);
     }
-    // Listed after the temporary files: telling them stale creates lock files, which go too.
     let garbage = store.garbage(keep.as_ref(), forget)?;
+    let ended_leases = lease::ended_leases(store.root())?;
     if !dry_run {
         garbage.delete()?;
         leftovers::delete(&temps)?;
+        lease::remove(&ended_leases)?;
     }
     let mib = |bytes: u64| bytes as f64 / (1024.0 * 1024.0);
     let (freed, linked) = garbage.bytes();

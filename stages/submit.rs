@@ -6,7 +6,7 @@
 
 use crate::config::Config;
 use crate::dataset;
-use crate::engine::store::write_atomic;
+use crate::engine::files::write_atomic;
 use anyhow::{bail, Context as _};
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -2,17 +2,18 @@
 //! in blobs, manifests pointing at other valid blobs, edits through published links, the
 //! temporary files of killed runs, and waits for other processes' locks.
 
-use aret_pipe::engine::leftovers;
-use aret_pipe::engine::lock::{Access, FileLock};
+use aret_pipe::engine::lock::FileLock;
 use aret_pipe::engine::preview::{self, State};
 use aret_pipe::engine::progress::{self, Progress};
 use aret_pipe::engine::run::{self, Publish, RunOptions, RunSummary, StopRequest, Unit};
 use aret_pipe::engine::store::{Manifest, Store};
+use aret_pipe::engine::{files, lease, leftovers};
 use aret_pipe::engine::{Context, Hash, Output, Stage, StageGraph};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 mod support;
+use support::leases::pretend_lease;
 use support::toy_stages::{ended_pid, Concat, Counters, Length, Report};
 
 /// Two patients (P1: "ab" + "cde", P2: "xyz") and a cache, counting each stage's runs.
@@ -299,36 +300,48 @@ fn published_files_are_read_only_links_and_an_edit_through_one_is_found() {
 fn temporary_files_of_ended_processes_go_and_a_live_process_keeps_its_own() {
     let w = World::cached();
     let store = w.store();
+    let root = store.root().to_path_buf();
     // This process marks itself alive as `aret-pipe run` does around the run.
-    let _me = leftovers::hold_alive_lock(&store).unwrap();
+    let _me = leftovers::hold_alive_lease(&store, "a test").unwrap();
+    let here = files::this_host();
     let dead = ended_pid();
-    // Not a real process: holding its alive lock is what makes it live.
-    let live = u32::MAX - 7;
-    let alive = FileLock::shared(&store.process_lock_path(live)).unwrap();
+    // Not real processes: a live lease is what makes one live; one on another host lives until
+    // its lease expires, whatever its pid means here.
+    let alive = pretend_lease(&root, "node_7.cluster", dead, "aret-pipe run", 60);
+    pretend_lease(&root, "node_8.cluster", 12, "aret-pipe run", -1);
     let blob = store.blob_path(&Hash::of(b"abcde"));
     // What a kill while publishing leaves: hard links to blobs under temporary names, in a
-    // patient's folder and in the cohort's (out_dir itself); and one of a live process.
-    let stale = [w.path(&format!("out/P1/.tmp-{dead}-0-1")), w.path(&format!("out/.tmp-{dead}-3-1"))];
-    let kept = w.path(&format!("out/P2/.tmp-{live}-0-1"));
+    // patient's folder and in the cohort's (out_dir itself), from this host (in the old form
+    // without a host, too) and from one whose lease expired; and one of a live process.
+    let stale = [
+        w.path(&format!("out/P1/.tmp-{here}-{dead}-0-1")),
+        w.path(&format!("out/.tmp-{dead}-3-1")),
+        w.path("out/P1/.tmp-node_8.cluster-12-0-1"),
+    ];
+    let kept = w.path(&format!("out/P2/.tmp-node_7.cluster-{dead}-0-1"));
     for path in stale.iter().chain([&kept]) {
         std::fs::hard_link(&blob, path).unwrap();
     }
-    let mine = w.path(&format!("out/P2/.tmp-{}-9-9", std::process::id()));
+    let mine = w.path(&format!("out/P2/{}", files::temp_name()));
     std::fs::write(&mine, "in progress").unwrap();
 
     let listed = leftovers::stale_temps(&store, &w.path("out"), 3).unwrap();
     let mut paths: Vec<&PathBuf> = listed.iter().map(|d| &d.path).collect();
     paths.sort();
-    assert_eq!(paths, stale.iter().rev().collect::<Vec<_>>(), "what gc would remove");
+    let mut expected: Vec<&PathBuf> = stale.iter().collect();
+    expected.sort();
+    assert_eq!(paths, expected, "what gc would remove");
     assert!(listed.iter().all(|d| d.bytes == 5 && d.linked), "links to a blob that stays free nothing");
 
     let s = w.run(Publish::Links, false);
     assert!(stale.iter().all(|p| !p.exists()), "a run removes them from the folders it publishes into");
     assert_eq!(s.notices.len(), 2, "one line per folder: {:?}", s.notices);
-    let said = "removed 1 stale .tmp-* file(s) killed runs left in";
+    let said = "stale .tmp-* file(s) killed runs left in";
     assert!(s.notices.iter().all(|l| l.contains(said) && l.contains("links to blobs that stay")), "{:?}", s.notices);
     assert!(kept.exists() && mine.exists(), "a live process's temporary files stay, this one's too");
-    drop(alive);
+    // Its lease expires.
+    pretend_lease(&root, "node_7.cluster", dead, "aret-pipe run", -1);
+    assert_eq!(alive, lease::leases_dir(&root).join(format!("node_7.cluster-{dead}-0.json")));
     let listed = leftovers::stale_temps(&store, &w.path("out"), 3).unwrap();
     assert_eq!(listed.iter().map(|d| &d.path).collect::<Vec<_>>(), [&kept], "ended now");
     leftovers::delete(&listed).unwrap();
@@ -366,24 +379,33 @@ fn a_stage_waiting_for_another_process_on_its_key_says_so_and_the_wait_is_counte
 }
 
 #[test]
-fn waiting_for_the_cache_lock_says_so_after_a_second_and_returns_the_wait() {
+fn waiting_for_a_gc_says_so_after_a_second_and_returns_the_wait() {
     let w = World::new();
-    let path = w.store().global_lock_path();
+    let root = w.store().root().to_path_buf();
+    // A gc on another host, which deletes its lease when it ends.
+    let gc_for = |hold: Duration| {
+        let path = pretend_lease(&root, "node_2", 4242, "aret-pipe gc", 60);
+        std::thread::spawn(move || {
+            std::thread::sleep(hold);
+            std::fs::remove_file(path).unwrap();
+        })
+    };
     let mut said = Vec::new();
-    let holder = hold_lock(&path, Duration::from_millis(1300));
-    let (_lock, waited) = FileLock::wait(&path, Access::Shared, "the cache lock", &mut |l| said.push(l)).unwrap();
-    holder.join().unwrap();
+    let gc = gc_for(Duration::from_millis(1300));
+    let waited = lease::wait_while_gc(&root, &mut |l| said.push(l));
+    gc.join().unwrap();
     assert!(waited >= Duration::from_millis(1250), "{waited:?}");
     assert_eq!(said.len(), 1, "{said:?}");
-    let expected = format!("release the cache lock ({}; held by a test holder", path.display());
-    assert!(said[0].contains(&expected), "{}", said[0]);
-    drop(_lock);
-    // A short wait says nothing.
+    let expected = "waiting for aret-pipe gc on node_2 (pid 4242), alive until ";
+    assert!(said[0].contains(expected) && said[0].contains(&root.display().to_string()), "{}", said[0]);
+    // A short wait says nothing; an expired gc lease (a gc killed elsewhere) is no wait at all.
     let mut said = Vec::new();
-    let holder = hold_lock(&path, Duration::from_millis(300));
-    let (_lock, waited) = FileLock::wait(&path, Access::Shared, "the cache lock", &mut |l| said.push(l)).unwrap();
-    holder.join().unwrap();
+    let gc = gc_for(Duration::from_millis(300));
+    let waited = lease::wait_while_gc(&root, &mut |l| said.push(l));
+    gc.join().unwrap();
     assert!(waited >= Duration::from_millis(250) && said.is_empty(), "{waited:?} {said:?}");
+    pretend_lease(&root, "node_2", 4242, "aret-pipe gc", -1);
+    assert!(lease::wait_while_gc(&root, &mut |l| said.push(l)) < Duration::from_millis(50));
 }
 
 /// Rewrites `concat/all.txt` in the cache after the run checked it, then reads it.

@@ -1,14 +1,14 @@
 //! The cache's checks through the command line, on a small CT series up to `hu`: `run --copy`
 //! against the default read-only links, `gc` removing what killed runs left in the out dir, and
-//! a run that has to wait for the cache lock.
+//! a run that has to wait for a gc (on another host) to finish.
 
 mod support;
 
-use aret_pipe::engine::lock::FileLock;
 use std::path::Path;
 use std::process::Output;
 use std::time::Duration;
 use support::dicom_writer::{default_name, series, write_series};
+use support::leases::pretend_lease;
 use support::toy_stages::ended_pid;
 
 const BIN: &str = env!("CARGO_BIN_EXE_aret-pipe");
@@ -67,7 +67,7 @@ fn gc_and_a_run_remove_the_temporary_files_killed_runs_left_in_the_out_dir() {
     run_until_hu(dir.path(), &[]);
     let dead = ended_pid();
     // A kill while publishing: a hard link to a blob under a temporary name; and a lone file.
-    let link = dir.path().join(format!("out/P1/.tmp-{dead}-0-1"));
+    let link = dir.path().join(format!("out/P1/.tmp-{}-{dead}-0-1", aret_pipe::engine::files::this_host()));
     std::fs::hard_link(dir.path().join("out/P1/ct_unit.raw"), &link).unwrap();
     let lone = dir.path().join(format!("out/.tmp-{dead}-1-1"));
     std::fs::write(&lone, vec![0u8; 3 << 20]).unwrap();
@@ -93,24 +93,23 @@ fn gc_and_a_run_remove_the_temporary_files_killed_runs_left_in_the_out_dir() {
 }
 
 #[test]
-fn a_run_waiting_for_the_cache_lock_says_so_and_its_time_includes_the_wait() {
+fn a_run_waiting_for_a_gc_says_so_and_its_time_includes_the_wait() {
     let dir = project();
     run_until_hu(dir.path(), &[]);
-    let lock = FileLock::exclusive(&dir.path().join("cache/.lock")).unwrap();
-    lock.describe_holder("aret-pipe gc");
+    // A gc on another host holds the cache, and deletes its lease when it ends.
+    let gc = pretend_lease(&dir.path().join("cache"), "node_2", 4242, "aret-pipe gc", 60);
     let holder = std::thread::spawn(move || {
         std::thread::sleep(Duration::from_millis(1800));
-        drop(lock);
+        std::fs::remove_file(gc).unwrap();
     });
     let (stdout, stderr) = run_until_hu(dir.path(), &[]);
     holder.join().unwrap();
     let waiting: Vec<&str> = stderr.lines().filter(|l| l.contains("waiting for")).collect();
     assert_eq!(waiting.len(), 1, "{stderr}");
-    let expected = "waiting for another aret-pipe process to release the cache lock";
-    assert!(waiting[0].contains(expected) && waiting[0].contains("held by aret-pipe gc (pid"), "{stderr}");
+    assert!(waiting[0].contains("waiting for aret-pipe gc on node_2 (pid 4242), alive until"), "{stderr}");
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("out/run_report.json")).unwrap()).unwrap();
-    let waited = report["cache_lock_wait_seconds"].as_f64().unwrap();
+    let waited = report["gc_wait_seconds"].as_f64().unwrap();
     assert!(waited >= 1.0 && report["wall_seconds"].as_f64().unwrap() >= waited, "{report}");
-    assert!(stdout.contains("s of it waiting for the cache lock"), "{stdout}");
+    assert!(stdout.contains("s of it waiting for gc"), "{stdout}");
 }

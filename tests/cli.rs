@@ -403,27 +403,66 @@ fn until_and_patients_narrow_the_run() {
 }
 
 #[test]
-fn concurrent_runs_on_one_cache_both_finish_and_compute_each_stage_once() {
-    let p = Project::new(&["P1", "P2", "P3", "P4"], 6);
-    p.write_config("a.toml", "cache", "out_a", "");
-    p.write_config("b.toml", "cache", "out_b", "");
-    let spawn = |cfg: &str| p.command(&["run", cfg]).stdout(std::process::Stdio::null()).spawn().unwrap();
-    let (mut a, mut b) = (spawn("a.toml"), spawn("b.toml"));
-    assert!(a.wait().unwrap().success() && b.wait().unwrap().success());
-    let (ra, rb) = (p.report("out_a"), p.report("out_b"));
-    for stage in ["ingest", "hu"] {
-        assert_eq!(
-            count(&ra, stage, "computed") + count(&rb, stage, "computed"),
-            4,
-            "{stage} computed once per patient"
-        );
+fn four_processes_on_one_cache_at_once_compute_each_result_once_and_agree_with_one_run() {
+    let ids = ["P1", "P2", "P3", "P4", "P5", "P6"];
+    let p = Project::new(&ids, 4);
+    let start = || {
+        let mut command = p.command(&["run", "pipeline.toml"]);
+        command.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn().unwrap()
+    };
+    let children: Vec<_> = (0..4).map(|_| start()).collect();
+    // "N computed, M cached, F failed, S skipped in …" ends each process's table.
+    let totals = |stdout: &str| -> [usize; 4] {
+        let line = stdout.lines().find(|l| l.contains(" computed, ")).unwrap_or_else(|| panic!("{stdout}"));
+        let n: Vec<usize> = line.split(", ").map(|part| part.split(' ').next().unwrap().parse().unwrap()).collect();
+        [n[0], n[1], n[2], n[3]]
+    };
+    let mut computed = 0;
+    for child in children {
+        let run = child.wait_with_output().unwrap();
+        let (stdout, stderr) = (text(&run.stdout), text(&run.stderr));
+        assert!(run.status.success() && !stderr.contains("warning"), "{stdout}\n{stderr}");
+        let [done, _, failed, skipped] = totals(&stdout);
+        assert_eq!((failed, skipped), (0, 0), "{stdout}");
+        computed += done;
     }
-    for id in ["P1", "P2", "P3", "P4"] {
-        for f in ["ct_hu.raw", "ct_unit.raw", "ct_series.json"] {
-            let a = std::fs::read(p.path(&format!("out_a/{id}/{f}"))).unwrap();
-            assert_eq!(a, std::fs::read(p.path(&format!("out_b/{id}/{f}"))).unwrap());
+    // One process alone on a fresh cache: what it computes, the four computed once between them.
+    p.write_config("whole.toml", "cache-whole", "out-whole", "");
+    let alone = p.aret(&["run", "whole.toml"]);
+    assert!(alone.status.success());
+    assert_eq!(computed, totals(&text(&alone.stdout))[0], "each result computed once");
+    let files = |dir: &str| -> Vec<PathBuf> {
+        let mut files: Vec<PathBuf> = walkdir::WalkDir::new(p.path(dir))
+            .into_iter()
+            .map(|e| e.unwrap())
+            .filter(|e| e.file_type().is_file())
+            .map(|e| e.path().strip_prefix(p.path(dir)).unwrap().to_path_buf())
+            .collect();
+        files.sort();
+        files
+    };
+    let temporary = |f: &PathBuf| f.file_name().unwrap().to_string_lossy().starts_with(".tmp-");
+    assert!(!files("cache").iter().chain(&files("out")).any(temporary), "no temporary file is left");
+    assert!(files("cache/leases").is_empty(), "every process gave its lease back");
+    // The same bytes in the same files; run_report.json holds each run's own times.
+    let published: Vec<PathBuf> = files("out").into_iter().filter(|f| f.as_os_str() != "run_report.json").collect();
+    assert!(published.len() > ids.len() * 5, "{published:?}");
+    assert_eq!(
+        published,
+        files("out-whole").into_iter().filter(|f| f.as_os_str() != "run_report.json").collect::<Vec<_>>()
+    );
+    // train_log.csv's last column is the wall time of the fit: all but it must agree.
+    let read = |dir: &str, file: &PathBuf| {
+        let bytes = std::fs::read(p.path(dir).join(file)).unwrap();
+        if !file.ends_with("train_log.csv") {
+            return bytes;
         }
-    }
+        let rows = text(&bytes);
+        assert!(rows.starts_with("iteration,") && rows.lines().next().unwrap().ends_with(",seconds"), "{rows}");
+        rows.lines().map(|l| l.rsplit_once(',').unwrap().0).collect::<Vec<_>>().join("\n").into_bytes()
+    };
+    let differ: Vec<&PathBuf> = published.iter().filter(|f| read("out", f) != read("out-whole", f)).collect();
+    assert!(differ.is_empty(), "{differ:?}");
 }
 
 /// Bigger slices so that a run lasts long enough to be killed in the middle of it.
@@ -458,6 +497,9 @@ fn a_run_killed_at_any_moment_leaves_nothing_a_later_run_trusts() {
         std::thread::sleep(std::time::Duration::from_millis(delay_ms));
         unsafe_kill(child.id());
         let _ = child.wait();
+        // Its lease names a process that has ended on this host: gc need not wait for it.
+        let gc = p.aret(&["gc", "pipeline.toml"]);
+        assert!(gc.status.success(), "gc after kill at {delay_ms} ms: {}", text(&gc.stderr));
         // Whatever the kill left, a normal run completes and gives the reference bytes.
         let out = p.aret(&["run", "pipeline.toml"]);
         assert!(out.status.success(), "after kill at {delay_ms} ms: {}", text(&out.stderr));
@@ -593,24 +635,27 @@ fn gc_prune_and_forget_drop_only_what_they_name_and_a_dry_run_deletes_nothing() 
 fn gc_deletes_nothing_while_a_run_holds_the_cache_but_a_dry_run_may_look() {
     let p = Project::new(&["P1"], 2);
     p.run(&[]);
-    // A run in progress holds the cache's lock shared.
-    let running = aret_pipe::engine::lock::FileLock::shared(&p.path("cache/.lock")).unwrap();
+    // A run in progress on another host holds a live lease on the cache.
+    let running = support::leases::pretend_lease(&p.path("cache"), "node_5", 77, "aret-pipe run", 60);
     let refused = p.aret(&["gc", "pipeline.toml", "--forget", "hu"]);
     assert!(!refused.status.success());
-    assert!(
-        text(&refused.stderr).contains("another aret-pipe process is using the cache"),
-        "{}",
-        text(&refused.stderr)
-    );
+    let said = text(&refused.stderr);
+    assert!(said.contains("is in use by aret-pipe run on node_5 (pid 77), alive until"), "{said}");
+    assert!(!p.path("cache/leases/gc.json").exists(), "the refused gc leaves no lease");
     let dry = p.aret(&["gc", "pipeline.toml", "--forget", "hu", "--dry-run"]);
     assert!(
         dry.status.success() && text(&dry.stdout).contains("would forget 1 stage result(s) of hu"),
         "{}",
         text(&dry.stdout)
     );
-    drop(running);
+    std::fs::remove_file(running).unwrap();
     let r = p.run(&[]);
     assert_eq!(count(&r, "hu", "cached"), 1, "neither deleted anything");
+    // A lease that expired (its process was killed on its host) no longer holds gc back, and
+    // goes with the garbage.
+    let expired = support::leases::pretend_lease(&p.path("cache"), "node_5", 77, "aret-pipe run", -1);
+    let gc = p.aret(&["gc", "pipeline.toml"]);
+    assert!(gc.status.success() && !expired.exists(), "{}", text(&gc.stderr));
 }
 
 /// A one-reader LIDC XML with one nodule: a square contour on the slice at `z_mm`.

@@ -6,8 +6,9 @@
 //! copies instead. Stale `.tmp-*` entries a killed process left in a folder are removed before
 //! publishing into it (see [`crate::leftovers`]).
 
+use super::files::{set_read_only, temp_name};
 use super::leftovers::{describe, remove_stale_temps};
-use super::store::{hash_file, set_read_only, temp_name, OutputRef, Store};
+use super::store::{hash_file, OutputRef, Store};
 use anyhow::Context as _;
 use std::fs;
 use std::path::Path;

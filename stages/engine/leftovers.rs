@@ -1,29 +1,32 @@
-//! Temporary files a killed process left: `.tmp-<pid>-…` entries (see
-//! [`temp_name`](super::store::temp_name)) in the cache and in the folders results are
+//! Temporary files a killed process left: `.tmp-<host>-<pid>-…` entries (see
+//! [`temp_name`](super::files::temp_name)) in the cache and in the folders results are
 //! published into.
 //!
-//! Whether the process that named a temporary file may still be writing it is decided by a
-//! lock, not by guessing from process ids: every process that writes temporary files into an
-//! out dir holds `cache/locks/pid-<pid>.lock` shared for as long as it may ([`hold_alive_lock`]).
-//! A `.tmp-<pid>-…` entry is stale when that lock can be taken exclusively: its process has
-//! ended (the kernel dropped its lock, even after SIGKILL). An entry of a live process, this
-//! one included, is never touched.
+//! Whether the process that named a temporary file may still be writing it is decided by the
+//! cache's leases ([`crate::lease`]), not by guessing from process ids: every process that
+//! writes temporary files holds a lease for as long as it may. A `.tmp-*` entry is stale when
+//! no live lease names its host and pid. An entry of a live process, this one included, is
+//! never touched.
 
-use super::lock::FileLock;
-use super::store::{links, temp_owner, Doomed, Store};
+use super::files::{temp_owner, Owner};
+use super::lease::{live_owners, Lease};
+use super::store::{links, Doomed, Store};
 use anyhow::Context as _;
+use std::collections::HashSet;
 use std::fs;
 use std::path::Path;
 
-/// Marks this process alive for [`stale_temps`] while the returned lock is held.
-pub fn hold_alive_lock(store: &Store) -> anyhow::Result<FileLock> {
-    FileLock::shared(&store.process_lock_path(std::process::id()))
+/// Marks this process alive for [`stale_temps`] while the returned lease is held.
+pub fn hold_alive_lease(store: &Store, holder: &str) -> anyhow::Result<Lease> {
+    Lease::take(store.root(), holder)
 }
 
 /// The `.tmp-*` entries under `dir` (down to `depth` folders below it; 1: only its own entries)
 /// whose process has ended. Folders named `.tmp-*` are not entered.
 pub fn stale_temps(store: &Store, dir: &Path, depth: usize) -> anyhow::Result<Vec<Doomed>> {
     let mut stale = Vec::new();
+    // Read once, at the first temporary file found: most folders have none.
+    let mut live: Option<HashSet<Owner>> = None;
     let walker = walkdir::WalkDir::new(dir).min_depth(1).max_depth(depth).into_iter();
     let enters =
         |e: &walkdir::DirEntry| !(e.file_type().is_dir() && e.file_name().to_string_lossy().starts_with(".tmp-"));
@@ -34,8 +37,14 @@ pub fn stale_temps(store: &Store, dir: &Path, depth: usize) -> anyhow::Result<Ve
             Err(e) => return Err(e).with_context(|| format!("listing {}", dir.display())),
         };
         let name = entry.file_name().to_string_lossy();
-        let Some(pid) = temp_owner(&name) else { continue };
-        if !entry.file_type().is_file() || !owner_has_ended(store, pid)? {
+        let Some(owner) = temp_owner(&name) else { continue };
+        if !entry.file_type().is_file() {
+            continue;
+        }
+        if live.is_none() {
+            live = Some(live_owners(store.root())?.into_iter().collect());
+        }
+        if live.as_ref().is_some_and(|live| live.contains(&owner)) {
             continue;
         }
         let meta = entry.metadata()?;
@@ -79,9 +88,4 @@ pub fn delete(stale: &[Doomed]) -> anyhow::Result<()> {
         }
     }
     Ok(())
-}
-
-/// Whether no process holds the alive lock of `pid`.
-fn owner_has_ended(store: &Store, pid: u32) -> anyhow::Result<bool> {
-    Ok(FileLock::try_exclusive(&store.process_lock_path(pid))?.is_some())
 }

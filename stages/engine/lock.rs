@@ -1,10 +1,12 @@
-//! Advisory file locks between `aret-pipe` processes sharing one cache.
+//! Advisory file locks on a (stage, key) between `aret-pipe` processes sharing one cache.
 //!
-//! `run` holds the cache's lock shared, `gc` exclusive, so garbage collection never deletes a
-//! blob a running pipeline is about to use. While computing a (stage, key), a process holds that
-//! key's lock: a second process wanting the same key waits, then finds it cached. A process
-//! holds its own lock (`locks/pid-<pid>.lock`, see [`crate::leftovers`]) shared while it may be
-//! writing temporary files. The kernel drops every lock when a process dies, even by SIGKILL.
+//! While computing a (stage, key), a process holds that key's lock: a second process wanting
+//! the same key waits, then finds it cached. The kernel drops every lock when a process dies,
+//! even by SIGKILL. The locks only save work: where a filesystem keeps none (an NFS mount
+//! without a lock manager), two processes may compute one key at once, and converge, since a
+//! key's outputs are the same bytes whoever computes them and each lands by an atomic rename.
+//! Which processes are alive, and whether `gc` may delete, is told by leases instead
+//! ([`crate::lease`]), which need no locks across hosts.
 //!
 //! A process that must wait for a lock says so once the wait passes [`SAY_AFTER`], naming the
 //! lock and, when the holder wrote it into the lock file ([`FileLock::describe_holder`]), who
@@ -51,26 +53,11 @@ fn try_take(file: &File, access: Access) -> Result<(), TryLockError> {
 }
 
 impl FileLock {
-    pub fn shared(path: &Path) -> anyhow::Result<FileLock> {
-        let file = open(path)?;
-        file.lock_shared().with_context(|| format!("locking {}", path.display()))?;
-        Ok(FileLock { file })
-    }
-
+    /// The exclusive lock, waiting as long as it takes, silently.
     pub fn exclusive(path: &Path) -> anyhow::Result<FileLock> {
         let file = open(path)?;
         file.lock().with_context(|| format!("locking {}", path.display()))?;
         Ok(FileLock { file })
-    }
-
-    /// The exclusive lock if nobody holds the file, else `None`.
-    pub fn try_exclusive(path: &Path) -> anyhow::Result<Option<FileLock>> {
-        let file = open(path)?;
-        match file.try_lock() {
-            Ok(()) => Ok(Some(FileLock { file })),
-            Err(TryLockError::WouldBlock) => Ok(None),
-            Err(TryLockError::Error(e)) => Err(e).with_context(|| format!("locking {}", path.display())),
-        }
     }
 
     /// The lock at `path` with `access`, waiting as long as it takes. A wait longer than
@@ -90,6 +77,14 @@ impl FileLock {
             match try_take(&file, access) {
                 Ok(()) => return Ok((FileLock { file }, started.elapsed())),
                 Err(TryLockError::WouldBlock) => {}
+                Err(TryLockError::Error(e)) if locks_unsupported(&e) => {
+                    say(format!(
+                        "{} cannot be locked ({e}): going on without it; a process on another host may \
+                         compute the same result at the same time, to the same bytes",
+                        path.display()
+                    ));
+                    return Ok((FileLock { file }, started.elapsed()));
+                }
                 Err(TryLockError::Error(e)) => return Err(e).with_context(|| format!("locking {}", path.display())),
             }
             if !said && started.elapsed() >= SAY_AFTER {
@@ -112,4 +107,12 @@ impl FileLock {
             .and_then(|()| file.seek(SeekFrom::Start(0)))
             .and_then(|_| file.write_all(format!("{holder} (pid {})\n", std::process::id()).as_bytes()));
     }
+}
+
+/// Whether `e` says the filesystem keeps no locks (an NFS mount without a lock manager), as
+/// opposed to a real failure.
+fn locks_unsupported(e: &std::io::Error) -> bool {
+    const ENOLCK: i32 = 37;
+    const EOPNOTSUPP: i32 = 95;
+    e.kind() == std::io::ErrorKind::Unsupported || matches!(e.raw_os_error(), Some(ENOLCK | EOPNOTSUPP))
 }

@@ -6,7 +6,9 @@
 //! patients through the stages at once (see [`run`]).
 
 pub mod export;
+pub mod files;
 pub mod key;
+pub mod lease;
 pub mod leftovers;
 pub mod lock;
 pub mod plan;

@@ -197,8 +197,8 @@ pub fn table(summary: &RunSummary, stages: &[&str]) -> String {
 /// What the run's time includes of waiting for other processes (empty when it waited for none).
 fn waits(summary: &RunSummary) -> String {
     let mut parts = Vec::new();
-    if summary.cache_lock_wait_seconds >= 0.01 {
-        parts.push(format!("{:.2} s of it waiting for the cache lock", summary.cache_lock_wait_seconds));
+    if summary.gc_wait_seconds >= 0.01 {
+        parts.push(format!("{:.2} s of it waiting for gc", summary.gc_wait_seconds));
     }
     if summary.key_lock_wait_seconds >= 0.01 {
         parts.push(format!("stages waited {:.2} s for keys other processes computed", summary.key_lock_wait_seconds));

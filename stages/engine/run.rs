@@ -21,7 +21,7 @@
 
 use super::export::publish;
 pub use super::export::Publish;
-use super::leftovers::hold_alive_lock;
+use super::leftovers::hold_alive_lease;
 use super::lock::{Access, FileLock};
 use super::plan::{self, Decision};
 use super::progress::Progress;
@@ -146,7 +146,7 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
         key_lock_wait: Mutex::new(Duration::ZERO),
     };
     // Marks this process's temporary files in out dirs as in use (see `leftovers`).
-    let _alive = match hold_alive_lock(store) {
+    let _alive = match hold_alive_lease(store, "aret-pipe run") {
         Ok(lock) => Some(lock),
         Err(e) => {
             shared.notice(format!("warning: {e:#}; another process may take this run's temporary files for litter"));
@@ -202,7 +202,7 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
         records,
         wall_seconds: started.elapsed().as_secs_f64(),
         notices: shared.notices.into_inner().expect("notices"),
-        cache_lock_wait_seconds: 0.0,
+        gc_wait_seconds: 0.0,
         key_lock_wait_seconds: shared.key_lock_wait.into_inner().expect("lock wait").as_secs_f64(),
     }
 }

@@ -5,8 +5,9 @@
 //! always with `--verify`. A file touched but unchanged re-hashes to the same bytes, and early
 //! cutoff keeps everything downstream cached.
 
+use super::files::write_atomic;
 use super::key::Hash;
-use super::store::{hash_file, write_atomic, Store};
+use super::store::{hash_file, Store};
 use anyhow::{anyhow, Context as _};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;

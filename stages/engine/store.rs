@@ -12,14 +12,14 @@
 //! the (stage, key, patient, inputs) it is looked up for, its digest binds its outputs to that
 //! key, and each blob it names re-hashes to its name (see [`Store::lookup`]).
 
+use super::files::write_atomic;
 use super::key::Hash;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
 use std::fs;
-use std::io::{Read, Write};
+use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 
 /// A stored output: its file name and the content hash of its bytes.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -113,12 +113,10 @@ pub struct Store {
     root: PathBuf,
 }
 
-static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
-
 impl Store {
     /// Opens (creating if needed) the cache at `root`.
     pub fn open(root: &Path) -> anyhow::Result<Store> {
-        for sub in ["blobs", "manifests", "latest", "sources", "locks"] {
+        for sub in ["blobs", "manifests", "latest", "sources", "locks", "leases"] {
             fs::create_dir_all(root.join(sub))
                 .with_context(|| format!("creating cache directory {}", root.join(sub).display()))?;
         }
@@ -150,23 +148,17 @@ impl Store {
         self.root.join("locks").join(format!("{name}.lock"))
     }
 
-    /// The lock a process holds while it may be writing temporary files (see
-    /// [`crate::leftovers`]).
-    pub fn process_lock_path(&self, pid: u32) -> PathBuf {
-        self.root.join("locks").join(format!("pid-{pid}.lock"))
-    }
-
-    pub fn global_lock_path(&self) -> PathBuf {
-        self.root.join(".lock")
-    }
-
     /// Stores `bytes` under their hash and returns the reference.
     pub fn put_blob(&self, name: &str, bytes: &[u8]) -> anyhow::Result<OutputRef> {
         let hash = Hash::of(bytes);
         let path = self.blob_path(&hash);
-        // Always (re)write: a blob we recompute may be replacing a corrupt copy.
-        write_atomic(&path, bytes, true)?;
-        Ok(OutputRef { name: name.to_string(), hash, size: bytes.len() as u64 })
+        let output = OutputRef { name: name.to_string(), hash, size: bytes.len() as u64 };
+        // A copy that checks out stays: another host may be reading it, and replacing a file
+        // under an NFS reader fails its read. A corrupt copy is replaced.
+        if self.check_blob(&output).is_some() {
+            write_atomic(&path, bytes, true)?;
+        }
+        Ok(output)
     }
 
     /// Why a stored output cannot be used, or `None` when it can: the blob must exist, have its
@@ -379,53 +371,6 @@ pub(crate) fn links(meta: &fs::Metadata) -> u64 {
 #[cfg(not(unix))]
 pub(crate) fn links(_meta: &fs::Metadata) -> u64 {
     1
-}
-
-/// Writes `bytes` to `path` atomically: a temporary file in the same directory, flushed to
-/// disk, then renamed over `path`.
-pub fn write_atomic(path: &Path, bytes: &[u8], read_only: bool) -> anyhow::Result<()> {
-    let dir = path.parent().expect("cache paths have a parent");
-    fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let tmp = dir.join(temp_name());
-    let result = (|| -> std::io::Result<()> {
-        let mut f = fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        if read_only {
-            set_read_only(&tmp)?;
-        }
-        fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = fs::remove_file(&tmp);
-    }
-    result.with_context(|| format!("writing {}", path.display()))
-}
-
-/// Makes `path` read-only for everyone: mode 0444 on Unix.
-pub fn set_read_only(path: &Path) -> std::io::Result<()> {
-    #[cfg(unix)]
-    let perms = std::os::unix::fs::PermissionsExt::from_mode(0o444);
-    #[cfg(not(unix))]
-    let perms = {
-        let mut perms = fs::metadata(path)?.permissions();
-        perms.set_readonly(true);
-        perms
-    };
-    fs::set_permissions(path, perms)
-}
-
-/// A name no other process or thread is using at the same moment: `.tmp-<pid>-<n>-<nanos>`
-/// (see [`temp_owner`]).
-pub fn temp_name() -> String {
-    let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
-    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
-    format!(".tmp-{}-{n}-{nanos}", std::process::id())
-}
-
-/// The process id a [`temp_name`] carries, or `None` when `name` is not one.
-pub fn temp_owner(name: &str) -> Option<u32> {
-    name.strip_prefix(".tmp-")?.split('-').next()?.parse().ok()
 }
 
 /// blake3 of a file's bytes, streamed.

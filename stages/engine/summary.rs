@@ -42,9 +42,9 @@ pub struct RunSummary {
     /// Warnings (a cache entry that failed a check and was computed again) and waits for other
     /// processes' locks, one line each, in the order they happened.
     pub notices: Vec<String>,
-    /// Of `wall_seconds`, the time spent waiting for the cache's lock before the run could start
-    /// (another process held it exclusively: `gc`).
-    pub cache_lock_wait_seconds: f64,
+    /// Of `wall_seconds`, the time spent waiting for a `gc` on the cache (its live lease, on any
+    /// host) to finish before the run could start.
+    pub gc_wait_seconds: f64,
     /// Time stages spent waiting for keys other processes were computing, summed over the
     /// stages (so it can exceed `wall_seconds` when several waited at once).
     pub key_lock_wait_seconds: f64,
