@@ -4,8 +4,9 @@ mock.
 
 A four-patient phantom cohort (one patient in each of four shards) runs as a four-task array and
 the gather after it; every file the cohort writes is then the file one local `aret-pipe run`
-writes. Then one task is killed while it trains: the gather after the array fails naming that
-task's patient, and the task submitted again alone, then the gather, complete the cohort.
+writes. Then two tasks are stopped while they train, one cancelled through Slurm and one
+SIGKILLed: the gather after the array fails naming their patients, and those tasks submitted
+again, then the gather, complete the cohort.
 
 Skipped where slurm-wlm and munge are not installed, except when CI=true (CI installs them).
 """
@@ -258,17 +259,32 @@ def test_the_array_and_its_gather_write_what_one_local_run_writes(array_run, loc
     assert_same_outputs(folder / "out", local_run)
 
 
+def task_fields(task, env):
+    """`scontrol show job` of one array task (JOB_K) as {field: value}."""
+    shown = run(["scontrol", "-o", "show", "job", task], None, env).stdout
+    return dict(f.split("=", 1) for f in shown.split() if "=" in f)
+
+
+def kill_processes(job_id, env):
+    """SIGKILL every process of a running job (its own JobId), as `scontrol listpids` lists them."""
+    listed = run(["scontrol", "listpids", job_id], None, env).stdout
+    pids = re.findall(rf"^(\d+)\s+{job_id}\s", listed, re.M)
+    assert pids, f"no processes of job {job_id}:\n{listed}"
+    for pid in pids:
+        os.kill(int(pid), 9)
+
+
 def table(log: str, patient: str):
     """A patient's row of the table a run ends with: {stage: its outcome or seconds}."""
     header, row = (re.search(rf"^{name}\s.*$", log, re.M)[0].split() for name in ("patient", patient))
     return dict(zip(header[1:], row[1:]))
 
 
-def test_tasks_cancelled_or_killed_mid_run_fail_the_gather_until_submitted_again(array_run, cohort, cluster, tmp_path):
-    """Tasks 0 and 1 (the first two to run) each stop while their patient trains: task 0 is
-    cancelled by Slurm (`scancel`: SIGTERM, and SIGKILL only after KillWait, 30 s), so it
-    finishes the stage in progress and stops; task 1's process is killed outright (SIGKILL, as
-    the kernel's OOM killer or a lost node would), in the middle of that stage."""
+def test_tasks_stopped_mid_run_fail_the_gather_until_submitted_again(array_run, cohort, cluster, tmp_path):
+    """Tasks 0 and 1 (the first two to run) each stop while their patient trains. Task 0 is
+    cancelled: `scancel --signal=KILL` is a cancel to Slurm, which sends SIGTERM and SIGKILL only
+    after KillWait (30 s), so aret-pipe finishes the stage in progress and stops. Task 1's
+    process is killed outright (SIGKILL, as the kernel's OOM killer would), mid-stage."""
     env, _ = cluster
     folder = project(tmp_path, cohort)
     patients = cohort_shards(folder, env)
@@ -283,17 +299,12 @@ def test_tasks_cancelled_or_killed_mid_run_fail_the_gather_until_submitted_again
         for k in {0, 1} - stopped:
             if f"drr {patients[k]}: computed" not in (log[k].read_text() if log[k].exists() else ""):
                 continue
-            fields = dict(f.split("=", 1) for f in run(["scontrol", "-o", "show", "job", f"{array}_{k}"], None,
-                                                        env).stdout.split() if "=" in f)
+            fields = task_fields(f"{array}_{k}", env)
             assert fields["JobState"] == "RUNNING", fields
             if k == 0:
                 run(["scancel", "--signal=KILL", "--full", f"{array}_{k}"], None, env)
             else:
-                pids = re.findall(rf"^(\d+)\s+{fields['JobId']}\s", run(["scontrol", "listpids", fields["JobId"]],
-                                                                        None, env).stdout, re.M)
-                assert pids, f"no processes of task {array}_{k}"
-                for pid in pids:
-                    os.kill(int(pid), 9)
+                kill_processes(fields["JobId"], env)
             stopped.add(k)
         time.sleep(0.05)
     wait_for_empty_queue(env)
