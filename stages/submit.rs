@@ -36,14 +36,20 @@ fn quoted(path: &Path) -> anyhow::Result<String> {
     Ok(shlex::try_quote(text).with_context(|| format!("{text} cannot be quoted for a shell"))?.into_owned())
 }
 
+/// Where Slurm writes array task K's output: one file per job and task (`%A` the array's job id,
+/// `%a` the task), so a task submitted again does not overwrite the log of the run it replaces.
+pub const SLURM_SHARD_LOG: &str = "shard-%A_%a.out";
+/// Where Slurm writes the gather's output, one file per gather job (`%j`).
+pub const SLURM_GATHER_LOG: &str = "gather-%j.out";
+
 /// The array script and the gather script of a Slurm run.
 pub fn slurm_scripts(request: &SlurmRequest, launch: &Launch, logs: &Path) -> anyhow::Result<[String; 2]> {
     if request.shards == 0 {
         bail!("--array must be at least 1");
     }
     let (program, config, workdir) = (quoted(launch.program)?, quoted(launch.config)?, quoted(launch.workdir)?);
-    if logs.to_str().is_none_or(|l| l.contains(char::is_whitespace)) {
-        bail!("{}: Slurm's --output takes a path without spaces", logs.display());
+    if logs.to_str().is_none_or(|l| l.contains(char::is_whitespace) || l.contains('%')) {
+        bail!("{}: Slurm's --output takes a path without spaces or `%`", logs.display());
     }
     let mut directives = String::new();
     for (flag, value) in [("partition", &request.partition), ("time", &request.time), ("mem", &request.mem)] {
@@ -63,13 +69,13 @@ pub fn slurm_scripts(request: &SlurmRequest, launch: &Launch, logs: &Path) -> an
     let shards = format!(
         "{}# Task K of the array computes shard K of {n}: the per-patient stages of its patients.\n\
          exec {program} run {config} --shard-from-env --shard-count {n}\n",
-        head("aret-pipe-shards", &format!("#SBATCH --array=0-{}\n", request.shards - 1), "shard-%a.out"),
+        head("aret-pipe-shards", &format!("#SBATCH --array=0-{}\n", request.shards - 1), SLURM_SHARD_LOG),
         n = request.shards
     );
     let gather = format!(
         "{}# After every shard (afterany): the cohort stages, or the list of patients still missing.\n\
          exec {program} run {config} --gather\n",
-        head("aret-pipe-gather", "", "gather.out")
+        head("aret-pipe-gather", "", SLURM_GATHER_LOG)
     );
     Ok([shards, gather])
 }
@@ -125,7 +131,8 @@ pub fn kubernetes_manifests(request: &KubernetesRequest, config: &str) -> anyhow
     ))
 }
 
-/// `sbatch` the array, then the gather after it; returns both job ids.
+/// `sbatch` the array, then the gather after it; returns both job ids. When the gather is refused
+/// the error names the array's job id, which is queued by then.
 fn sbatch(shards_script: &Path, gather_script: &Path) -> anyhow::Result<[String; 2]> {
     let run = |args: &[&str], script: &Path| -> anyhow::Result<String> {
         let out = Command::new("sbatch")
@@ -142,7 +149,14 @@ fn sbatch(shards_script: &Path, gather_script: &Path) -> anyhow::Result<[String;
         Ok(text.trim().split(';').next().unwrap_or_default().to_string())
     };
     let array = run(&[], shards_script)?;
-    let gather = run(&[&format!("--dependency=afterany:{array}")], gather_script)?;
+    let after = format!("--dependency=afterany:{array}");
+    let gather = run(&[&after], gather_script).with_context(|| {
+        format!(
+            "the shards are queued as job {array} but the gather is not: submit it with `sbatch {after} {}`, \
+             or cancel the shards with `scancel {array}`",
+            gather_script.display()
+        )
+    })?;
     Ok([array, gather])
 }
 
@@ -197,13 +211,21 @@ pub fn slurm(
     if submit {
         let [array, gather] = sbatch(&shards_path, &gather_path)?;
         report.push_str(&format!(
-            "submitted: the shards as job {array}, the gather as job {gather} (afterany:{array})\n"
+            "submitted: the shards as job {array}, the gather as job {gather} (afterany:{array})\n\
+             logs: {logs}/{} for task K, {logs}/{}\n",
+            SLURM_SHARD_LOG.replace("%A", &array).replace("%a", "K"),
+            SLURM_GATHER_LOG.replace("%j", &gather),
+            logs = logs.display(),
         ));
     } else {
         report.push_str(&format!(
-            "submit with: jid=$(sbatch --parsable {}) && sbatch --dependency=afterany:$jid {}\n",
+            "submit with: jid=$(sbatch --parsable {}) && sbatch --dependency=afterany:$jid {}\n\
+             logs: {logs}/{} for task K of array job J, {logs}/{} for gather job G\n",
             shards_path.display(),
-            gather_path.display()
+            gather_path.display(),
+            SLURM_SHARD_LOG.replace("%A", "J").replace("%a", "K"),
+            SLURM_GATHER_LOG.replace("%j", "G"),
+            logs = logs.display(),
         ));
     }
     Ok(report)
@@ -262,6 +284,9 @@ mod tests {
         assert!(shards.contains("#SBATCH --partition=debug\n#SBATCH --time=01:00:00\n") && !shards.contains("--mem"));
         assert!(shards.contains("exec '/opt/aret pipe/aret-pipe' run /c/p.toml --shard-from-env --shard-count 4\n"));
         assert!(gather.contains("--gather") && !gather.contains("--array"), "{gather}");
+        assert!(shards.contains("#SBATCH --output=/c/logs/shard-%A_%a.out\n"), "{shards}");
+        assert!(gather.contains("#SBATCH --output=/c/logs/gather-%j.out\n"), "{gather}");
+        assert!(slurm_scripts(&request, &launch, Path::new("/c/100%")).is_err(), "% is Slurm's pattern mark");
         let bad = SlurmRequest { time: Some("1 h".into()), ..request };
         assert!(slurm_scripts(&bad, &launch, Path::new("/c/logs")).unwrap_err().to_string().contains("--time"));
     }

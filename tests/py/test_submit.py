@@ -1,6 +1,7 @@
 """`aret-pipe submit`: the Kubernetes manifests read with PyYAML as the Indexed Job of the
 shards and the gather Job, and the Slurm scripts checked by bash's own parser, each running the
-shard the scheduler hands it. (The real Slurm run is not here yet.)"""
+shard the scheduler hands it. tests/py/test_slurm.py submits them to a real single-node Slurm
+cluster (tools/slurm-local)."""
 import os
 import subprocess
 from pathlib import Path
