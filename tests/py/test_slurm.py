@@ -10,9 +10,7 @@ again, then the gather, complete the cohort.
 
 Skipped where slurm-wlm and munge are not installed, except when CI=true (CI installs them).
 """
-import csv
 import importlib.util
-import io
 import json
 import os
 import re
@@ -174,50 +172,16 @@ def job_states(job, env):
     return states
 
 
-# What two runs of one configuration legitimately write differently: how long things took, and
-# whether this run computed a stage or found it cached. Every other byte must be equal.
-TIMED_COLUMNS = {
-    # results.csv: each patient's training wall time (the last `seconds` of its train log).
-    "results.csv": "train_seconds",
-    # train_log.csv: the wall time at each logged iteration.
-    "train_log.csv": "seconds",
-}
-
-
-def csv_without(text: str, column: str):
-    rows = list(csv.reader(io.StringIO(text)))
-    drop = rows[0].index(column)
-    for row in rows[1:]:
-        float(row[drop])  # a time is there
-    return [row[:drop] + row[drop + 1 :] for row in rows]
-
-
-def report_without_times(text: str, patients):
-    """report.html less its two renderings of training time: each patient's row shows its
-    seconds in the cell before its DRR thumbnail, and the summary their sum."""
-    for patient in patients:
-        text, n = re.subn(rf'<td>[0-9.]+</td>(<td><a href="{patient}/drr_coronal\.png")', r"<td>·</td>\1", text)
-        assert n == 1, f"report.html: no training time in {patient}'s row (has the report changed?)"
-    text, n = re.subn(r"(training time, all scored patients</td><td class=l>)[0-9.]+ s", r"\1· s", text)
-    assert n == 1, "report.html: no total training time (has the report changed?)"
-    return text
-
-
 def assert_same_outputs(ours: Path, theirs: Path):
-    """Every file under two out dirs is the same file, but for TIMED_COLUMNS and report.html's
-    training times; run_report.json (each stage's outcome and seconds in that run) must list
-    the same stages of the same patients."""
+    """Every file under two out dirs is the same bytes (no artifact holds a wall time), but
+    run_report.json, the run's own record of what it computed or found cached and how long each
+    stage took: it must list the same stages of the same patients."""
     files = sorted(p.relative_to(ours) for p in ours.rglob("*") if p.is_file())
     assert files == sorted(p.relative_to(theirs) for p in theirs.rglob("*") if p.is_file())
     assert Path("results.csv") in files and len(files) > 30, files
     for rel in files:
         a, b = (ours / rel).read_bytes(), (theirs / rel).read_bytes()
-        if rel.name in TIMED_COLUMNS:
-            column = TIMED_COLUMNS[rel.name]
-            assert csv_without(a.decode(), column) == csv_without(b.decode(), column), rel
-        elif rel.name == "report.html":
-            assert report_without_times(a.decode(), PATIENTS) == report_without_times(b.decode(), PATIENTS)
-        elif rel.name == "run_report.json":
+        if rel.name == "run_report.json":
             stages = [{(r["unit"], r["stage"]) for r in json.loads(x)["records"]} for x in (a, b)]
             assert stages[0] == stages[1] and len(stages[0]) > 4 * 7, stages
         else:
@@ -344,6 +308,6 @@ def test_tasks_stopped_mid_run_fail_the_gather_until_submitted_again(array_run, 
     assert f"train {patients[1]}: computed" in (logs / f"shard-{again}_1.out").read_text()
     gathered = (logs / f"gather-{gather_again}.out").read_text()
     assert job_states(gather_again, env) == {None: ("COMPLETED", "0:0")}, gathered
-    results = [csv_without((f / "out" / "results.csv").read_text(), "train_seconds") for f in (folder, array_run[0])]
-    assert results[0] == results[1] and len(results[0]) == 1 + len(PATIENTS), results
+    results = [(f / "out" / "results.csv").read_bytes() for f in (folder, array_run[0])]
+    assert results[0] == results[1] and len(results[0].splitlines()) == 1 + len(PATIENTS), results
     assert_same_outputs(folder / "out", array_run[0] / "out")

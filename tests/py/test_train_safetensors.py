@@ -80,7 +80,8 @@ def test_model_loads_with_safetensors_and_numpy(runs):
 def test_training_log_and_plot(runs):
     rows = list(csv.DictReader((runs[0] / "train_log.csv").open()))
     assert [int(r["iteration"]) for r in rows] == [0, 20, 40, 60]
-    assert set(rows[0]) >= {"loss", "photo", "l1", "tv", "psnr_coronal_db", "psnr_sagittal_db", "psnr_axial_db", "lr", "seconds"}
+    assert set(rows[0]) >= {"loss", "photo", "l1", "tv", "psnr_coronal_db", "psnr_sagittal_db", "psnr_axial_db", "lr"}
+    assert "seconds" not in rows[0], "no output holds a wall time: whoever fits a key writes the same bytes"
     assert float(rows[-1]["psnr_coronal_db"]) > float(rows[0]["psnr_coronal_db"])
     assert (runs[0] / "loss.svg").read_text().startswith("<svg")
 

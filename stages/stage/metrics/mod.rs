@@ -11,7 +11,7 @@
 
 use crate::artifacts::{
     Artifact, BLAND_ALTMAN_PLOT, DRR_CORONAL_PREVIEW, GROUND_TRUTH, MODEL, NODULE_PREVIEW, REPORT, RESULT, RESULTS_CSV,
-    SCATTER_PLOT, SUMMARY, TARGET_SITE, TRAIN_LOG,
+    SCATTER_PLOT, SUMMARY, TARGET_SITE,
 };
 use crate::engine::{Context, Output, Stage};
 use crate::formats::model;
@@ -29,7 +29,7 @@ pub use rows::{PatientRow, Site, SizeClass};
 
 /// 10: the solid nodules' groups by site (`ingest/target_site.json`); 11: the diameter bands
 /// at and above 10 mm.
-pub const VERSION: u32 = 11;
+pub const VERSION: u32 = 12;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -51,7 +51,7 @@ pub struct Metrics {
 }
 
 /// What the cohort reads of each patient.
-const READ: [Artifact; 7] = [GROUND_TRUTH, TARGET_SITE, RESULT, NODULE_PREVIEW, TRAIN_LOG, MODEL, DRR_CORONAL_PREVIEW];
+const READ: [Artifact; 6] = [GROUND_TRUTH, TARGET_SITE, RESULT, NODULE_PREVIEW, MODEL, DRR_CORONAL_PREVIEW];
 
 impl Stage for Metrics {
     fn name(&self) -> &'static str {
@@ -86,13 +86,6 @@ impl Stage for Metrics {
             let truth: GroundTruth = serde_json::from_value(json(GROUND_TRUTH)?)?;
             let texture_mean = truth.target.and_then(|t| truth.nodules.get(t)).map(|n| n.texture_mean);
             let site: TargetSite = serde_json::from_value(json(TARGET_SITE)?)?;
-            // A tiled patient trained one field per box: its time is theirs together.
-            let mut seconds = 0.0;
-            for r in 0..ctx.patient_replica_count(patient) {
-                let log = String::from_utf8(ctx.read_patient_replica(patient, r, TRAIN_LOG.stage, TRAIN_LOG.file)?)?;
-                seconds += rows::train_seconds(&log)
-                    .with_context(|| format!("{patient}: {} of box {r} has no time", TRAIN_LOG.file))?;
-            }
             if info.lines.is_empty() {
                 (info.primary, info.blind) = (result.primary.name().into(), result.blind_rule.name().into());
                 let (_, _, meta) = model::decode(&ctx.read_patient_replica(patient, 0, MODEL.stage, MODEL.file)?)?;
@@ -125,7 +118,7 @@ impl Stage for Metrics {
                     format!("{} boxes a patient, ranked by response × depth", result.tiles.len()),
                 ));
             }
-            match PatientRow::new(&result, texture_mean, site.attached.map(Site::of), seconds) {
+            match PatientRow::new(&result, texture_mean, site.attached.map(Site::of)) {
                 Some(row) => {
                     rows.push(row);
                     thumbs.push(report::Thumbnails {

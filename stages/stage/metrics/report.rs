@@ -171,17 +171,14 @@ pub fn html(
     h.push_str("</table>\n<h2>Agreement</h2>\n<div class=plots>\n");
     h.push_str(scatter);
     h.push_str(bland_altman);
-    h.push_str("</div>\n<h2>Patients</h2>\n<table><tr><th class=l>patient</th><th>class</th><th>GT (mm³)</th><th>d (mm)</th><th>predicted</th><th>APE</th><th>localization</th><th>Dice</th><th>centroid (mm)</th><th>percentile</th><th>blind</th><th>blind APE</th><th>blind hit</th><th>sphere APE</th><th>oracle</th><th>train (s)</th><th>DRR</th><th>nodule.png</th></tr>\n");
+    h.push_str("</div>\n<h2>Patients</h2>\n<table><tr><th class=l>patient</th><th>class</th><th>GT (mm³)</th><th>d (mm)</th><th>predicted</th><th>APE</th><th>localization</th><th>Dice</th><th>centroid (mm)</th><th>percentile</th><th>blind</th><th>blind APE</th><th>blind hit</th><th>sphere APE</th><th>oracle</th><th>DRR</th><th>nodule.png</th></tr>\n");
     for (r, t) in rows.iter().zip(thumbs) {
         patient_row(&mut h, r, t);
     }
-    h.push_str("</table>\n<h2>Configuration and timings</h2>\n<table>\n");
+    h.push_str("</table>\n<h2>Configuration</h2>\n<table>\n");
     for (k, v) in &info.lines {
         let _ = writeln!(h, "<tr><td class=l>{}</td><td class=l>{}</td></tr>", escape(k), escape(v));
     }
-    let train_total: f64 = rows.iter().map(|r| r.train_seconds).sum();
-    let _ =
-        writeln!(h, "<tr><td class=l>training time, all scored patients</td><td class=l>{train_total:.1} s</td></tr>");
     h.push_str("</table>\n</body></html>\n");
     h
 }
@@ -296,7 +293,7 @@ fn patient_row(h: &mut String, r: &PatientRow, t: &Thumbnails) {
     };
     let _ = writeln!(
         h,
-        "<tr><td class=l>{}</td><td>{}</td><td>{:.0}</td><td>{:.1}</td><td>{}</td><td>{}</td><td>{loc}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{}</td></tr>",
+        "<tr><td class=l>{}</td><td>{}</td><td>{:.0}</td><td>{:.1}</td><td>{}</td><td>{}</td><td>{loc}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
         escape(&r.patient),
         [Some(r.size_class.name()), r.texture.map(|t| t.name()), r.site.map(|s| s.name())]
             .into_iter()
@@ -315,7 +312,6 @@ fn patient_row(h: &mut String, r: &PatientRow, t: &Thumbnails) {
         b.map_or("–", |m| if m.hit { "hit" } else { "MISS" }),
         r.sphere_ape_pct,
         if r.oracle_hit { "yes" } else { "no" },
-        r.train_seconds,
         img(&t.drr_coronal, 120, "drr_coronal.png"),
         img(&t.nodule, 160, "nodule.png"),
     );

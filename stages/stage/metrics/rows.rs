@@ -133,7 +133,6 @@ pub struct PatientRow {
     /// where the rule found none. A hit through a centre elsewhere is a large candidate that
     /// grazes the nodule, not localization.
     pub centre_on_nodule: CentreOnNodule,
-    pub train_seconds: f64,
 }
 
 /// Whether each rule's centre lies on the nodule (select's diagnostic `on_nodule`).
@@ -158,12 +157,7 @@ impl PatientRow {
     /// The row of `result`, or `None` when the patient has no ground-truth target. `texture_mean`
     /// is the target's mean texture rating (`ground_truth.json`), `site` where it lies
     /// (`target_site.json`).
-    pub fn new(
-        result: &SelectResult,
-        texture_mean: Option<f64>,
-        site: Option<Site>,
-        train_seconds: f64,
-    ) -> Option<PatientRow> {
+    pub fn new(result: &SelectResult, texture_mean: Option<f64>, site: Option<Site>) -> Option<PatientRow> {
         let (gt, d) = (result.gt_volume_mm3?, result.annotated_diameter_mm?);
         let measured = |s: &Selection| {
             let l = s.localization.expect("a patient with a target has localization");
@@ -198,14 +192,13 @@ impl PatientRow {
                 guided: result.centres.guided.as_ref().and_then(|c| c.on_nodule),
                 blind: result.centres.blind.as_ref().and_then(|c| c.on_nodule),
             },
-            train_seconds,
         })
     }
 }
 
 pub const RESULTS_HEADER: &str = "patient,size_class,gt_volume_mm3,gt_diameter_mm,pred_volume_mm3,ape_pct,\
 hit,dice,centroid_dist_mm,mesh_volume_mm3,percentile,blind_volume_mm3,blind_ape_pct,blind_hit,blind_dice,\
-sphere_volume_mm3,sphere_ape_pct,oracle_hit,train_seconds";
+sphere_volume_mm3,sphere_ape_pct,oracle_hit";
 
 /// `results.csv`: the SPEC's columns in order; an empty field where there is no value (no
 /// candidate survived), a non-finite distance as empty too. Fields are quoted where they must be
@@ -238,7 +231,6 @@ pub fn results_csv(rows: &[PatientRow]) -> String {
             num(Some(r.sphere_volume_mm3)),
             num(Some(r.sphere_ape_pct)),
             flag(Some(r.oracle_hit)),
-            num(Some(r.train_seconds)),
         ])
         .expect("writes to memory");
     }
@@ -253,13 +245,6 @@ pub fn spreadsheet_text(text: &str) -> String {
         Some('=' | '+' | '-' | '@' | '\t' | '\r') => format!("'{text}"),
         _ => text.to_string(),
     }
-}
-
-/// The `seconds` of the last row of a `train_log.csv`.
-pub fn train_seconds(log_csv: &str) -> Option<f64> {
-    let mut lines = log_csv.lines();
-    let column = lines.next()?.split(',').position(|c| c == "seconds")?;
-    lines.rfind(|l| !l.is_empty())?.split(',').nth(column)?.parse().ok()
 }
 
 #[cfg(test)]
@@ -292,13 +277,6 @@ mod tests {
     }
 
     #[test]
-    fn train_seconds_is_the_last_logged_time() {
-        let log = "iteration,loss,lr,seconds\n0,1,0.02,0.1\n100,0.5,0.01,12.5\n";
-        assert_eq!(train_seconds(log), Some(12.5));
-        assert_eq!(train_seconds("iteration\n1\n"), None);
-    }
-
-    #[test]
     fn an_id_with_a_comma_quote_or_newline_stays_one_field_of_one_row() {
         let row = |patient: &str| PatientRow {
             patient: patient.to_string(),
@@ -316,7 +294,6 @@ mod tests {
             reader_ape_pct: None,
             oracle_hit: false,
             centre_on_nodule: CentreOnNodule::default(),
-            train_seconds: 1.5,
         };
         let ids = ["a,b", "say \"hi\"", "two\nlines", "=HYPERLINK(\"http://x\")", "LIDC-IDRI-0001"];
         let text = results_csv(&ids.map(row));
@@ -324,10 +301,10 @@ mod tests {
         let read: Vec<csv::StringRecord> = reader.records().map(Result::unwrap).collect();
         assert_eq!(read.len(), ids.len());
         for (record, id) in read.iter().zip(ids) {
-            assert_eq!(record.len(), 19);
+            assert_eq!(record.len(), 18);
             assert_eq!(&record[0], spreadsheet_text(id));
             assert_eq!(&record[1], "medium");
-            assert_eq!(&record[18], "1.5000");
+            assert_eq!(&record[17], "0");
         }
     }
 
@@ -341,10 +318,8 @@ mod tests {
     }
 
     #[test]
-    fn the_header_has_the_specs_nineteen_columns() {
-        assert_eq!(RESULTS_HEADER.split(',').count(), 19);
-        assert!(
-            RESULTS_HEADER.starts_with("patient,size_class,") && RESULTS_HEADER.ends_with(",oracle_hit,train_seconds")
-        );
+    fn the_header_has_the_specs_columns_but_the_wall_time() {
+        assert_eq!(RESULTS_HEADER.split(',').count(), 18);
+        assert!(RESULTS_HEADER.starts_with("patient,size_class,") && RESULTS_HEADER.ends_with(",oracle_hit"));
     }
 }

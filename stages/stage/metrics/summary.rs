@@ -404,7 +404,6 @@ mod tests {
             ),
             oracle_hit: hit,
             centre_on_nodule: CentreOnNodule { guided: Some(hit), blind: None },
-            train_seconds: 1.0,
         }
     }
 
