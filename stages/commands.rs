@@ -36,7 +36,14 @@ pub struct RunArgs {
     /// Only the per-patient stages of this shard's patients ([`crate::shard`]).
     pub shard: Option<crate::shard::Shard>,
     /// Only the cohort stages, once every patient's results are cached.
-    pub gather: bool,
+    pub gather: Option<Gather>,
+}
+
+/// `run --gather`: the cohort stages over what the shards cached.
+#[derive(Debug, Default, Clone)]
+pub struct Gather {
+    /// How many shards computed the patients, so that a refusal names the shards to run again.
+    pub shard_count: Option<u64>,
 }
 
 /// What `aret-pipe status` shows.
@@ -78,9 +85,9 @@ fn prepare(
 
 /// `run --gather`: an error listing the patients whose per-patient results are not all cached,
 /// with the command that computes them, so the cohort stages never compute them themselves.
-fn refuse_missing_patients(config_path: &Path, p: &Prepared, verify: bool) -> anyhow::Result<()> {
+fn refuse_missing_patients(config_path: &Path, p: &Prepared, args: &RunArgs) -> anyhow::Result<()> {
     let per_patient: Vec<&str> = p.graph.per_patient().iter().map(|s| s.name()).collect();
-    let rows = preview::preview(&p.graph, &p.store, &p.units, verify, &[]);
+    let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &[]);
     let mut missing: Vec<&str> = rows
         .iter()
         .filter(|r| per_patient.contains(&r.stage.as_str()) && !matches!(r.state, State::Cached { .. }))
@@ -89,8 +96,22 @@ fn refuse_missing_patients(config_path: &Path, p: &Prepared, verify: bool) -> an
     missing.sort_unstable();
     missing.dedup();
     if !missing.is_empty() {
+        let shards = match args.gather.as_ref().and_then(|g| g.shard_count) {
+            Some(n) => {
+                let mut shards: Vec<u64> = missing.iter().map(|id| crate::shard::shard_of(id, n)).collect();
+                shards.sort_unstable();
+                shards.dedup();
+                let list: Vec<String> = shards.iter().map(u64::to_string).collect();
+                format!(
+                    "their shards of {n}: {} (a Slurm array: `sbatch --array={} submit/aret-shards.sbatch`), or ",
+                    list.join(", "),
+                    list.join(",")
+                )
+            }
+            None => "their shards, or ".into(),
+        };
         bail!(
-            "--gather: {} of {} patients are not computed yet: {}. Compute them first (their shards, or \
+            "--gather: {} of {} patients are not computed yet: {}. Compute them first ({shards}\
              `aret-pipe run {} --patients {} --until {}`), then gather again",
             missing.len(),
             p.units.len(),
@@ -127,8 +148,8 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         eprintln!("aret-pipe: {line}");
         waited_for.push(line);
     });
-    if args.gather {
-        refuse_missing_patients(config_path, &p, args.verify)?;
+    if args.gather.is_some() {
+        refuse_missing_patients(config_path, &p, args)?;
     }
     if args.dry_run {
         let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &force);

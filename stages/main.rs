@@ -54,8 +54,9 @@ enum Command {
         /// a Kubernetes Indexed Job (JOB_COMPLETION_INDEX, with --shard-count).
         #[arg(long, conflicts_with = "gather")]
         shard_from_env: bool,
-        /// The number of shards, for --shard-from-env where the scheduler does not say it.
-        #[arg(long, requires = "shard_from_env")]
+        /// The number of shards: for --shard-from-env where the scheduler does not say it, and for
+        /// --gather to name the shards of the patients still missing.
+        #[arg(long)]
         shard_count: Option<u64>,
         /// Run the cohort stages once every patient's results are cached (by the shards); fails
         /// naming the patients that are not, and the command that computes them.
@@ -272,11 +273,15 @@ fn main() -> ExitCode {
             gather,
         } => {
             let shard = match (shard, shard_from_env) {
+                _ if shard_count.is_some() && !shard_from_env && !gather => {
+                    Err(anyhow::anyhow!("--shard-count goes with --shard-from-env or --gather"))
+                }
                 (Some(text), _) => aret_pipe::shard::Shard::parse(&text).map(Some),
                 (None, true) => aret_pipe::shard::Shard::from_env(shard_count, |v| std::env::var(v).ok()).map(Some),
                 (None, false) => Ok(None),
             };
             shard.and_then(|shard| {
+                let gather = gather.then_some(commands::Gather { shard_count });
                 let args = RunArgs { sets, patients, until, force, dry_run, json, verify, copy, shard, gather };
                 commands::run(&config, &args)
             })

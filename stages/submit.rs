@@ -74,8 +74,9 @@ pub fn slurm_scripts(request: &SlurmRequest, launch: &Launch, logs: &Path) -> an
     );
     let gather = format!(
         "{}# After every shard (afterany): the cohort stages, or the list of patients still missing.\n\
-         exec {program} run {config} --gather\n",
-        head("aret-pipe-gather", "", SLURM_GATHER_LOG)
+         exec {program} run {config} --gather --shard-count {n}\n",
+        head("aret-pipe-gather", "", SLURM_GATHER_LOG),
+        n = request.shards
     );
     Ok([shards, gather])
 }
@@ -127,7 +128,7 @@ pub fn kubernetes_manifests(request: &KubernetesRequest, config: &str) -> anyhow
         "# The shards: pod K (JOB_COMPLETION_INDEX) computes shard K of {n}.\n{}---\n\
          # The gather: apply it once the shards' Job has completed (kubectl wait --for=condition=complete).\n{}",
         job("aret-pipe-shards", &["run", config, "--shard-from-env", "--shard-count", &n], true),
-        job("aret-pipe-gather", &["run", config, "--gather"], false)
+        job("aret-pipe-gather", &["run", config, "--gather", "--shard-count", &n], false)
     ))
 }
 

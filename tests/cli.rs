@@ -803,10 +803,13 @@ fn shards_compute_their_patients_and_the_gather_the_cohort_as_one_run_would() {
     assert_eq!(count(&first, "metrics", "computed") + count(&first, "metrics", "cached"), 0, "no cohort stage");
     let left: Vec<&str> = ids.iter().copied().filter(|id| shard_of(id) == 1).collect();
     if !left.is_empty() {
-        let gather = p.aret(&["run", "pipeline.toml", "--gather"]);
+        let gather = p.aret(&["run", "pipeline.toml", "--gather", "--shard-count", "2"]);
         let refused = text(&gather.stderr);
         assert!(!gather.status.success() && refused.contains(&left.join(", ")), "{refused}");
+        assert!(refused.contains("their shards of 2: 1 (a Slurm array: `sbatch --array=1 "), "{refused}");
     }
+    let alone = p.aret(&["run", "pipeline.toml", "--shard-count", "2"]);
+    assert!(text(&alone.stderr).contains("--shard-count goes with --shard-from-env or --gather"));
     // The second shard as a Slurm array task would run it.
     let second = p
         .command(&["run", "pipeline.toml", "--shard-from-env"])

@@ -289,11 +289,13 @@ def test_tasks_stopped_mid_run_fail_the_gather_until_submitted_again(array_run, 
     lost = sorted(patients[k] for k in (0, 1))
     assert f"2 of 4 patients are not computed yet: {', '.join(lost)}. " in gathered, gathered
     assert f"--patients {','.join(lost)} " in gathered, gathered
+    resubmit = "sbatch --array=0,1 submit/aret-shards.sbatch"
+    assert f"their shards of 4: 0, 1 (a Slurm array: `{resubmit}`)" in gathered, gathered
     assert not (folder / "out" / "results.csv").exists()
 
-    # Those two tasks again, as one array of two (whose SLURM_ARRAY_TASK_COUNT is 2: the script
-    # names the shard count itself), then the gather: the cohort is complete.
-    again = sbatch(["--array=0,1", "submit/aret-shards.sbatch"], folder, env)
+    # Those two tasks again as the gather said, one array of two (whose SLURM_ARRAY_TASK_COUNT is
+    # 2: the script names the shard count itself), then the gather: the cohort is complete.
+    again = sbatch(resubmit.split()[1:], folder, env)
     gather_again = sbatch([f"--dependency=afterok:{again}", "submit/aret-gather.sbatch"], folder, env)
     wait_for_empty_queue(env)
     assert job_states(again, env) == {0: ("COMPLETED", "0:0"), 1: ("COMPLETED", "0:0")}

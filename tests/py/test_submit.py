@@ -39,7 +39,7 @@ def test_kubernetes_gets_an_indexed_job_of_shards_and_a_gather_job(tmp_path):
     assert container["args"] == ["run", "cohort.toml", "--shard-from-env", "--shard-count", "3"]
     assert container["workingDir"] == container["volumeMounts"][0]["mountPath"] == "/work"
     assert pod["volumes"][0]["persistentVolumeClaim"]["claimName"] == "lidc" and pod["restartPolicy"] == "Never"
-    assert gather["spec"]["template"]["spec"]["containers"][0]["args"] == ["run", "cohort.toml", "--gather"]
+    assert gather["spec"]["template"]["spec"]["containers"][0]["args"] == ["run", "cohort.toml", "--gather", "--shard-count", "3"]
 
 
 def test_slurm_gets_an_array_script_and_a_gather_script_that_bash_accepts(tmp_path):
@@ -55,4 +55,4 @@ def test_slurm_gets_an_array_script_and_a_gather_script_that_bash_accepts(tmp_pa
     assert "#SBATCH --array=0-3\n" in shards and "--array" not in gather
     assert f"run {tmp_path / 'cohort.toml'} --shard-from-env --shard-count 4" in shards
     assert shards.splitlines()[-1].startswith("exec /"), "the tasks run this aret-pipe, named absolutely"
-    assert gather.rstrip().endswith("--gather")
+    assert gather.rstrip().endswith("--gather --shard-count 4"), "a refused gather names the shards to run again"
