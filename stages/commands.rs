@@ -79,6 +79,13 @@ fn prepare(
     Ok(Prepared { config, graph, units, store })
 }
 
+/// Prints the remote cache's warnings (a run prints its own as it goes).
+fn say_remote_notices(store: &Store) {
+    for line in store.remote().map(|r| r.take_notices()).unwrap_or_default() {
+        eprintln!("aret-pipe: {line}");
+    }
+}
+
 /// The remote cache at `url`, checked reachable (see [`RemoteCache::probe`] for why a run stops
 /// when it is not).
 fn open_remote(url: &str, config_path: &Path) -> anyhow::Result<std::sync::Arc<RemoteCache>> {
@@ -144,6 +151,7 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     }
     if args.dry_run {
         let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &force);
+        say_remote_notices(&p.store);
         if args.json {
             print!("{}", plan_json("dry-run", config_path, &p.graph, &rows)?);
         } else {
@@ -264,9 +272,7 @@ pub fn status(config_path: &Path, args: &StatusArgs) -> anyhow::Result<String> {
     let p = prepare(config_path, &args.sets, args.patients.as_deref(), None)?;
     let (_shared, _) = wait_for_cache(&p.store, &mut Vec::new())?;
     let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &[]);
-    for line in p.store.remote().map(|r| r.take_notices()).unwrap_or_default() {
-        eprintln!("aret-pipe: {line}");
-    }
+    say_remote_notices(&p.store);
     if args.json {
         return plan_json("status", config_path, &p.graph, &rows);
     }

@@ -445,4 +445,45 @@ mod tests {
         assert_eq!(std::fs::read(&object).unwrap(), b"remote bytes");
         std::fs::remove_dir_all(&dir).unwrap();
     }
+
+    #[test]
+    fn a_remote_that_fails_is_switched_off_with_one_warning() {
+        let dir = std::env::temp_dir().join(format!("aret-remote-off-{}", std::process::id()));
+        let there = dir.join("there");
+        std::fs::create_dir_all(&there).unwrap();
+        // A file where the blobs' folder should be: every upload fails.
+        std::fs::write(there.join("blobs"), b"not a folder").unwrap();
+        let remote = RemoteCache::open(&format!("file://{}", there.display())).unwrap();
+        let store = Store::open(&dir.join("here")).unwrap();
+        let made = |text: &[u8]| {
+            let output = store.put_blob("x.bin", text).unwrap();
+            Manifest {
+                stage: "s".into(),
+                version: 1,
+                key: Hash::of(text),
+                unit: "P1".into(),
+                params: serde_json::json!({}),
+                inputs: vec![],
+                outputs: vec![output],
+                wall_seconds: 1.0,
+                tool_version: "test".into(),
+                created_unix: 0,
+                digest: None,
+            }
+            .sealed()
+        };
+        remote.share(&store, &made(b"one"));
+        remote.share(&store, &made(b"two"));
+        let notices = remote.take_notices();
+        assert_eq!(notices.len(), 1, "{notices:?}");
+        assert!(notices[0].contains(&format!("the remote cache file://{}", there.display())), "{notices:?}");
+        assert!(notices[0].contains("goes on with the local cache alone"), "{notices:?}");
+        // Off: no further request, so a lookup through it is a plain miss.
+        std::fs::remove_file(there.join("blobs")).unwrap();
+        let expected = Expected { unit: "P1", inputs: &[] };
+        assert!(matches!(remote.read_through(&store, "s", &Hash::of(b"one"), &expected), Lookup::Miss));
+        remote.share(&store, &made(b"three"));
+        assert!(!there.join("blobs").exists() && remote.take_notices().is_empty());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
