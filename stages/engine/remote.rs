@@ -68,7 +68,7 @@ pub struct RemoteCache {
 /// Whether `url` names a remote cache this build can use: `Ok` with the URL as messages show it
 /// (no credentials), or why not. Reads no environment and makes no request.
 pub fn check_url(url: &str) -> Result<String, String> {
-    let parsed = url::Url::parse(url).map_err(|e| format!("`{url}` is not a URL ({e})"))?;
+    let parsed = url::Url::parse(url).map_err(|e| format!("`{}` is not a URL ({e})", redact(url)))?;
     let shown = shown_url(&parsed);
     if !parsed.username().is_empty() || parsed.password().is_some() || parsed.query().is_some() {
         return Err(format!(
