@@ -8,6 +8,7 @@ use crate::engine::lease::{self, Lease};
 use crate::engine::leftovers;
 use crate::engine::preview::{self, Row, State};
 use crate::engine::progress::{self, Progress};
+use crate::engine::remote::RemoteCache;
 use crate::engine::run::{self, Publish, RunOptions, RunSummary, StopRequest, Unit};
 use crate::engine::store::{Doomed, Store};
 use crate::engine::{Hash, StageGraph};
@@ -79,8 +80,32 @@ fn prepare(
         graph = graph.until(last)?;
     }
     let units = dataset::units(&config, patients)?;
-    let store = Store::open(&config.cache_dir())?;
+    let mut store = Store::open(&config.cache_dir())?;
+    if let Some(url) = config.cache_remote() {
+        store = store.with_remote(open_remote(url, config_path)?);
+    }
     Ok(Prepared { config, graph, units, store })
+}
+
+/// Prints the remote cache's warnings (a run prints its own as it goes).
+fn say_remote_notices(store: &Store) {
+    for line in store.remote().map(|r| r.take_notices()).unwrap_or_default() {
+        eprintln!("aret-pipe: {line}");
+    }
+}
+
+/// The remote cache at `url`, checked reachable (see [`RemoteCache::probe`] for why a run stops
+/// when it is not).
+fn open_remote(url: &str, config_path: &Path) -> anyhow::Result<std::sync::Arc<RemoteCache>> {
+    let remote = RemoteCache::open(url)?;
+    remote.probe().with_context(|| {
+        format!(
+            "[pipeline] cache_remote of {}: check the URL and the AWS_* / GOOGLE_* / AZURE_* variables, \
+             or run without it (--set pipeline.cache_remote='')",
+            config_path.display()
+        )
+    })?;
+    Ok(std::sync::Arc::new(remote))
 }
 
 /// `run --gather`: an error listing the patients whose per-patient results are not all cached,
@@ -153,6 +178,7 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     }
     if args.dry_run {
         let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &force);
+        say_remote_notices(&p.store);
         if args.json {
             print!("{}", plan_json("dry-run", config_path, &p.graph, &rows)?);
         } else {
@@ -179,7 +205,10 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     print!("{}", progress::table(&summary, &p.graph.names()));
     let metrics_done = summary.records.iter().any(|r| {
         r.stage == crate::artifacts::SUMMARY.stage
-            && matches!(r.outcome, run::Outcome::Cached { .. } | run::Outcome::Computed { .. })
+            && matches!(
+                r.outcome,
+                run::Outcome::Cached { .. } | run::Outcome::Fetched { .. } | run::Outcome::Computed { .. }
+            )
     });
     if metrics_done {
         if let Ok(json) = std::fs::read(options.out_dir.join(crate::artifacts::SUMMARY.file)) {
@@ -286,6 +315,7 @@ pub fn status(config_path: &Path, args: &StatusArgs) -> anyhow::Result<String> {
     let p = prepare(config_path, &args.sets, args.patients.as_deref(), None)?;
     lease::wait_while_gc(p.store.root(), &mut |line| eprintln!("aret-pipe: {line}"));
     let rows = preview::preview(&p.graph, &p.store, &p.units, args.verify, &[]);
+    say_remote_notices(&p.store);
     if args.json {
         return plan_json("status", config_path, &p.graph, &rows);
     }
@@ -382,7 +412,7 @@ pub struct GcArgs {
 }
 
 /// `aret-pipe gc`: deletes blobs no manifest references, and the `.tmp-*` files killed runs left
-/// in the configurations' out dirs; with `prune`, first forgets every stage result that none of
+/// in the configurations' out dirs (of the local cache only: it never touches `cache_remote`); with `prune`, first forgets every stage result that none of
 /// `config_paths` uses now (all must share one cache), and every result of the stages in
 /// `forget`. With `dry_run` it only reports what it would delete. Returns a one-line report.
 pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {

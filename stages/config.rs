@@ -47,6 +47,10 @@ pub struct PipelineSection {
     pub name: String,
     #[serde(default = "default_cache_dir")]
     pub cache_dir: PathBuf,
+    /// A remote cache shared by many machines behind `cache_dir` (`s3://bucket/prefix`,
+    /// `gs://…`, `az://…`, `file:///folder`; see `crate::engine::remote`). Unset or `""`: none.
+    #[serde(default)]
+    pub cache_remote: Option<String>,
     #[serde(default = "default_out_dir")]
     pub out_dir: PathBuf,
     /// Worker threads per stage (patients a stage works on at once).
@@ -188,6 +192,22 @@ impl Config {
         self.resolve(&self.pipeline.cache_dir)
     }
 
+    /// The remote cache's URL, if one is set (`""` sets none).
+    pub fn cache_remote(&self) -> Option<&str> {
+        self.pipeline.cache_remote.as_deref().filter(|url| !url.is_empty())
+    }
+
+    /// A `cache_remote` that is not a remote cache URL is an error naming the key, where it is
+    /// set (`where_is`) and the URLs it takes.
+    fn check_cache_remote(&self, where_is: impl Fn(&[&str]) -> Option<String>) -> anyhow::Result<()> {
+        let Some(url) = self.cache_remote() else { return Ok(()) };
+        if let Err(why) = crate::engine::remote::check_url(url) {
+            let place = where_is(&["pipeline", "cache_remote"]).map_or(String::new(), |w| format!("{w}: "));
+            bail!("{place}[pipeline] cache_remote: {why}; it takes {}", crate::engine::remote::SCHEMES);
+        }
+        Ok(())
+    }
+
     pub fn out_dir(&self) -> PathBuf {
         self.resolve(&self.pipeline.out_dir)
     }
@@ -281,6 +301,25 @@ mod tests {
         let text = MINIMAL.replace("name = \"t\"\n", "name = \"t\"\nstage_workers = { trian = 1 }\n");
         let e = Config::parse(&text).unwrap_err().to_string();
         assert!(e.contains("trian"), "{e}");
+    }
+
+    #[test]
+    fn cache_remote_takes_object_store_urls_and_names_itself_when_refused() {
+        let with = |url: &str| MINIMAL.replace("name = \"t\"\n", &format!("name = \"t\"\ncache_remote = \"{url}\"\n"));
+        for url in ["s3://bucket/prefix", "gs://bucket/a/b", "az://container/p", "azure://c/p", "file:///tmp/cache"] {
+            let c = Config::parse(&with(url)).unwrap();
+            assert_eq!(c.cache_remote(), Some(url));
+        }
+        assert_eq!(Config::parse(&with("")).unwrap().cache_remote(), None);
+        assert_eq!(Config::parse(MINIMAL).unwrap().cache_remote(), None);
+        for url in ["ftp://host/x", "bucket/prefix", "memory:///", "s3://KEYID:SECRET@bucket/p", "http://host/x"] {
+            let e = Config::parse(&with(url)).unwrap_err().to_string();
+            assert!(
+                e.contains("line 3") && e.contains("[pipeline] cache_remote") && e.contains("s3://bucket/prefix"),
+                "{e}"
+            );
+            assert!(!e.contains("SECRET"), "{e}");
+        }
     }
 
     #[test]

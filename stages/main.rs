@@ -78,6 +78,9 @@ enum Command {
     },
     /// Delete cache blobs that no manifest references; report the bytes freed.
     ///
+    /// It cleans the local cache (`cache_dir`) only: a remote cache (`cache_remote`) is never
+    /// read or changed by gc.
+    ///
     /// With --prune, first forget every cached stage result that none of the given
     /// configurations uses now (results of old parameters, other presets, other patients), so
     /// their blobs go too. Try --dry-run first: a forgotten result must be computed again.

@@ -191,6 +191,7 @@ impl Stack {
         super::ranges::check(&merged, |keys| self.where_is(keys))?;
         let config: Config = Value::Table(merged).try_into().map_err(|e: toml::de::Error| self.located(&e))?;
         config.check()?;
+        config.check_cache_remote(|keys| self.where_is(keys))?;
         Ok(config)
     }
 

@@ -14,6 +14,7 @@ pub mod lock;
 pub mod plan;
 pub mod preview;
 pub mod progress;
+pub mod remote;
 pub mod run;
 pub mod source;
 pub mod stage;

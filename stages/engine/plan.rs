@@ -82,6 +82,8 @@ pub fn key(stage: &dyn Stage, unit: &str, inputs: Vec<(String, String, Hash)>) -
 /// Cached (with its manifest), or to be computed (with the reasons).
 pub enum Decision {
     Cached(Box<Manifest>),
+    /// Served by the remote cache (see [`Lookup::Fetched`]).
+    Fetched(Box<Manifest>),
     Compute(Vec<String>),
     /// To be computed because its cache entry failed a check (a corrupt or missing blob, a
     /// manifest that does not match its key or digest): the reason names the stage, the unit
@@ -99,6 +101,7 @@ pub fn decide(store: &Store, stage: &dyn Stage, unit: &str, keyed: &Keyed, verif
     let expected = Expected { unit, inputs: &keyed.inputs };
     match store.lookup(stage.name(), &keyed.key, &expected, verify) {
         Lookup::Hit(m) => Decision::Cached(m),
+        Lookup::Fetched(m) => Decision::Fetched(m),
         Lookup::Broken(why) => Decision::Distrusted(why),
         Lookup::Miss => Decision::Compute(why_stale(store, stage, unit, keyed)),
     }

@@ -79,7 +79,7 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
                             gathered.clone().unwrap_or_else(|| plan::patient_inputs(stage, files, &lane.finished));
                         let keyed = plan::key(stage, &lane.unit, inputs);
                         let state = match plan::decide(store, stage, &lane.unit, &keyed, verify, forced) {
-                            Decision::Cached(m) => {
+                            Decision::Cached(m) | Decision::Fetched(m) => {
                                 lane.finished.insert(stage.name(), m.outputs);
                                 State::Cached { key: keyed.key }
                             }
@@ -113,7 +113,7 @@ pub fn preview(graph: &StageGraph, store: &Store, units: &[Unit], verify: bool, 
             let replicas = plan::CohortReplicas { finished: &cohort_replicas, names };
             let keyed = plan::key(stage, COHORT, plan::cohort_inputs(stage, &cohort, &replicas, &cohort_finished, &[]));
             let state = match plan::decide(store, stage, COHORT, &keyed, verify, forced) {
-                Decision::Cached(m) => {
+                Decision::Cached(m) | Decision::Fetched(m) => {
                     cohort_finished.insert(stage.name(), m.outputs);
                     State::Cached { key: keyed.key }
                 }

@@ -74,7 +74,8 @@ impl Progress {
             let mut counts = self.counts.lock().expect("progress counts");
             let c = counts.entry(stage.to_string()).or_default();
             match outcome {
-                Outcome::Cached { .. } => c.cached += 1,
+                // The tally counts a result fetched from the remote cache as cached.
+                Outcome::Cached { .. } | Outcome::Fetched { .. } => c.cached += 1,
                 Outcome::Computed { .. } => c.computed += 1,
                 Outcome::Failed { .. } => c.failed += 1,
                 // The tally names computed, cached and failed; the end table lists the rest.
@@ -149,8 +150,8 @@ pub fn grid(cells: &[(String, String, String)], stages: &[&str]) -> String {
     out
 }
 
-/// The end-of-run table: cached / seconds computed / FAILED / stopped (not started after a stop
-/// request) per patient and stage, totals, causes.
+/// The end-of-run table: cached / fetched (from the remote cache) / seconds computed / FAILED /
+/// stopped (not started after a stop request) per patient and stage, totals, causes.
 pub fn table(summary: &RunSummary, stages: &[&str]) -> String {
     let cells: Vec<(String, String, String)> = summary
         .records
@@ -158,6 +159,7 @@ pub fn table(summary: &RunSummary, stages: &[&str]) -> String {
         .map(|r| {
             let cell = match &r.outcome {
                 Outcome::Cached { .. } => "cached".to_string(),
+                Outcome::Fetched { .. } => "fetched".to_string(),
                 Outcome::Computed { seconds } => format!("{seconds:.2}s"),
                 Outcome::Failed { .. } => "FAILED".to_string(),
                 Outcome::Skipped { .. } => "skipped".to_string(),
@@ -168,10 +170,12 @@ pub fn table(summary: &RunSummary, stages: &[&str]) -> String {
         .collect();
     let mut out = grid(&cells, stages);
     let n = |f: fn(&Outcome) -> bool| summary.records.iter().filter(|r| f(&r.outcome)).count();
+    let fetched = n(|o| matches!(o, Outcome::Fetched { .. }));
     out.push_str(&format!(
-        "{} computed, {} cached, {} failed, {} skipped in {:.2} s{}\n",
+        "{} computed, {} cached{}, {} failed, {} skipped in {:.2} s{}\n",
         n(|o| matches!(o, Outcome::Computed { .. })),
         n(|o| matches!(o, Outcome::Cached { .. })),
+        if fetched > 0 { format!(", {fetched} fetched from the remote cache") } else { String::new() },
         n(|o| matches!(o, Outcome::Failed { .. })),
         n(|o| matches!(o, Outcome::Skipped { .. })),
         summary.wall_seconds,

@@ -204,7 +204,9 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
         notices: shared.notices.into_inner().expect("notices"),
         gc_wait_seconds: 0.0,
         key_lock_wait_seconds: shared.key_lock_wait.into_inner().expect("lock wait").as_secs_f64(),
+        fetched_from_remote: 0,
     }
+    .counted()
 }
 
 /// Pushes every unit through the per-patient stages, each stage with its own worker pool.
@@ -399,13 +401,21 @@ fn run_stage(
     let store = shared.store;
     let forced = shared.options.force.iter().any(|f| f == stage.name());
     let keyed = plan::key(stage, unit, inputs);
-    let served = |manifest: Box<Manifest>| {
-        let outcome = Outcome::Cached { seconds: manifest.wall_seconds };
+    let served = |manifest: Box<Manifest>, fetched: bool| {
+        let outcome = if fetched {
+            Outcome::Fetched { seconds: manifest.wall_seconds }
+        } else {
+            // A result cached here before the remote was configured (or before it was reachable).
+            share(shared, &manifest);
+            Outcome::Cached { seconds: manifest.wall_seconds }
+        };
         finish(shared, stage, &manifest, publish_dir).map(|()| (outcome, Some(manifest.outputs)))
     };
     let result = (|| -> anyhow::Result<(Outcome, Option<Vec<OutputRef>>)> {
-        if let Decision::Cached(m) = plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
-            return served(m);
+        match plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
+            Decision::Cached(m) => return served(m, false),
+            Decision::Fetched(m) => return served(m, true),
+            _ => {}
         }
         let what = format!("the lock on {} · {unit}", stage.name());
         let lock_path = store.lock_path(&format!("{}-{}", stage.name(), keyed.key.hex()));
@@ -414,7 +424,8 @@ fn run_stage(
         lock.describe_holder(&format!("aret-pipe computing {} for {unit}", stage.name()));
         // Another process may have computed it while we waited for the lock.
         match plan::decide(store, stage, unit, &keyed, shared.options.verify, forced) {
-            Decision::Cached(m) => return served(m),
+            Decision::Cached(m) => return served(m, false),
+            Decision::Fetched(m) => return served(m, true),
             Decision::Distrusted(why) => shared.notice(format!("warning: {why}; computing it again")),
             Decision::Compute(_) => {}
         }
@@ -456,10 +467,21 @@ fn run_stage(
         }
         .sealed();
         store.put_manifest(&manifest)?;
+        share(shared, &manifest);
         finish(shared, stage, &manifest, publish_dir)?;
         Ok((Outcome::Computed { seconds }, Some(refs)))
     })();
+    if let Some(remote) = store.remote() {
+        remote.take_notices().into_iter().for_each(|line| shared.notice(line));
+    }
     result.unwrap_or_else(|e| (Outcome::Failed { cause: format!("{e:#}") }, None))
+}
+
+/// Hands a result held locally to the remote cache, if there is one (it uploads what it lacks).
+fn share(shared: &Shared, manifest: &Manifest) {
+    if let Some(remote) = shared.store.remote() {
+        remote.share(shared.store, manifest);
+    }
 }
 
 /// Remembers the manifest as the unit's latest and publishes the outputs the stage shows.

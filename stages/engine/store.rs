@@ -20,6 +20,7 @@ use std::collections::HashSet;
 use std::fs;
 use std::io::Read;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// A stored output: its file name and the content hash of its bytes.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -103,6 +104,8 @@ pub struct InputRef {
 /// Whether a (stage, key) can be served from the cache.
 pub enum Lookup {
     Hit(Box<Manifest>),
+    /// A hit served by the remote cache: fetched, checked and now held locally too.
+    Fetched(Box<Manifest>),
     Miss,
     /// A manifest exists but cannot be trusted; the reason says why, naming the stage, the
     /// patient and the file.
@@ -111,6 +114,23 @@ pub enum Lookup {
 
 pub struct Store {
     root: PathBuf,
+    remote: Option<Arc<dyn Remote>>,
+}
+
+/// A shared cache behind the local one (`crate::remote::RemoteCache`): asked on every local
+/// miss, and handed every result a run computes or serves locally.
+pub trait Remote: Send + Sync {
+    /// On a local miss: the entry fetched into `store` ([`Lookup::Fetched`]), a miss, or why the
+    /// remote's entry cannot be trusted ([`Lookup::Broken`]).
+    fn read_through(&self, store: &Store, stage: &str, key: &Hash, expected: &Expected) -> Lookup;
+    /// Uploads `manifest` and its blobs from `store` where the remote lacks them. Never fails:
+    /// an error becomes a notice.
+    fn share(&self, store: &Store, manifest: &Manifest);
+    /// Whether this process fetched (stage, key) from the remote (so a local hit on it is
+    /// reported as fetched too: a gather's check for missing patients fetches before it runs).
+    fn fetched(&self, stage: &str, key: &Hash) -> bool;
+    /// The warnings since the last call, one line each.
+    fn take_notices(&self) -> Vec<String>;
 }
 
 impl Store {
@@ -120,7 +140,17 @@ impl Store {
             fs::create_dir_all(root.join(sub))
                 .with_context(|| format!("creating cache directory {}", root.join(sub).display()))?;
         }
-        Ok(Store { root: root.to_path_buf() })
+        Ok(Store { root: root.to_path_buf(), remote: None })
+    }
+
+    /// The store with `remote` behind it: lookups read through to it ([`Store::lookup`]).
+    pub fn with_remote(self, remote: Arc<dyn Remote>) -> Store {
+        Store { remote: Some(remote), ..self }
+    }
+
+    /// The remote cache behind this one, if any.
+    pub fn remote(&self) -> Option<&dyn Remote> {
+        self.remote.as_deref()
     }
 
     pub fn root(&self) -> &Path {
@@ -190,12 +220,12 @@ impl Store {
     /// Looks up (stage, key): a hit only when the manifest parses, describes this stage, key,
     /// unit and inputs, its digest matches (with `verify`, it must have one), and every blob it
     /// names re-hashes to its name. A broken entry's reason names the stage, the unit and the
-    /// file.
+    /// file. A local miss reads through to the remote cache, if there is one.
     pub fn lookup(&self, stage: &str, key: &Hash, expected: &Expected, verify: bool) -> Lookup {
         let path = self.manifest_path(stage, key);
         let text = match fs::read(&path) {
             Ok(t) => t,
-            Err(_) => return Lookup::Miss,
+            Err(_) => return self.remote().map_or(Lookup::Miss, |r| r.read_through(self, stage, key, expected)),
         };
         let broken = |why: String| Lookup::Broken(format!("{stage} · {}: {why}", expected.unit));
         let manifest: Manifest = match serde_json::from_slice(&text) {
@@ -210,7 +240,10 @@ impl Store {
                 return broken(why);
             }
         }
-        Lookup::Hit(Box::new(manifest))
+        match self.remote() {
+            Some(remote) if remote.fetched(stage, key) => Lookup::Fetched(Box::new(manifest)),
+            _ => Lookup::Hit(Box::new(manifest)),
+        }
     }
 
     /// Records a computed stage: manifest last, after its blobs are in place.
@@ -286,7 +319,7 @@ impl Store {
 }
 
 /// Why `manifest`, found under (stage, key), does not describe that entry, or `None`.
-fn manifest_mismatch(
+pub(crate) fn manifest_mismatch(
     manifest: &Manifest,
     stage: &str,
     key: &Hash,

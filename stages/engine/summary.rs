@@ -11,6 +11,11 @@ pub enum Outcome {
     Cached {
         seconds: f64,
     },
+    /// Served from the remote cache, fetched into the local one (the seconds it originally took
+    /// to compute).
+    Fetched {
+        seconds: f64,
+    },
     Computed {
         seconds: f64,
     },
@@ -48,9 +53,17 @@ pub struct RunSummary {
     /// Time stages spent waiting for keys other processes were computing, summed over the
     /// stages (so it can exceed `wall_seconds` when several waited at once).
     pub key_lock_wait_seconds: f64,
+    /// How many of the records were served from the remote cache ([`Outcome::Fetched`]).
+    pub fetched_from_remote: usize,
 }
 
 impl RunSummary {
+    /// The summary with [`RunSummary::fetched_from_remote`] counted from its records.
+    pub fn counted(mut self) -> RunSummary {
+        self.fetched_from_remote = self.records.iter().filter(|r| matches!(r.outcome, Outcome::Fetched { .. })).count();
+        self
+    }
+
     pub fn failures(&self) -> impl Iterator<Item = &Record> {
         self.records.iter().filter(|r| matches!(r.outcome, Outcome::Failed { .. }))
     }
