@@ -209,6 +209,10 @@ struct SubmitShards {
     /// How many shards (array tasks).
     #[arg(long)]
     array: u64,
+    /// At most M shards at once (Slurm's `--array=0-N%M`, a Job's `parallelism`). Many small
+    /// shards, a few at a time, balance the load: a free machine takes the next shard.
+    #[arg(long, value_name = "M")]
+    max_running: Option<u64>,
     /// The folder the job files are written to.
     #[arg(long, default_value = "submit")]
     out: PathBuf,
@@ -326,12 +330,22 @@ fn main() -> ExitCode {
         }
         Command::Submit { target } => match target {
             SubmitTarget::Slurm { config, shards, partition, time, mem, submit } => {
-                let request = aret_pipe::submit::SlurmRequest { shards: shards.array, partition, time, mem };
+                let request = aret_pipe::submit::SlurmRequest {
+                    shards: shards.array,
+                    max_running: shards.max_running,
+                    partition,
+                    time,
+                    mem,
+                };
                 aret_pipe::submit::slurm(&config, &request, &shards.out, submit, shards.dry_run)
             }
             SubmitTarget::K8s { config, shards, image, cache_pvc } => {
-                let request =
-                    aret_pipe::submit::KubernetesRequest { shards: shards.array, image: &image, claim: &cache_pvc };
+                let request = aret_pipe::submit::KubernetesRequest {
+                    shards: shards.array,
+                    max_running: shards.max_running,
+                    image: &image,
+                    claim: &cache_pvc,
+                };
                 aret_pipe::submit::kubernetes(&config, &request, &shards.out, shards.dry_run)
             }
         }

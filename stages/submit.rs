@@ -15,9 +15,25 @@ use std::process::Command;
 #[derive(Debug, Clone, Default)]
 pub struct SlurmRequest {
     pub shards: u64,
+    /// At most this many shards at once (Slurm's array throttle, `%M`); `None`: all.
+    pub max_running: Option<u64>,
     pub partition: Option<String>,
     pub time: Option<String>,
     pub mem: Option<String>,
+}
+
+/// How many shards run at once: `max_running` (at least 1, at most `shards`), else all of them.
+/// Many small shards a few at a time balance the load across machines: each machine takes the
+/// next shard when it is free, where one big shard a machine waits for the slowest.
+fn max_running(shards: u64, max_running: Option<u64>) -> anyhow::Result<u64> {
+    if shards == 0 {
+        bail!("--array must be at least 1");
+    }
+    match max_running {
+        Some(0) => bail!("--max-running must be at least 1"),
+        Some(m) => Ok(m.min(shards)),
+        None => Ok(shards),
+    }
 }
 
 /// Where the tasks find the tool and the configuration.
@@ -44,9 +60,7 @@ pub const SLURM_GATHER_LOG: &str = "gather-%j.out";
 
 /// The array script and the gather script of a Slurm run.
 pub fn slurm_scripts(request: &SlurmRequest, launch: &Launch, logs: &Path) -> anyhow::Result<[String; 2]> {
-    if request.shards == 0 {
-        bail!("--array must be at least 1");
-    }
+    let running = max_running(request.shards, request.max_running)?;
     let (program, config, workdir) = (quoted(launch.program)?, quoted(launch.config)?, quoted(launch.workdir)?);
     if logs.to_str().is_none_or(|l| l.contains(char::is_whitespace) || l.contains('%')) {
         bail!("{}: Slurm's --output takes a path without spaces or `%`", logs.display());
@@ -69,7 +83,14 @@ pub fn slurm_scripts(request: &SlurmRequest, launch: &Launch, logs: &Path) -> an
     let shards = format!(
         "{}# Task K of the array computes shard K of {n}: the per-patient stages of its patients.\n\
          exec {program} run {config} --shard-from-env --shard-count {n}\n",
-        head("aret-pipe-shards", &format!("#SBATCH --array=0-{}\n", request.shards - 1), SLURM_SHARD_LOG),
+        head(
+            "aret-pipe-shards",
+            &match request.max_running {
+                Some(_) => format!("#SBATCH --array=0-{}%{running}\n", request.shards - 1),
+                None => format!("#SBATCH --array=0-{}\n", request.shards - 1),
+            },
+            SLURM_SHARD_LOG
+        ),
         n = request.shards
     );
     let gather = format!(
@@ -84,6 +105,8 @@ pub fn slurm_scripts(request: &SlurmRequest, launch: &Launch, logs: &Path) -> an
 /// What a Kubernetes run mounts and runs.
 pub struct KubernetesRequest<'a> {
     pub shards: u64,
+    /// At most this many pods at once (the Job's `parallelism`); `None`: all.
+    pub max_running: Option<u64>,
     pub image: &'a str,
     /// The PersistentVolumeClaim holding the configuration, the dataset and the cache, mounted
     /// at [`K8S_MOUNT`] where the tasks run.
@@ -96,15 +119,13 @@ pub const K8S_MOUNT: &str = "/work";
 /// The Indexed Job of the shards and the gather Job, as one YAML stream. `config` is the
 /// configuration's path inside the claim.
 pub fn kubernetes_manifests(request: &KubernetesRequest, config: &str) -> anyhow::Result<String> {
-    if request.shards == 0 {
-        bail!("--array must be at least 1");
-    }
+    let running = max_running(request.shards, request.max_running)?;
     let q = |s: &str| serde_json::to_string(s).expect("a string serialises");
     let job = |name: &str, args: &[&str], indexed: bool| {
         let spec = if indexed {
             format!(
-                "  completionMode: Indexed\n  completions: {n}\n  parallelism: {n}\n  backoffLimitPerIndex: 1\n",
-                n = request.shards
+                "  completionMode: Indexed\n  completions: {}\n  parallelism: {running}\n  backoffLimitPerIndex: 1\n",
+                request.shards
             )
         } else {
             "  backoffLimit: 1\n".to_string()
@@ -273,8 +294,13 @@ mod tests {
 
     #[test]
     fn the_slurm_scripts_run_each_shard_then_the_gather_with_quoted_paths() {
-        let request =
-            SlurmRequest { shards: 4, partition: Some("debug".into()), time: Some("01:00:00".into()), mem: None };
+        let request = SlurmRequest {
+            shards: 4,
+            max_running: None,
+            partition: Some("debug".into()),
+            time: Some("01:00:00".into()),
+            mem: None,
+        };
         let launch = Launch {
             program: Path::new("/opt/aret pipe/aret-pipe"),
             config: Path::new("/c/p.toml"),
@@ -288,6 +314,14 @@ mod tests {
         assert!(shards.contains("#SBATCH --output=/c/logs/shard-%A_%a.out\n"), "{shards}");
         assert!(gather.contains("#SBATCH --output=/c/logs/gather-%j.out\n"), "{gather}");
         assert!(slurm_scripts(&request, &launch, Path::new("/c/100%")).is_err(), "% is Slurm's pattern mark");
+        let throttled = SlurmRequest { shards: 256, max_running: Some(32), ..request.clone() };
+        let [shards, _] = slurm_scripts(&throttled, &launch, Path::new("/c/logs")).unwrap();
+        assert!(shards.contains("#SBATCH --array=0-255%32\n") && shards.contains("--shard-count 256\n"), "{shards}");
+        let never = SlurmRequest { max_running: Some(0), ..request.clone() };
+        assert!(slurm_scripts(&never, &launch, Path::new("/c/logs"))
+            .unwrap_err()
+            .to_string()
+            .contains("--max-running"));
         let bad = SlurmRequest { time: Some("1 h".into()), ..request };
         assert!(slurm_scripts(&bad, &launch, Path::new("/c/logs")).unwrap_err().to_string().contains("--time"));
     }

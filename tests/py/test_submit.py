@@ -27,12 +27,12 @@ def test_kubernetes_gets_an_indexed_job_of_shards_and_a_gather_job(tmp_path):
     counts = [int(line.split(": ")[1].split()[0]) for line in shown.splitlines() if line.startswith("shard ")]
     assert len(counts) == 3 and sum(counts) == 19, shown
     assert not (tmp_path / "submit").exists(), "a dry run writes nothing"
-    aret("submit", "k8s", "cohort.toml", "--array", "3", "--image", "registry.example/aret-pipe:1",
-         "--cache-pvc", "lidc", cwd=tmp_path)
+    aret("submit", "k8s", "cohort.toml", "--array", "3", "--max-running", "2", "--image",
+         "registry.example/aret-pipe:1", "--cache-pvc", "lidc", cwd=tmp_path)
     shards, gather = yaml.safe_load_all((tmp_path / "submit" / "aret-pipe-jobs.yaml").read_text())
     assert shards["kind"] == gather["kind"] == "Job" and shards["apiVersion"] == "batch/v1"
     assert (shards["spec"]["completionMode"], shards["spec"]["completions"], shards["spec"]["parallelism"]) == (
-        "Indexed", 3, 3)
+        "Indexed", 3, 2)
     pod = shards["spec"]["template"]["spec"]
     container = pod["containers"][0]
     assert container["image"] == "registry.example/aret-pipe:1" and container["command"] == ["aret-pipe"]
