@@ -500,6 +500,77 @@ fn a_run_killed_at_any_moment_leaves_nothing_a_later_run_trusts() {
     }
 }
 
+/// `aret-pipe ARGS` in the project's folder as a process on another host: in a UTS namespace of
+/// its own named `host` (`unshare --uts`, which needs root); `None` where namespaces are refused.
+fn on_other_host(p: &Project, host: &str, args: &str) -> Option<std::process::Child> {
+    let probe = Command::new("unshare").args(["--uts", "true"]).output();
+    if !probe.is_ok_and(|o| o.status.success()) {
+        eprintln!("skipped: `unshare --uts` is not allowed here (it needs root)");
+        return None;
+    }
+    let script = format!("hostname {host} && exec {BIN} {args}");
+    let child = Command::new("unshare")
+        .args(["--uts", "sh", "-c", &script])
+        .current_dir(p.path(""))
+        .env("CI", "true")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    Some(child)
+}
+
+#[test]
+fn a_run_killed_on_another_host_holds_gc_off_until_its_lease_expires() {
+    let p = Project::new(&[], 0);
+    for id in ["P1", "P2", "P3"] {
+        p.write_patient(id, &big_series(24));
+    }
+    let Some(mut child) = on_other_host(&p, "node-b", "run pipeline.toml") else { return };
+    // unshare and sh exec: the run keeps the child's pid. It names its lease after its host.
+    let lease = p.path(&format!("cache/leases/node_b-{}-0.json", child.id()));
+    let started = std::time::Instant::now();
+    while !lease.exists() && started.elapsed() < std::time::Duration::from_secs(20) {
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    assert!(lease.exists(), "no lease of node-b's run in {:?}", p.path("cache/leases"));
+    std::thread::sleep(std::time::Duration::from_millis(200));
+    unsafe_kill(child.id());
+    let _ = child.wait();
+    let killed = child.id();
+
+    // Here its pid means nothing: only its lease's expiry ends it. gc refuses, naming it.
+    let gc = p.aret(&["gc", "pipeline.toml"]);
+    assert!(!gc.status.success(), "{}", text(&gc.stdout));
+    assert!(text(&gc.stderr).contains(&format!("aret-pipe run on node_b (pid {killed})")), "{}", text(&gc.stderr));
+    // A run here goes on beside it, and leaves a temporary file of node-b alone, one of a
+    // process that ended here not.
+    std::fs::create_dir_all(p.path("out/P1")).unwrap();
+    let theirs = p.path(&format!("out/P1/.tmp-node_b-{killed}-0-1"));
+    let ours = p.path(&format!(
+        "out/P1/.tmp-{}-{}-0-1",
+        aret_pipe::engine::files::this_host(),
+        support::toy_stages::ended_pid()
+    ));
+    for file in [&theirs, &ours] {
+        std::fs::write(file, "half").unwrap();
+    }
+    p.run(&[]);
+    assert!(theirs.exists() && !ours.exists());
+    // Its leases expire (as 120 s without renewal would have them): then gc goes on, and takes
+    // node-b's leftovers and its leases.
+    let leases: Vec<PathBuf> = std::fs::read_dir(p.path("cache/leases")).unwrap().map(|e| e.unwrap().path()).collect();
+    assert!(leases.contains(&lease) && leases.iter().all(|l| l.to_string_lossy().contains("/node_b-")), "{leases:?}");
+    for path in &leases {
+        let mut record: Value = serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap();
+        record["expires_unix"] = Value::from(aret_pipe::engine::lease::unix_now() - 1);
+        std::fs::write(path, serde_json::to_vec(&record).unwrap()).unwrap();
+    }
+    let gc = p.aret(&["gc", "pipeline.toml"]);
+    assert!(gc.status.success(), "{}", text(&gc.stderr));
+    assert!(!theirs.exists() && std::fs::read_dir(p.path("cache/leases")).unwrap().next().is_none());
+}
+
 #[test]
 fn sigterm_lets_the_stages_in_progress_finish_and_the_next_run_goes_on() {
     let p = Project::new(&[], 0);
