@@ -174,6 +174,9 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
         waited_for.push(line);
     });
     if args.gather.is_some() {
+        if !args.verify {
+            p.store.check_sizes_only();
+        }
         refuse_missing_patients(config_path, &p, args)?;
     }
     if args.dry_run {

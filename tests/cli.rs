@@ -896,4 +896,21 @@ fn shards_compute_their_patients_and_the_gather_the_cohort_as_one_run_would() {
     let summary: Value = serde_json::from_slice(&read("out/summary.json".into())).unwrap();
     assert_eq!(summary["unscored"].as_array().map(Vec::len), Some(4), "{summary}");
     assert_eq!(read("out/summary.json".into()), read("out-whole/summary.json".into()));
+
+    // A gather checks the sizes of the per-patient blobs it serves; what the cohort stages read
+    // is hashed as they read it, and --verify hashes the rest. A byte changed in P1's ct_unit
+    // (read by no cohort stage), through its published link to the blob:
+    let blob = p.path("out/P1/ct_unit.raw");
+    let mut bytes = std::fs::read(&blob).unwrap();
+    bytes[7] ^= 0x5a;
+    std::fs::set_permissions(&blob, std::os::unix::fs::PermissionsExt::from_mode(0o644)).unwrap();
+    std::fs::write(&blob, &bytes).unwrap();
+    let gathered = p.run(&["--gather"]);
+    assert_eq!((count(&gathered, "hu", "cached"), count(&gathered, "metrics", "cached")), (4, 1));
+    let verified = p.aret(&["run", "pipeline.toml", "--gather", "--verify"]);
+    let refused = text(&verified.stderr);
+    assert!(!verified.status.success() && refused.contains("1 of 4 patients are not computed yet: P1."), "{refused}");
+    let mended = p.run(&[]);
+    assert_eq!(count(&mended, "hu", "computed"), 1, "a plain run hashes every hit");
+    assert!(p.run(&["--gather", "--verify"])["notices"].as_array().unwrap().is_empty());
 }

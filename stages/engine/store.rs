@@ -10,7 +10,8 @@
 //! a manifest is written only after all its blobs: a run killed at any moment leaves either
 //! nothing or temporary files no reader trusts. A manifest is trusted only when it describes
 //! the (stage, key, patient, inputs) it is looked up for, its digest binds its outputs to that
-//! key, and each blob it names re-hashes to its name (see [`Store::lookup`]).
+//! key, and each blob it names re-hashes to its name, or for a gather has its size (see
+//! [`Store::lookup`], [`Store::check_sizes_only`]).
 
 use super::files::write_atomic;
 use super::key::Hash;
@@ -115,6 +116,9 @@ pub enum Lookup {
 pub struct Store {
     root: PathBuf,
     remote: Option<Arc<dyn Remote>>,
+    /// Whether a cache hit re-hashes its blobs (the default) or checks their sizes only
+    /// ([`Store::check_sizes_only`]).
+    hash_hits: bool,
 }
 
 /// A shared cache behind the local one (`crate::remote::RemoteCache`): asked on every local
@@ -140,7 +144,7 @@ impl Store {
             fs::create_dir_all(root.join(sub))
                 .with_context(|| format!("creating cache directory {}", root.join(sub).display()))?;
         }
-        Ok(Store { root: root.to_path_buf(), remote: None })
+        Ok(Store { root: root.to_path_buf(), remote: None, hash_hits: true })
     }
 
     /// The store with `remote` behind it: lookups read through to it ([`Store::lookup`]).
@@ -185,15 +189,29 @@ impl Store {
         let output = OutputRef { name: name.to_string(), hash, size: bytes.len() as u64 };
         // A copy that checks out stays: another host may be reading it, and replacing a file
         // under an NFS reader fails its read. A corrupt copy is replaced.
-        if self.check_blob(&output).is_some() {
+        if self.blob_fault(&output, true).is_some() {
             write_atomic(&path, bytes, true)?;
         }
         Ok(output)
     }
 
     /// Why a stored output cannot be used, or `None` when it can: the blob must exist, have its
-    /// recorded size and re-hash to its name.
+    /// recorded size and re-hash to its name (unless [`Store::check_sizes_only`]).
     pub fn check_blob(&self, output: &OutputRef) -> Option<String> {
+        self.blob_fault(output, self.hash_hits)
+    }
+
+    /// From now on, a cache hit checks that each blob exists at its recorded size, and does not
+    /// re-hash it. For a gather over a cluster's cache (`run --gather`): the shards hashed what
+    /// they computed and served, every byte a stage reads is hashed as it is read
+    /// ([`crate::stage::Context::read`]), and re-hashing all of a large cohort's upstream blobs
+    /// would read hundreds of gigabytes from the file server. `--verify` keeps the full check.
+    pub fn check_sizes_only(&mut self) {
+        self.hash_hits = false;
+    }
+
+    /// Why `output` cannot be used: missing, of another size, or (with `hash`) corrupt.
+    fn blob_fault(&self, output: &OutputRef, hash: bool) -> Option<String> {
         let path = self.blob_path(&output.hash);
         let name = &output.name;
         match fs::metadata(&path) {
@@ -206,6 +224,7 @@ impl Store {
                     output.size
                 ))
             }
+            Ok(_) if !hash => return None,
             Ok(_) => {}
         }
         match hash_file(&path) {
@@ -219,7 +238,7 @@ impl Store {
 
     /// Looks up (stage, key): a hit only when the manifest parses, describes this stage, key,
     /// unit and inputs, its digest matches (with `verify`, it must have one), and every blob it
-    /// names re-hashes to its name. A broken entry's reason names the stage, the unit and the
+    /// names passes [`Store::check_blob`]. A broken entry's reason names the stage, the unit and the
     /// file. A local miss reads through to the remote cache, if there is one.
     pub fn lookup(&self, stage: &str, key: &Hash, expected: &Expected, verify: bool) -> Lookup {
         let path = self.manifest_path(stage, key);
