@@ -48,14 +48,25 @@ pub fn publish(
         if how == Publish::Copies && !linked && holds(&target, output) {
             continue;
         }
-        let tmp = dir.join(temp_name());
-        let placed = place(how, &blob, &tmp);
-        if let Err(e) = placed.and_then(|()| fs::rename(&tmp, &target)) {
-            let _ = fs::remove_file(&tmp);
-            return Err(e).with_context(|| format!("publishing {} as {}", blob.display(), target.display()));
-        }
+        replace(how, &blob, &dir.join(temp_name()), &target)
+            .with_context(|| format!("publishing {} as {}", blob.display(), target.display()))?;
     }
     Ok(())
+}
+
+/// Puts `blob`'s bytes at `target` as `how` publishes them, through the temporary name `tmp`,
+/// which is gone afterwards whatever happened.
+fn replace(how: Publish, blob: &Path, tmp: &Path, target: &Path) -> std::io::Result<()> {
+    if let Err(e) = place(how, blob, tmp).and_then(|()| fs::rename(tmp, target)) {
+        let _ = fs::remove_file(tmp);
+        return Err(e);
+    }
+    // Renaming a link onto another link to the same file does nothing and succeeds (POSIX), so
+    // `tmp` stays when another process published the same blob at `target` meanwhile.
+    match fs::remove_file(tmp) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
+        _ => Ok(()),
+    }
 }
 
 /// Writes `blob`'s bytes at `tmp` as `how` publishes them.
@@ -117,4 +128,25 @@ fn same_file(a: &Path, b: &Path) -> bool {
 #[cfg(not(unix))]
 fn same_file(_a: &Path, _b: &Path) -> bool {
     false
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_link_renamed_onto_a_link_to_the_same_blob_leaves_no_temporary_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let (blob, tmp, target) = (dir.path().join("blob"), dir.path().join(".tmp-x-1-0-0"), dir.path().join("out"));
+        fs::write(&blob, "abcde").unwrap();
+        // Another process published the blob at `target` after this one found it absent.
+        fs::hard_link(&blob, &target).unwrap();
+        replace(Publish::Links, &blob, &tmp, &target).unwrap();
+        assert!(same_file(&blob, &target) && !tmp.exists());
+        // The usual case: a copy replaced by a link.
+        fs::remove_file(&target).unwrap();
+        fs::write(&target, "old").unwrap();
+        replace(Publish::Links, &blob, &tmp, &target).unwrap();
+        assert!(same_file(&blob, &target) && !tmp.exists());
+    }
 }
