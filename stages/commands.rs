@@ -128,9 +128,11 @@ fn refuse_missing_patients(config_path: &Path, p: &Prepared, args: &RunArgs) -> 
                 shards.dedup();
                 let list: Vec<String> = shards.iter().map(u64::to_string).collect();
                 format!(
-                    "their shards of {n}: {} (a Slurm array: `sbatch --array={} submit/aret-shards.sbatch`), or ",
+                    "their shards of {n}: {} (a Slurm array: `sbatch --array={} {}/{}`), or ",
                     list.join(", "),
-                    list.join(",")
+                    list.join(","),
+                    crate::submit::SUBMIT_DIR,
+                    crate::submit::SLURM_SHARDS_SCRIPT
                 )
             }
             None => "their shards, or ".into(),
@@ -167,7 +169,7 @@ pub fn run(config_path: &Path, args: &RunArgs) -> anyhow::Result<i32> {
     }
     let force = forced_stages(&p.graph, &args.force)?;
     // Held until run_report.json is written: its temporary file is this process's too.
-    let _alive = leftovers::hold_alive_lease(&p.store, "aret-pipe run")?;
+    let _alive = Lease::take(p.store.root(), "aret-pipe run")?;
     let mut waited_for = Vec::new();
     let cache_wait = lease::wait_while_gc(p.store.root(), &mut |line| {
         eprintln!("aret-pipe: {line}");
@@ -415,9 +417,10 @@ pub struct GcArgs {
 }
 
 /// `aret-pipe gc`: deletes blobs no manifest references, and the `.tmp-*` files killed runs left
-/// in the configurations' out dirs (of the local cache only: it never touches `cache_remote`); with `prune`, first forgets every stage result that none of
+/// in the configurations' out dirs; with `prune`, first forgets every stage result that none of
 /// `config_paths` uses now (all must share one cache), and every result of the stages in
 /// `forget`. With `dry_run` it only reports what it would delete. Returns a one-line report.
+/// It cleans the local cache only, never `cache_remote`.
 pub fn gc(config_paths: &[PathBuf], args: &GcArgs) -> anyhow::Result<String> {
     let GcArgs { ref sets, prune, ref forget, dry_run } = *args;
     let Some(first) = config_paths.first() else { bail!("gc needs a configuration file") };

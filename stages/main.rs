@@ -214,7 +214,7 @@ struct SubmitShards {
     #[arg(long, value_name = "M")]
     max_running: Option<u64>,
     /// The folder the job files are written to.
-    #[arg(long, default_value = "submit")]
+    #[arg(long, default_value = aret_pipe::submit::SUBMIT_DIR)]
     out: PathBuf,
     /// Print each shard's patients; write nothing.
     #[arg(long)]

@@ -52,6 +52,15 @@ fn quoted(path: &Path) -> anyhow::Result<String> {
     Ok(shlex::try_quote(text).with_context(|| format!("{text} cannot be quoted for a shell"))?.into_owned())
 }
 
+/// The folder `submit` writes the job files into unless told otherwise.
+pub const SUBMIT_DIR: &str = "submit";
+/// The Slurm array script of the shards, in the submit folder.
+pub const SLURM_SHARDS_SCRIPT: &str = "aret-shards.sbatch";
+/// The Slurm script of the gather, in the submit folder.
+pub const SLURM_GATHER_SCRIPT: &str = "aret-gather.sbatch";
+/// The Kubernetes Jobs (the shards' Indexed Job, then the gather Job), in the submit folder.
+pub const K8S_JOBS: &str = "aret-pipe-jobs.yaml";
+
 /// Where Slurm writes array task K's output: one file per job and task (`%A` the array's job id,
 /// `%a` the task), so a task submitted again does not overwrite the log of the run it replaces.
 pub const SLURM_SHARD_LOG: &str = "shard-%A_%a.out";
@@ -220,7 +229,7 @@ pub fn slurm(
     let launch = Launch { program: &program, config: &config_abs, workdir: &workdir };
     let logs = absolute(&out.join("logs"))?;
     let [shards, gather] = slurm_scripts(request, &launch, &logs)?;
-    let (shards_path, gather_path) = (out.join("aret-shards.sbatch"), out.join("aret-gather.sbatch"));
+    let (shards_path, gather_path) = (out.join(SLURM_SHARDS_SCRIPT), out.join(SLURM_GATHER_SCRIPT));
     write_atomic(&shards_path, shards.as_bytes(), false)?;
     write_atomic(&gather_path, gather.as_bytes(), false)?;
     report.push_str(&format!(
@@ -278,7 +287,7 @@ pub fn kubernetes(
     let in_claim = config_path.to_str().with_context(|| format!("{} is not UTF-8", config_path.display()))?;
     let yaml = kubernetes_manifests(request, in_claim)?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let path = out.join("aret-pipe-jobs.yaml");
+    let path = out.join(K8S_JOBS);
     write_atomic(&path, yaml.as_bytes(), false)?;
     report.push_str(&format!(
         "wrote {}: pod K runs `aret-pipe run {in_claim} --shard K/{}`; then the gather Job runs `--gather`\n",

@@ -302,7 +302,7 @@ fn temporary_files_of_ended_processes_go_and_a_live_process_keeps_its_own() {
     let store = w.store();
     let root = store.root().to_path_buf();
     // This process marks itself alive as `aret-pipe run` does around the run.
-    let _me = leftovers::hold_alive_lease(&store, "a test").unwrap();
+    let _me = lease::Lease::take(store.root(), "a test").unwrap();
     let here = files::this_host();
     let dead = ended_pid();
     // Not real processes: a live lease is what makes one live; one on another host lives until

@@ -6,7 +6,7 @@
 //! copies instead. Stale `.tmp-*` entries a killed process left in a folder are removed before
 //! publishing into it (see [`crate::leftovers`]).
 
-use super::files::{set_read_only, temp_name};
+use super::files::{remove_if_present, set_read_only, temp_name};
 use super::leftovers::{describe, remove_stale_temps};
 use super::store::{hash_file, OutputRef, Store};
 use anyhow::Context as _;
@@ -56,17 +56,14 @@ pub fn publish(
 
 /// Puts `blob`'s bytes at `target` as `how` publishes them, through the temporary name `tmp`,
 /// which is gone afterwards whatever happened.
-fn replace(how: Publish, blob: &Path, tmp: &Path, target: &Path) -> std::io::Result<()> {
+fn replace(how: Publish, blob: &Path, tmp: &Path, target: &Path) -> anyhow::Result<()> {
     if let Err(e) = place(how, blob, tmp).and_then(|()| fs::rename(tmp, target)) {
         let _ = fs::remove_file(tmp);
-        return Err(e);
+        return Err(e.into());
     }
     // Renaming a link onto another link to the same file does nothing and succeeds (POSIX), so
     // `tmp` stays when another process published the same blob at `target` meanwhile.
-    match fs::remove_file(tmp) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
-        _ => Ok(()),
-    }
+    remove_if_present(tmp)
 }
 
 /// Writes `blob`'s bytes at `tmp` as `how` publishes them.

@@ -87,6 +87,16 @@ pub fn write_atomic(path: &Path, bytes: &[u8], read_only: bool) -> anyhow::Resul
     result.with_context(|| format!("writing {}", path.display()))
 }
 
+/// Deletes the file at `path`; one already gone is no error (another process may have taken it).
+pub fn remove_if_present(path: &Path) -> anyhow::Result<()> {
+    match fs::remove_file(path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            Err(e).with_context(|| format!("deleting {}", path.display()))
+        }
+        _ => Ok(()),
+    }
+}
+
 /// Makes `path` read-only for everyone: mode 0444 on Unix.
 pub fn set_read_only(path: &Path) -> std::io::Result<()> {
     #[cfg(unix)]

@@ -16,9 +16,7 @@
 //! Hosts' clocks must agree to well within [`LEASE_TTL`]. A directory's listing on NFS may be
 //! cached for up to the mount's `acdirmax`; see `docs/cluster.md` for when to run `gc`.
 
-use super::files::this_host;
-use super::files::write_atomic;
-pub use super::files::Owner;
+use super::files::{remove_if_present, this_host, write_atomic, Owner};
 use super::lock::SAY_AFTER;
 use anyhow::Context as _;
 use crossbeam_channel::{bounded, Sender};
@@ -122,7 +120,7 @@ impl Lease {
                 Err(e) => return Err(e).with_context(|| format!("creating {}", path.display())),
             }
         }
-        bail_busy(&path)
+        anyhow::bail!("{} keeps reappearing: another gc is starting at the same moment; try again", path.display())
     }
 
     fn renewed(path: PathBuf, mut record: LeaseRecord) -> Lease {
@@ -251,19 +249,6 @@ fn record(holder: &str, now: u64) -> LeaseRecord {
 
 fn read_record(path: &Path) -> Option<LeaseRecord> {
     serde_json::from_slice(&fs::read(path).ok()?).ok()
-}
-
-fn remove_if_present(path: &Path) -> anyhow::Result<()> {
-    match fs::remove_file(path) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-            Err(e).with_context(|| format!("removing the lease {}", path.display()))
-        }
-        _ => Ok(()),
-    }
-}
-
-fn bail_busy<T>(path: &Path) -> anyhow::Result<T> {
-    anyhow::bail!("{} keeps reappearing: another gc is starting at the same moment; try again", path.display())
 }
 
 /// Whether a process with this id exists on this host (Linux: in `/proc`; elsewhere assumed,

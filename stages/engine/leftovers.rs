@@ -8,18 +8,12 @@
 //! no live lease names its host and pid. An entry of a live process, this one included, is
 //! never touched.
 
-use super::files::{temp_owner, Owner};
-use super::lease::{live_owners, Lease};
+use super::files::{remove_if_present, temp_owner, Owner};
+use super::lease::live_owners;
 use super::store::{links, Doomed, Store};
 use anyhow::Context as _;
 use std::collections::HashSet;
-use std::fs;
 use std::path::Path;
-
-/// Marks this process alive for [`stale_temps`] while the returned lease is held.
-pub fn hold_alive_lease(store: &Store, holder: &str) -> anyhow::Result<Lease> {
-    Lease::take(store.root(), holder)
-}
 
 /// The `.tmp-*` entries under `dir` (down to `depth` folders below it; 1: only its own entries)
 /// whose process has ended. Folders named `.tmp-*` are not entered.
@@ -79,13 +73,5 @@ pub fn describe(stale: &[Doomed], verb: &str, folders: &str) -> String {
 
 /// Deletes what [`stale_temps`] found (one already gone is no error).
 pub fn delete(stale: &[Doomed]) -> anyhow::Result<()> {
-    for doomed in stale {
-        match fs::remove_file(&doomed.path) {
-            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                return Err(e).with_context(|| format!("deleting {}", doomed.path.display()))
-            }
-            _ => {}
-        }
-    }
-    Ok(())
+    stale.iter().try_for_each(|doomed| remove_if_present(&doomed.path))
 }

@@ -23,13 +23,6 @@ pub struct FileLock {
     file: File,
 }
 
-/// How a lock is held: by many at once, or by one.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Access {
-    Shared,
-    Exclusive,
-}
-
 /// How long a process waits for a lock before it says what it waits for.
 pub const SAY_AFTER: Duration = Duration::from_secs(1);
 
@@ -45,13 +38,6 @@ fn open(path: &Path) -> anyhow::Result<File> {
         .with_context(|| format!("opening lock file {}", path.display()))
 }
 
-fn try_take(file: &File, access: Access) -> Result<(), TryLockError> {
-    match access {
-        Access::Shared => file.try_lock_shared(),
-        Access::Exclusive => file.try_lock(),
-    }
-}
-
 impl FileLock {
     /// The exclusive lock, waiting as long as it takes, silently.
     pub fn exclusive(path: &Path) -> anyhow::Result<FileLock> {
@@ -60,21 +46,16 @@ impl FileLock {
         Ok(FileLock { file })
     }
 
-    /// The lock at `path` with `access`, waiting as long as it takes. A wait longer than
+    /// The exclusive lock at `path`, waiting as long as it takes. A wait longer than
     /// [`SAY_AFTER`] calls `say` once with one line: "waiting for another aret-pipe process to
     /// release `what` (the path; held by: its holder's description, when known) …". Returns
     /// the lock and how long the wait was.
-    pub fn wait(
-        path: &Path,
-        access: Access,
-        what: &str,
-        say: &mut dyn FnMut(String),
-    ) -> anyhow::Result<(FileLock, Duration)> {
+    pub fn wait(path: &Path, what: &str, say: &mut dyn FnMut(String)) -> anyhow::Result<(FileLock, Duration)> {
         let file = open(path)?;
         let started = Instant::now();
         let mut said = false;
         loop {
-            match try_take(&file, access) {
+            match file.try_lock() {
                 Ok(()) => return Ok((FileLock { file }, started.elapsed())),
                 Err(TryLockError::WouldBlock) => {}
                 Err(TryLockError::Error(e)) if locks_unsupported(&e) => {

@@ -21,8 +21,8 @@
 
 use super::export::publish;
 pub use super::export::Publish;
-use super::leftovers::hold_alive_lease;
-use super::lock::{Access, FileLock};
+use super::lease::Lease;
+use super::lock::FileLock;
 use super::plan::{self, Decision};
 use super::progress::Progress;
 pub use super::source::Unit;
@@ -43,7 +43,8 @@ pub const COHORT: &str = "cohort";
 
 pub struct RunOptions {
     /// Re-hash every source file instead of trusting its fingerprint, and distrust manifests
-    /// that record no digest. (Every cached blob is re-hashed before use either way.)
+    /// that record no digest. (Every cached blob is re-hashed before use either way, unless the
+    /// store checks sizes only: [`Store::check_sizes_only`].)
     pub verify: bool,
     /// Stages recomputed even when cached.
     pub force: Vec<String>,
@@ -146,7 +147,7 @@ pub fn run(graph: &StageGraph, store: &Store, units: &[Unit], options: &RunOptio
         key_lock_wait: Mutex::new(Duration::ZERO),
     };
     // Marks this process's temporary files in out dirs as in use (see `leftovers`).
-    let _alive = match hold_alive_lease(store, "aret-pipe run") {
+    let _alive = match Lease::take(store.root(), "aret-pipe run") {
         Ok(lock) => Some(lock),
         Err(e) => {
             shared.notice(format!("warning: {e:#}; another process may take this run's temporary files for litter"));
@@ -419,7 +420,7 @@ fn run_stage(
         }
         let what = format!("the lock on {} · {unit}", stage.name());
         let lock_path = store.lock_path(&format!("{}-{}", stage.name(), keyed.key.hex()));
-        let (lock, waited) = FileLock::wait(&lock_path, Access::Exclusive, &what, &mut |line| shared.notice(line))?;
+        let (lock, waited) = FileLock::wait(&lock_path, &what, &mut |line| shared.notice(line))?;
         *shared.key_lock_wait.lock().expect("lock wait") += waited;
         lock.describe_holder(&format!("aret-pipe computing {} for {unit}", stage.name()));
         // Another process may have computed it while we waited for the lock.

@@ -13,7 +13,7 @@
 //! key, and each blob it names re-hashes to its name, or for a gather has its size (see
 //! [`Store::lookup`], [`Store::check_sizes_only`]).
 
-use super::files::write_atomic;
+use super::files::{remove_if_present, write_atomic};
 use super::key::Hash;
 use anyhow::Context as _;
 use serde::{Deserialize, Serialize};
@@ -395,17 +395,9 @@ pub struct Doomed {
 
 impl Garbage {
     /// Deletes it: manifests first, so no manifest ever names a deleted blob.
-    /// Call only while holding the cache's exclusive lock.
+    /// Call only while holding the cache's gc lease with no other lease live ([`crate::lease`]).
     pub fn delete(&self) -> anyhow::Result<()> {
-        for path in self.manifests.iter().chain(self.files.iter().map(|f| &f.path)) {
-            match fs::remove_file(path) {
-                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                    return Err(e).with_context(|| format!("deleting {}", path.display()))
-                }
-                _ => {}
-            }
-        }
-        Ok(())
+        self.manifests.iter().chain(self.files.iter().map(|f| &f.path)).try_for_each(|path| remove_if_present(path))
     }
 
     /// Bytes deleting it frees on disk, and bytes it unlinks that out dirs still hold.
